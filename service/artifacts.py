@@ -1,0 +1,148 @@
+"""The exported artifact format: the one contract between the trainer and the server.
+
+Layout of an artifact folder (``exported/`` ships with the repository)::
+
+    manifest.json       format version, model config, dataset seed/hash, metrics, checksums
+    f.onnx              embedding f:      points (B, N, 3)            -> embedding (B, D)
+    g.onnx              retrieval g:      points (B, N, 3)            -> weights (B, K),
+                                                                         means (B, K, D),
+                                                                         sigmas (B, K, D)
+    h_query.onnx        placement, query branch:  points (B, N, 3)    -> query_feature (B, Fq)
+    h_part.onnx         placement, part branch:   points (B, N, 3)    -> part_feature (B, Fp)
+    h_head.onnx         placement head:  query_feature (B, Fq),
+                                         part_feature (B, Fp)         -> translation (B, 3)
+    index.faiss         FAISS index over the catalog embeddings (row i = catalog part i)
+    catalog.json        one record per catalog part (see ``CatalogPart`` fields below)
+    catalog.npz         embeddings (P, D) float32, part_features (P, Fp) float32,
+                        points (P, S, 3) float16 centred samples,
+                        mesh_vertices (Vt, 3) float32 centred, mesh_faces (Ft, 3) int32 local,
+                        vertex_first (P + 1,) int64, face_first (P + 1,) int64
+
+Query points are in the canonical frame: y up, front +x, the complete object centred at its
+bounding-box centre and scaled to unit radius. Part points are centred at the part's
+bounding-box centre (same scale). A translation is the part's bounding-box centre.
+
+A change of layout bumps ``FORMAT_VERSION``; readers refuse versions they do not know.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+FORMAT_VERSION = 1
+
+MANIFEST = "manifest.json"
+GRAPH_FILES = {
+    "f": "f.onnx",
+    "g": "g.onnx",
+    "h_query": "h_query.onnx",
+    "h_part": "h_part.onnx",
+    "h_head": "h_head.onnx",
+}
+INDEX_FILE = "index.faiss"
+CATALOG_JSON = "catalog.json"
+CATALOG_ARRAYS = "catalog.npz"
+
+# Input and output names of each graph, checked at load time against the ONNX files.
+GRAPH_INPUTS = {
+    "f": ["points"],
+    "g": ["points"],
+    "h_query": ["points"],
+    "h_part": ["points"],
+    "h_head": ["query_feature", "part_feature"],
+}
+GRAPH_OUTPUTS = {
+    "f": ["embedding"],
+    "g": ["weights", "means", "sigmas"],
+    "h_query": ["query_feature"],
+    "h_part": ["part_feature"],
+    "h_head": ["translation"],
+}
+
+# Fields of one record in catalog.json.
+CATALOG_FIELDS = (
+    "part_id",        # str, stable id, e.g. "chair-0007/2"
+    "shape_id",       # str, source shape
+    "category",       # str
+    "style",          # str | None, fine-grained style of the source shape (may be unknown)
+    "label",          # str | None, majority semantic label (may be unknown)
+    "translation",    # [x, y, z], bounding-box centre in the source shape's frame
+    "bbox_min",       # [x, y, z], centred bounding box
+    "bbox_max",       # [x, y, z]
+    "area",           # float, surface area
+    "split",          # "train" | "test", the split of the source shape
+    "duplicate_of",   # int | None, index of the part this one is a near-duplicate of
+)
+
+
+class ArtifactError(RuntimeError):
+    """An artifact folder is missing a file, has a bad checksum or an unknown format."""
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write JSON through a temporary file and a rename, so readers never see half a file."""
+    tmp = Path(str(path) + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(obj, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def write_manifest(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    """Complete ``manifest`` with the format version and the checksum of every file, then write it."""
+    folder = Path(folder)
+    files = [*GRAPH_FILES.values(), INDEX_FILE, CATALOG_JSON, CATALOG_ARRAYS]
+    checksums = {}
+    for name in files:
+        p = folder / name
+        if not p.is_file():
+            raise ArtifactError(f"cannot write manifest: {p} is missing")
+        checksums[name] = sha256_file(p)
+    # Dynamo exports may write weights beside the graph; they must ship and be checked too.
+    for extra in sorted(folder.glob("*.onnx.data")):
+        checksums[extra.name] = sha256_file(extra)
+    full = dict(manifest)
+    full["format_version"] = FORMAT_VERSION
+    full["files"] = checksums
+    write_json_atomic(folder / MANIFEST, full)
+    return full
+
+
+def read_manifest(folder: Path, verify_checksums: bool = True) -> dict[str, Any]:
+    """Read and check ``manifest.json``; raise ``ArtifactError`` naming the bad file."""
+    folder = Path(folder)
+    path = folder / MANIFEST
+    if not path.is_file():
+        raise ArtifactError(f"artifact manifest not found: {path}")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: not valid JSON ({exc})") from exc
+    version = manifest.get("format_version")
+    if version != FORMAT_VERSION:
+        raise ArtifactError(f"{path}: format_version {version!r} is not supported (expected {FORMAT_VERSION})")
+    for key in ("model_version", "n_points", "embedding_dim", "n_modes", "part_count", "files"):
+        if key not in manifest:
+            raise ArtifactError(f"{path}: required key {key!r} missing")
+    if verify_checksums:
+        for name, digest in manifest["files"].items():
+            p = folder / name
+            if not p.is_file():
+                raise ArtifactError(f"artifact file missing: {p}")
+            if sha256_file(p) != digest:
+                raise ArtifactError(f"artifact file {p} does not match its checksum in {path}")
+    return manifest

@@ -1,0 +1,27 @@
+"""The `complementme` command line: data, training, export and evaluation, plus the service's commands.
+
+Torch is imported inside the training commands only, so `complementme serve` works in an
+environment that has the service's dependencies alone.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import typer
+
+from service.cli import register_service_commands
+from training.data.cli import data_app
+
+app = typer.Typer(help="ComplementMe: component suggestions for 3D modeling.", no_args_is_help=True)
+app.add_typer(data_app, name="data")
+register_service_commands(app)
+
+
+@app.callback()
+def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+# Training commands (train, export, evaluate) are registered below.

@@ -1,0 +1,1 @@
+"""Shape data: generation, ingest, preprocessing (paper Section 4) and sampling."""

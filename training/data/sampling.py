@@ -1,0 +1,122 @@
+"""Point samples of partial assemblies and parts, and the triplet sampler of Section 5.3.
+
+Everything here reads the cached per-component samples of a ``ProcessedDataset``: sampling an
+assembly is drawing, per component, a number of cached points proportional to its area
+(area-weighted over the union), so training never touches a mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from training.data.processed import ProcessedDataset
+
+
+def sample_assembly(ds: ProcessedDataset, comps: np.ndarray | list[int], n: int,
+                    rng: np.random.Generator) -> np.ndarray:
+    """Sample ``n`` points area-weighted over a set of components, in the shape's frame.
+
+    Shapes:
+        returns (n, 3) float32.
+    """
+    comps = np.asarray(comps, dtype=np.int64)
+    assert comps.size > 0, "an assembly needs at least one component"
+    area = ds.area[comps].astype(np.float64)
+    probs = area / area.sum() if area.sum() > 0 else np.full(len(comps), 1.0 / len(comps))
+    which = rng.choice(len(comps), size=n, p=probs)
+    cached = ds.points.shape[1]
+    rows = rng.integers(0, cached, size=n)
+    pts = ds.points[comps[which], rows].astype(np.float32)
+    return pts + ds.translation[comps[which]]
+
+
+def sample_part(ds: ProcessedDataset, comp: int, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Sample ``n`` points of one component, centred at its bounding-box centre.
+
+    Shapes:
+        returns (n, 3) float32.
+    """
+    cached = ds.points.shape[1]
+    rows = rng.choice(cached, size=n, replace=n > cached)
+    return ds.points[comp, rows].astype(np.float32)
+
+
+def random_connected_subgraph(nodes: list[int], adj: list[set[int]], r: int,
+                              rng: np.random.Generator) -> list[int]:
+    """Grow a connected subgraph of ``r`` nodes from a random seed node (paper, Section 5.3)."""
+    start = nodes[int(rng.integers(len(nodes)))]
+    chosen = [start]
+    chosen_set = {start}
+    frontier = set(adj[start])
+    while len(chosen) < r and frontier:
+        nxt = sorted(frontier)[int(rng.integers(len(frontier)))]
+        chosen.append(nxt)
+        chosen_set.add(nxt)
+        frontier |= adj[nxt]
+        frontier -= chosen_set
+    return chosen
+
+
+@dataclass
+class Triplet:
+    """One training example: query components X, a positive complement Y and a negative Z."""
+
+    shape: int
+    query: list[int]
+    positive: int
+    negative: int
+
+
+class TripletSampler:
+    """Samples (X, Y, Z) triplets from contact graphs, as in the paper's Section 5.3.
+
+    X is a random connected subgraph of r in [1, n - 1] nodes of a random shape, Y a random
+    component adjacent to X, Z a random component not adjacent to X and not in it (from the same
+    shape or, as the paper allows, from any other shape).
+    """
+
+    def __init__(self, ds: ProcessedDataset, n_points: int = 1000):
+        self.ds = ds
+        self.n_points = n_points
+        self.adj = ds.adjacency()
+        self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
+        assert self.eligible, "no shape has two or more components"
+
+    def sample_triplet(self, rng: np.random.Generator) -> Triplet:
+        ds = self.ds
+        shape = self.eligible[int(rng.integers(len(self.eligible)))]
+        nodes = ds.components_of(shape).tolist()
+        r = int(rng.integers(1, len(nodes)))  # r in [1, n - 1]: at least one complement remains
+        query = random_connected_subgraph(nodes, self.adj, r, rng)
+        qset = set(query)
+        neighbours = sorted(set().union(*(self.adj[c] for c in query)) - qset)
+        if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
+            return self.sample_triplet(rng)
+        positive = neighbours[int(rng.integers(len(neighbours)))]
+        blocked = qset | set(neighbours)
+        while True:
+            negative = int(rng.integers(ds.n_components))
+            if negative not in blocked:
+                break
+        return Triplet(shape=shape, query=query, positive=positive, negative=negative)
+
+    def batch(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """A batch of triplets as arrays.
+
+        Shapes:
+            X (B, N, 3), Y (B, N, 3), Z (B, N, 3) float32; Y_translation (B, 3) float32.
+        """
+        n = self.n_points
+        X = np.empty((batch_size, n, 3), np.float32)
+        Y = np.empty_like(X)
+        Z = np.empty_like(X)
+        T = np.empty((batch_size, 3), np.float32)
+        for b in range(batch_size):
+            t = self.sample_triplet(rng)
+            X[b] = sample_assembly(self.ds, t.query, n, rng)
+            Y[b] = sample_part(self.ds, t.positive, n, rng)
+            Z[b] = sample_part(self.ds, t.negative, n, rng)
+            T[b] = self.ds.translation[t.positive]
+        return {"X": X, "Y": Y, "Z": Z, "Y_translation": T}
