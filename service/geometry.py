@@ -1,0 +1,575 @@
+"""Safe mesh loading, surface sampling and frame normalisation (torch-free, pure functions).
+
+Shared by the HTTP service (mesh uploads) and by the trainer's ingest, so that both read a file
+the same way and refuse the same things. Untrusted bytes must never make the loader touch other
+files or the network: glTF/GLB buffers and images must be embedded ``data:`` URIs, OBJ material
+libraries are refused (or dropped on request), PLY texture files are refused, and trimesh gets a
+resolver that refuses every lookup. Declared element counts in PLY/OFF/STL/glTF headers are
+checked against the limits before trimesh allocates anything.
+
+Every failure is a ``MeshError`` whose ``code`` is one of ``MESH_ERROR_CODES`` and whose message
+names the file (or ``"upload"``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import re
+import struct
+from typing import Any, NamedTuple
+
+import numpy as np
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components as _cc
+from trimesh.resolvers import Resolver
+
+log = logging.getLogger(__name__)
+
+MESH_FORMATS = ("obj", "ply", "stl", "off", "glb", "gltf")
+MESH_ERROR_CODES = (
+    "unsupported_format",  # not one of MESH_FORMATS
+    "corrupt_mesh",        # the bytes do not parse as the declared format
+    "empty_mesh",          # no triangles (or no points)
+    "non_finite",          # NaN or infinite coordinates
+    "zero_area",           # triangles present but all degenerate
+    "degenerate",          # all points coincide: no frame can be normalised
+    "external_reference",  # the file refers to another file or a URL
+    "too_large",           # more vertices or faces than the configured limits
+)
+
+
+class MeshError(ValueError):
+    """A mesh or point set that cannot be used; ``code`` says why (see ``MESH_ERROR_CODES``)."""
+
+    def __init__(self, code: str, message: str):
+        assert code in MESH_ERROR_CODES, f"unknown mesh error code {code!r}"
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+class SceneLeaf(NamedTuple):
+    """One scene-graph leaf (or connected component) in the file's world frame.
+
+    Shapes:
+        vertices: (V, 3) float64; faces: (F, 3) int64.
+    """
+
+    name: str
+    # Name of the geometry the leaf instances (leaves sharing it are copies of one mesh).
+    geometry: str
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+class _RefusingResolver(Resolver):
+    """A trimesh resolver that refuses every lookup and remembers what was asked for.
+
+    trimesh swallows some resolver errors (e.g. for textures), so the caller checks ``asked``
+    after loading as well.
+    """
+
+    def __init__(self, name: str):
+        self.name = name
+        self.asked: list[str] = []
+
+    def get(self, key: str) -> bytes:
+        self.asked.append(str(key))
+        raise MeshError("external_reference", f"{self.name}: refers to an external file {key!r}; "
+                        "only self-contained files are accepted")
+
+    def write(self, name: str, data: Any) -> None:
+        raise MeshError("external_reference", f"{self.name}: loader tried to write {name!r}")
+
+    def namespaced(self, namespace: str) -> _RefusingResolver:
+        return self
+
+    def keys(self) -> list[str]:
+        return []
+
+
+# --------------------------------------------------------------------------------------------
+# Header checks, done on the raw bytes before trimesh sees them.
+
+
+def _check_count(name: str, what: str, count: int, limit: int) -> None:
+    if count < 0:
+        raise MeshError("corrupt_mesh", f"{name}: negative {what} count {count} in header")
+    if count > limit:
+        raise MeshError("too_large", f"{name}: declares {count} {what}, more than the limit of {limit}")
+
+
+def _check_ply_header(data: bytes, name: str, max_vertices: int, max_faces: int) -> None:
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise MeshError("corrupt_mesh", f"{name}: not a PLY file (no 'ply' magic or 'end_header')")
+    for raw in data[:end].decode("ascii", errors="replace").splitlines():
+        tokens = raw.split()
+        if len(tokens) >= 2 and tokens[0] == "comment" and tokens[1].lower() == "texturefile":
+            ref = " ".join(tokens[2:])
+            raise MeshError("external_reference", f"{name}: refers to an external texture file {ref!r}; "
+                            "only self-contained files are accepted")
+        if len(tokens) == 3 and tokens[0] == "element":
+            try:
+                count = int(tokens[2])
+            except ValueError as err:
+                raise MeshError("corrupt_mesh", f"{name}: bad PLY element line {raw!r}") from err
+            if tokens[1] == "vertex":
+                _check_count(name, "vertices", count, max_vertices)
+            elif tokens[1] == "face":
+                _check_count(name, "faces", count, max_faces)
+
+
+def _check_off_header(data: bytes, name: str, max_vertices: int, max_faces: int) -> None:
+    tokens: list[str] = []
+    for raw in data[:4096].decode("ascii", errors="replace").splitlines():
+        tokens.extend(raw.split("#", 1)[0].split())
+        if len(tokens) >= 4:
+            break
+    # ModelNet's files glue the counts to the keyword ("OFF490 972 0"), so split them off.
+    head = re.match(r"^([A-Z0-9]*OFF)(\d*)$", tokens[0]) if tokens else None
+    if head is None:
+        raise MeshError("corrupt_mesh", f"{name}: not an OFF file (no 'OFF' header)")
+    counts = ([head.group(2)] if head.group(2) else []) + tokens[1:]
+    try:
+        nv, nf = int(counts[0]), int(counts[1])
+    except (ValueError, IndexError) as err:
+        raise MeshError("corrupt_mesh", f"{name}: bad OFF header, expected vertex and face counts") from err
+    _check_count(name, "vertices", nv, max_vertices)
+    _check_count(name, "faces", nf, max_faces)
+
+
+def _check_stl_header(data: bytes, name: str, max_vertices: int, max_faces: int) -> None:
+    binary_count = struct.unpack("<I", data[80:84])[0] if len(data) >= 84 else None
+    if binary_count is not None and 84 + 50 * binary_count == len(data):
+        _check_count(name, "faces", binary_count, max_faces)  # binary STL: the count is exact
+    elif data.lstrip()[:5].lower() == b"solid":  # ASCII STL (binary headers may also say "solid")
+        _check_count(name, "faces", data.count(b"facet normal"), max_faces)
+    elif binary_count is None:
+        raise MeshError("corrupt_mesh", f"{name}: not an STL file (neither binary nor ASCII 'solid')")
+    else:
+        _check_count(name, "faces", binary_count, max_faces)
+        if 84 + 50 * binary_count > len(data):
+            raise MeshError("corrupt_mesh", f"{name}: truncated binary STL ({binary_count} triangles "
+                            f"declared, {len(data)} bytes)")
+
+
+_OBJ_REFUSED = ("mtllib", "maplib", "call", "csh")
+_OBJ_MATERIAL = ("mtllib", "usemtl", "maplib", "usemap")
+
+
+def _prepare_obj(data: bytes, name: str, max_vertices: int, max_faces: int,
+                 ignore_materials: bool) -> bytes:
+    """Refuse OBJ directives that pull in other files; count vertices and faces."""
+    kept: list[bytes] = []
+    n_vertices = n_faces = 0
+    for line in data.splitlines():
+        stripped = line.lstrip()
+        keyword = stripped.split(maxsplit=1)[0].decode("ascii", errors="replace") if stripped else ""
+        if keyword == "v":
+            n_vertices += 1
+        elif keyword == "f":
+            n_faces += max(1, len(stripped.split()) - 3)  # a polygon of k corners is k - 2 triangles
+        elif ignore_materials and keyword in _OBJ_MATERIAL:
+            continue  # never handed to the loader, so nothing is looked up
+        elif keyword in _OBJ_REFUSED:
+            ref = stripped[len(keyword):].strip().decode("utf-8", errors="replace")
+            raise MeshError("external_reference", f"{name}: '{keyword} {ref}' refers to an external file; "
+                            "only self-contained files are accepted")
+        kept.append(line)
+    _check_count(name, "vertices", n_vertices, max_vertices)
+    _check_count(name, "faces", n_faces, max_faces)
+    return b"\n".join(kept) + b"\n" if ignore_materials else data
+
+
+def _find_uris(node: Any, path: str = "") -> list[tuple[str, str]]:
+    """Every ``uri`` string anywhere in a glTF JSON tree (buffers, images, extensions)."""
+    found: list[tuple[str, str]] = []
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key == "uri":
+                found.append((f"{path}.uri", value if isinstance(value, str) else repr(value)))
+            else:
+                found.extend(_find_uris(value, f"{path}.{key}"))
+    elif isinstance(node, list):
+        for i, value in enumerate(node):
+            found.extend(_find_uris(value, f"{path}[{i}]"))
+    return found
+
+
+_DATA_URI = re.compile(r"^data:[\w.+/-]*(;[\w=.+-]+)*;base64,", re.ASCII)
+
+
+def _gltf_json(data: bytes, file_type: str, name: str) -> dict[str, Any]:
+    if file_type == "glb":
+        if len(data) < 20 or data[:4] != b"glTF":
+            raise MeshError("corrupt_mesh", f"{name}: not a GLB file (no 'glTF' magic)")
+        version, length = struct.unpack("<II", data[4:12])
+        chunk_len, chunk_type = struct.unpack("<II", data[12:20])
+        if version != 2:
+            raise MeshError("corrupt_mesh", f"{name}: GLB version {version} is not supported (expected 2)")
+        if length > len(data) or chunk_type != 0x4E4F534A or 20 + chunk_len > len(data):
+            raise MeshError("corrupt_mesh", f"{name}: truncated or malformed GLB header")
+        raw = data[20:20 + chunk_len]
+    else:
+        raw = data
+    try:
+        tree = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise MeshError("corrupt_mesh", f"{name}: glTF JSON does not parse ({err})") from err
+    if not isinstance(tree, dict):
+        raise MeshError("corrupt_mesh", f"{name}: glTF JSON is not an object")
+    return tree
+
+
+def _check_gltf(data: bytes, file_type: str, name: str, max_vertices: int, max_faces: int) -> None:
+    tree = _gltf_json(data, file_type, name)
+    for where, uri in _find_uris(tree):
+        if not _DATA_URI.match(uri):
+            shown = uri if len(uri) < 200 else uri[:200] + "..."
+            raise MeshError("external_reference", f"{name}: {where[1:]} refers to {shown!r}; only "
+                            "embedded data: URIs are accepted")
+    accessors = tree.get("accessors", [])
+    n_vertices = n_faces = 0
+    try:
+        for mesh in tree.get("meshes", []):
+            for prim in mesh.get("primitives", []):
+                n_vertices += int(accessors[prim["attributes"]["POSITION"]]["count"])
+                if "indices" in prim:
+                    n_faces += int(accessors[prim["indices"]]["count"]) // 3
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as err:
+        raise MeshError("corrupt_mesh", f"{name}: malformed glTF meshes or accessors ({err!r})") from err
+    _check_count(name, "vertices", n_vertices, max_vertices)
+    _check_count(name, "faces", n_faces, max_faces)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading.
+
+
+def _load_scene(data: bytes, file_type: str, name: str, max_vertices: int, max_faces: int,
+                ignore_obj_materials: bool) -> trimesh.Scene:
+    file_type = file_type.lower().lstrip(".")
+    if file_type not in MESH_FORMATS:
+        raise MeshError("unsupported_format", f"{name}: format {file_type!r} is not supported; expected one "
+                        f"of {', '.join(MESH_FORMATS)}")
+    if not data:
+        raise MeshError("empty_mesh", f"{name}: the file is empty")
+    kwargs: dict[str, Any] = {}
+    if file_type == "ply":
+        _check_ply_header(data, name, max_vertices, max_faces)
+    elif file_type == "off":
+        _check_off_header(data, name, max_vertices, max_faces)
+    elif file_type == "stl":
+        _check_stl_header(data, name, max_vertices, max_faces)
+    elif file_type == "obj":
+        data = _prepare_obj(data, name, max_vertices, max_faces, ignore_obj_materials)
+        # One piece per group / object, not per material.
+        kwargs = {"split_groups": True, "split_objects": True, "group_material": False}
+    else:
+        _check_gltf(data, file_type, name, max_vertices, max_faces)
+    resolver = _RefusingResolver(name)
+    try:
+        scene = trimesh.load_scene(io.BytesIO(data), file_type=file_type, resolver=resolver,
+                                   process=False, **kwargs)
+    except MeshError:
+        raise
+    except Exception as err:  # trimesh raises many types on malformed input
+        raise MeshError("corrupt_mesh", f"{name}: could not be read as {file_type.upper()} "
+                        f"({type(err).__name__}: {err})") from err
+    if resolver.asked:
+        raise MeshError("external_reference", f"{name}: refers to external file(s) {resolver.asked}; "
+                        "only self-contained files are accepted")
+    return scene
+
+
+def _scene_leaves(scene: trimesh.Scene, name: str, max_vertices: int, max_faces: int) -> list[SceneLeaf]:
+    """Scene-graph leaves with triangles, transformed to the world frame."""
+    nodes = [n for n in scene.graph.nodes_geometry
+             if isinstance(scene.geometry.get(scene.graph[n][1]), trimesh.Trimesh)]
+    # Instancing can multiply a small file into a huge mesh: count before transforming anything.
+    total_v = sum(len(scene.geometry[scene.graph[n][1]].vertices) for n in nodes)
+    total_f = sum(len(scene.geometry[scene.graph[n][1]].faces) for n in nodes)
+    _check_count(name, "vertices (after instancing)", total_v, max_vertices)
+    _check_count(name, "faces (after instancing)", total_f, max_faces)
+    leaves = []
+    for node in nodes:
+        transform, geom_name = scene.graph[node]
+        geom = scene.geometry[geom_name]
+        vertices = np.asarray(geom.vertices, dtype=np.float64)
+        faces = np.asarray(geom.faces, dtype=np.int64).reshape(-1, 3)
+        if len(faces) == 0:
+            continue
+        if not np.isfinite(vertices).all():
+            raise MeshError("non_finite", f"{name}: node {node!r} has NaN or infinite vertex coordinates")
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise MeshError("corrupt_mesh", f"{name}: node {node!r} has face indices outside its "
+                            f"{len(vertices)} vertices")
+        transform = np.asarray(transform, dtype=np.float64)
+        if not np.isfinite(transform).all():
+            raise MeshError("non_finite", f"{name}: node {node!r} has a non-finite transform")
+        world = vertices @ transform[:3, :3].T + transform[:3, 3]
+        leaves.append(SceneLeaf(str(node), str(geom_name), world, faces))
+    if not leaves:
+        raise MeshError("empty_mesh", f"{name}: contains no triangles (empty, or points/lines only)")
+    return leaves
+
+
+def _drop_zero_area(leaves: list[SceneLeaf], name: str) -> list[SceneLeaf]:
+    kept = [leaf for leaf in leaves if mesh_area(leaf.vertices, leaf.faces) > 0]
+    if not kept:
+        raise MeshError("zero_area", f"{name}: every triangle is degenerate (total surface area is zero)")
+    return kept
+
+
+def load_mesh_bytes(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
+                    max_faces: int, ignore_obj_materials: bool = False) -> trimesh.Trimesh:
+    """Load one mesh from untrusted bytes; a scene is concatenated in its world frame.
+
+    Args:
+        data: the file's bytes.
+        file_type: one of ``MESH_FORMATS`` (case-insensitive, leading dot allowed).
+        name: how errors name the file.
+        max_vertices, max_faces: refuse larger meshes (checked on headers, then after loading).
+        ignore_obj_materials: drop OBJ ``mtllib``/``usemtl`` lines instead of refusing the file.
+
+    Raises:
+        MeshError: with a ``code`` from ``MESH_ERROR_CODES``.
+    """
+    leaves = load_scene_leaves(data, file_type, name=name, max_vertices=max_vertices,
+                               max_faces=max_faces, ignore_obj_materials=ignore_obj_materials,
+                               split_components=False)
+    offsets = np.cumsum([0] + [len(leaf.vertices) for leaf in leaves[:-1]])
+    vertices = np.concatenate([leaf.vertices for leaf in leaves])
+    faces = np.concatenate([leaf.faces + off for leaf, off in zip(leaves, offsets, strict=True)])
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+
+
+def load_scene_leaves(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
+                      max_faces: int, ignore_obj_materials: bool = False,
+                      split_components: bool = True) -> list[SceneLeaf]:
+    """Scene-graph leaves of untrusted bytes, in the world frame, zero-area leaves dropped.
+
+    A file with a single leaf (an STL, PLY or OFF mesh, an OBJ without groups, a glTF with one
+    node) is split into its connected components when ``split_components`` is true, since those
+    mostly follow part boundaries (paper, Section 4); components are named ``<leaf>/<i>``.
+
+    Raises:
+        MeshError: with a ``code`` from ``MESH_ERROR_CODES``.
+    """
+    scene = _load_scene(data, file_type, name, max_vertices, max_faces, ignore_obj_materials)
+    leaves = _drop_zero_area(_scene_leaves(scene, name, max_vertices, max_faces), name)
+    if split_components and len(leaves) == 1:
+        leaf = leaves[0]
+        parts = connected_components(leaf.vertices, leaf.faces)
+        leaves = [SceneLeaf(f"{leaf.name}/{i}", f"{leaf.geometry}/{i}", v, f)
+                  for i, (v, f) in enumerate(parts)]
+        leaves = _drop_zero_area(leaves, name)
+    return leaves
+
+
+def load_scene_pieces(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
+                      max_faces: int, ignore_obj_materials: bool = False
+                      ) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Pieces of a shape file: scene-graph leaves, or connected components of a single mesh.
+
+    Returns:
+        list of (node name, vertices (V, 3) float64 in the world frame, faces (F, 3) int64).
+    """
+    leaves = load_scene_leaves(data, file_type, name=name, max_vertices=max_vertices,
+                               max_faces=max_faces, ignore_obj_materials=ignore_obj_materials)
+    return [(leaf.name, leaf.vertices, leaf.faces) for leaf in leaves]
+
+
+# --------------------------------------------------------------------------------------------
+# Pure geometry.
+
+
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area of each triangle.
+
+    Shapes:
+        vertices (V, 3), faces (F, 3) int -> (F,) float64.
+    """
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total surface area of a triangle mesh (0 for no faces)."""
+    if len(faces) == 0:
+        return 0.0
+    return float(triangle_areas(vertices, faces).sum())
+
+
+def connected_components(vertices: np.ndarray, faces: np.ndarray,
+                         merge_tolerance: float = 1e-8) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Split a mesh into vertex-connected components (coincident vertices are welded first).
+
+    Formats such as STL store every triangle with its own corners, so corners closer than
+    ``merge_tolerance`` count as one vertex. Components are ordered by their first face.
+
+    Shapes:
+        vertices (V, 3), faces (F, 3) -> list of ((Vi, 3) float64, (Fi, 3) int64).
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        return []
+    keys = np.round(vertices / merge_tolerance).astype(np.int64) if merge_tolerance > 0 else vertices
+    _, weld = np.unique(keys, axis=0, return_inverse=True)
+    weld = weld.reshape(-1)
+    n = int(weld.max()) + 1
+    welded = weld[faces]
+    rows = np.concatenate([welded[:, 0], welded[:, 1]])
+    cols = np.concatenate([welded[:, 1], welded[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    _, labels = _cc(graph, directed=False)
+    face_label = labels[welded[:, 0]]
+    # Order components by their first face so the result does not depend on scipy's labelling.
+    _, first = np.unique(face_label, return_index=True)
+    order = np.unique(face_label)[np.argsort(first)]
+    out = []
+    for lab in order:
+        f = faces[face_label == lab]
+        used, local = np.unique(f, return_inverse=True)
+        out.append((vertices[used], local.reshape(-1, 3).astype(np.int64)))
+    return out
+
+
+def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    """Validate a point set: ``(N, 3)``, N >= 1, all finite; returns it as float64.
+
+    Raises:
+        MeshError: ``empty_mesh`` or ``non_finite``; ``corrupt_mesh`` for a wrong shape.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise MeshError("corrupt_mesh", f"{name}: expected points of shape (N, 3), found {pts.shape}")
+    if len(pts) == 0:
+        raise MeshError("empty_mesh", f"{name}: no points")
+    if not np.isfinite(pts).all():
+        raise MeshError("non_finite", f"{name}: NaN or infinite coordinates")
+    return pts
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """Sample ``n`` points uniformly on a triangle mesh's surface (area-weighted, seeded).
+
+    Triangles are drawn with probability proportional to their area, then a point uniformly
+    inside each drawn triangle (square-root barycentric trick).
+
+    Shapes:
+        vertices (V, 3), faces (F, 3) -> (n, 3) float32.
+
+    Raises:
+        MeshError: ``empty_mesh`` (no faces), ``non_finite``, ``zero_area``.
+    """
+    assert n >= 0, f"n must be >= 0, found {n}"
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        raise MeshError("empty_mesh", "cannot sample a surface without faces")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if not np.isfinite(vertices).all():
+        raise MeshError("non_finite", "cannot sample a surface with NaN or infinite vertices")
+    areas = triangle_areas(vertices, faces)
+    total = areas.sum()
+    if not total > 0:
+        raise MeshError("zero_area", "cannot sample a surface whose area is zero")
+    rng = np.random.default_rng(seed)
+    cdf = np.cumsum(areas)
+    tri = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), len(faces) - 1)
+    r1 = np.sqrt(rng.random(n))[:, None]
+    r2 = rng.random(n)[:, None]
+    corners = vertices[faces[tri]]  # (n, 3, 3)
+    pts = (1 - r1) * corners[:, 0] + r1 * (1 - r2) * corners[:, 1] + r1 * r2 * corners[:, 2]
+    return pts.astype(np.float32)
+
+
+def normalize_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre at the bounding-box centre and scale to unit radius (max distance to the centre).
+
+    Works on points or mesh vertices alike; apply ``(x - center) / radius`` to map other data
+    into the same frame and ``x * radius + center`` to map back.
+
+    Shapes:
+        points (N, 3) -> normalised (N, 3) float64, center (3,) float64, radius float.
+
+    Raises:
+        MeshError: ``empty_mesh``, ``non_finite``, or ``degenerate`` when all points coincide.
+    """
+    pts = check_points(points)
+    center = (pts.min(axis=0) + pts.max(axis=0)) / 2
+    radius = float(np.linalg.norm(pts - center, axis=1).max())
+    if not radius > 0:
+        raise MeshError("degenerate", "all points coincide: the frame cannot be normalised")
+    return (pts - center) / radius, center, radius
+
+
+def resample_points(points: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """Exactly ``n`` points: a subset without replacement, or all points plus random repeats.
+
+    Shapes:
+        points (N, 3) -> (n, 3), same dtype as the input.
+
+    Raises:
+        MeshError: ``empty_mesh`` when there are no points.
+    """
+    assert n >= 0, f"n must be >= 0, found {n}"
+    points = np.asarray(points)
+    if points.ndim != 2 or len(points) == 0:
+        raise MeshError("empty_mesh", f"cannot resample an empty point set (shape {points.shape})")
+    rng = np.random.default_rng(seed)
+    if len(points) >= n:
+        return points[np.sort(rng.choice(len(points), size=n, replace=False))]
+    extra = rng.integers(0, len(points), size=n - len(points))
+    return np.concatenate([points, points[extra]])
+
+
+def points_to_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                            chunk: int = 2_000_000) -> np.ndarray:
+    """Exact distance from each point to the nearest triangle (brute force, for small meshes).
+
+    Uses the closest-point-on-triangle regions of Ericson, "Real-Time Collision Detection",
+    5.1.5, over every (point, triangle) pair, ``chunk`` pairs at a time.
+
+    Shapes:
+        points (N, 3), vertices (V, 3), faces (F, 3) -> (N,) float64.
+    """
+    p_all = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1, 3)]
+    if len(tri) == 0:
+        raise MeshError("empty_mesh", "cannot measure distances to a mesh without faces")
+    a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+    ab, ac = b - a, c - a
+    out = np.empty(len(p_all))
+    step = max(1, chunk // len(tri))
+    for s in range(0, len(p_all), step):
+        p = p_all[s:s + step, None, :]
+        ap, bp, cp = p - a, p - b, p - c
+        d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+        d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+        d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+        va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            denom = va + vb + vc
+            v_in, w_in = vb / denom, vc / denom
+            closest = a + ab * v_in[..., None] + ac * w_in[..., None]  # inside the face
+            # Edges (each replaces the face result where the point projects onto it).
+            t = d1 / (d1 - d3)
+            closest = np.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + t[..., None] * ab, closest)
+            t = d2 / (d2 - d6)
+            closest = np.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + t[..., None] * ac, closest)
+            t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            closest = np.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None],
+                               b + t[..., None] * (c - b), closest)
+        # Vertices.
+        closest = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, closest)
+        closest = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, closest)
+        closest = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, closest)
+        dist = np.linalg.norm(p - closest, axis=-1)
+        out[s:s + step] = np.nan_to_num(dist, nan=np.inf).min(axis=1)
+    return out
