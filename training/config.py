@@ -1,0 +1,258 @@
+"""Configuration of the networks and of a training run, with named presets.
+
+Two dataclasses: ``ModelConfig`` (everything needed to rebuild the networks; stored in every
+checkpoint and in the exported manifest) and ``TrainConfig`` (the run: data, budget, optimiser,
+validation). The ``help`` metadata of each field is its comment and also the CLI's help text:
+``training.cli`` generates one option per field.
+
+Values are resolved in this order, later winning: dataclass defaults < preset < ``--config``
+JSON file < explicit command-line options.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+def _help(text: str) -> dict[str, str]:
+    return {"help": text}
+
+
+@dataclass
+class ModelConfig:
+    """Layer sizes and output parametrisation of f (embedding), g (retrieval) and h (placement)."""
+
+    # Shared per-point layers (Conv1d with kernel 1) of every PointNet encoder. Paper: 64,64,64,128,1024.
+    point_layers: tuple[int, ...] = field(
+        default=(64, 128, 256),
+        metadata=_help("Per-point layer widths of every PointNet encoder (paper: 64,64,64,128,1024)."))
+    # Fully connected layers after the max-pool. Paper: 512, 256.
+    fc_layers: tuple[int, ...] = field(
+        default=(256,), metadata=_help("FC layer widths after the max-pool (paper: 512,256)."))
+    batch_norm: bool = field(default=True, metadata=_help("Batch norm after every hidden layer."))
+    # Dropout after each FC layer of the encoders (PointNet uses 0.3 before its classifier).
+    dropout: float = field(default=0.0, metadata=_help("Dropout probability after each encoder FC layer."))
+    embedding_dim: int = field(default=50, metadata=_help("D, dimension of the part embedding (paper: 50)."))
+    n_modes: int = field(default=8, metadata=_help("K, Gaussians in the mixture predicted by g (paper: 8)."))
+    # The paper caps sigma at 0.05 so the likelihood cannot be gamed by ever wider Gaussians.
+    sigma_max: float = field(default=0.05, metadata=_help("Upper limit of every sigma (paper: 0.05)."))
+    sigma_min: float = field(default=1e-3, metadata=_help("Lower limit of every sigma (keeps log finite)."))
+    # "sigmoid": sigma = min + (max - min) * sigmoid(raw), smooth everywhere.
+    # "exp_clip": sigma = clamp(exp(raw + sigma_log_bias), min, max), the paper's exponential;
+    # its gradient vanishes at the clip, so the bias must start well below log(sigma_max).
+    sigma_param: str = field(default="sigmoid", metadata=_help("Sigma parametrisation: sigmoid | exp_clip."))
+    sigma_log_bias: float = field(
+        default=-4.0, metadata=_help("Initial bias of raw log-sigma for exp_clip (exp(-4) = 0.018)."))
+    # Placement network h: two encoders (query X, part Y), then an MLP on their concatenation.
+    placement_point_layers: tuple[int, ...] = field(
+        default=(64, 128, 256), metadata=_help("Per-point layer widths of h's two encoders."))
+    placement_fc_layers: tuple[int, ...] = field(
+        default=(256,), metadata=_help("FC widths of h's encoders; the last is the feature size Fq = Fp."))
+    placement_head_layers: tuple[int, ...] = field(
+        default=(256, 128), metadata=_help("Hidden widths of h's head MLP (then a linear layer to xyz)."))
+
+    def validate(self) -> None:
+        for name in ("point_layers", "fc_layers", "placement_point_layers", "placement_fc_layers"):
+            value = getattr(self, name)
+            if not value or any(int(v) <= 0 for v in value):
+                raise ValueError(f"model config: {name} must be a non-empty list of positive ints, "
+                                 f"got {value!r}")
+        if any(int(v) <= 0 for v in self.placement_head_layers):
+            raise ValueError("model config: placement_head_layers must be positive, "
+                             f"got {self.placement_head_layers!r}")
+        if self.embedding_dim <= 0 or self.n_modes <= 0:
+            raise ValueError("model config: embedding_dim and n_modes must be positive")
+        if not 0.0 < self.sigma_min < self.sigma_max:
+            raise ValueError(f"model config: need 0 < sigma_min < sigma_max, "
+                             f"got {self.sigma_min}, {self.sigma_max}")
+        if self.sigma_param not in ("sigmoid", "exp_clip"):
+            raise ValueError("model config: sigma_param must be 'sigmoid' or 'exp_clip', "
+                             f"got {self.sigma_param!r}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"model config: dropout must be in [0, 1), got {self.dropout}")
+
+
+@dataclass
+class TrainConfig:
+    """One training run: data, budget, optimiser, validation and logging."""
+
+    data: str = field(default="data/processed", metadata=_help("Processed dataset folder."))
+    run: str = field(default="runs/default", metadata=_help("Run folder: checkpoints, split, logs, plots."))
+    seed: int = field(default=0, metadata=_help("Seed of the split, the initial weights and the sampling."))
+    test_fraction: float = field(default=0.2, metadata=_help("Fraction of each category's shapes held out."))
+    # Budget: training stops at whichever comes first. `minutes` counts this invocation only,
+    # so a resumed run gets a fresh budget; `steps` is the total over all invocations.
+    steps: int = field(default=20000, metadata=_help("Total optimisation steps (over all resumes)."))
+    minutes: float = field(default=0.0, metadata=_help("Wall-clock budget of this invocation; 0 = none."))
+    batch_size: int = field(default=32, metadata=_help("Triplets per step and per process (paper: 32)."))
+    # The paper samples 1000 points; max-pooling makes the nets accept any N, and 512 halves the cost.
+    n_points: int = field(default=512, metadata=_help("Points per assembly or part during training."))
+    lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate (paper: 1e-3)."))
+    lr_decay: float = field(default=0.8, metadata=_help("LR factor per decay period (paper: 0.8)."))
+    lr_decay_steps: int = field(default=50000, metadata=_help("Steps per decay period (paper: 50000)."))
+    lr_staircase: bool = field(default=False, metadata=_help("Decay in steps instead of continuously."))
+    margin: float = field(default=10.0, metadata=_help("Triplet margin m of Equation 2 (paper: 10)."))
+    placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
+    train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
+    train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
+    val_every: int = field(default=500, metadata=_help("Steps between validations (0 = only at the end)."))
+    val_triplets: int = field(default=512, metadata=_help("Fixed held-out triplets used by validation."))
+    val_precision_k: int = field(default=5, metadata=_help("k of label precision@k."))
+    ckpt_every: int = field(default=500, metadata=_help("Steps between checkpoints (one more at the end)."))
+    log_every: int = field(default=25, metadata=_help("Steps between rows of the loss log."))
+    num_workers: int = field(default=1, metadata=_help("DataLoader workers sampling batches (0 = inline)."))
+    threads: int = field(default=0, metadata=_help("Torch threads per process (0 = cores / processes)."))
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+    def validate(self) -> None:
+        self.model.validate()
+        positive = ("steps", "batch_size", "n_points", "lr_decay_steps", "val_triplets", "val_precision_k",
+                    "ckpt_every", "log_every")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"train config: {name} must be positive, got {getattr(self, name)}")
+        for name in ("minutes", "val_every", "num_workers", "threads"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 < self.test_fraction < 1.0:
+            raise ValueError(f"train config: test_fraction must be in (0, 1), got {self.test_fraction}")
+        if self.lr <= 0 or self.placement_lr <= 0 or not 0 < self.lr_decay <= 1:
+            raise ValueError("train config: learning rates must be > 0 and lr_decay in (0, 1]")
+        if not (self.train_retrieval or self.train_placement):
+            raise ValueError("train config: nothing to train "
+                             "(train_retrieval and train_placement are both off)")
+
+
+# Named starting points. "shipped" is what the lead trains in <= 60 minutes on a 2-core CPU.
+PRESETS: dict[str, dict[str, Any]] = {
+    # A few seconds per hundred steps: tests and smoke runs.
+    "tiny": {
+        "batch_size": 8, "n_points": 128, "val_every": 0, "val_triplets": 32, "ckpt_every": 1000,
+        "log_every": 1, "num_workers": 0,
+        "model": {"point_layers": (16, 32), "fc_layers": (32,), "embedding_dim": 8, "n_modes": 3,
+                  "placement_point_layers": (16, 32), "placement_fc_layers": (32,),
+                  "placement_head_layers": (32,)},
+    },
+    # Slim PointNets at N = 512: about 0.3 s per joint f+g+h step on 2 cores.
+    "shipped": {
+        "steps": 100000, "n_points": 512, "lr_decay_steps": 3000, "val_every": 1000, "ckpt_every": 500,
+        "model": {},
+    },
+    # The paper's sizes (about 5x slower per step on CPU).
+    "paper": {
+        "n_points": 1000,
+        "model": {"point_layers": (64, 64, 64, 128, 1024), "fc_layers": (512, 256), "dropout": 0.3,
+                  "placement_point_layers": (64, 64, 64, 128, 1024), "placement_fc_layers": (512, 256),
+                  "placement_head_layers": (256, 128)},
+    },
+}
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    """Convert a JSON or CLI value to a field's annotated type, or raise naming the field."""
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v for v in value.replace(" ", "").split(",") if v]
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{where}: expected a list of ints, got {value!r}")
+        try:
+            return tuple(int(v) for v in value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: expected a list of ints, got {value!r}") from exc
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
+            return value.lower() in ("true", "1", "yes")
+        raise ValueError(f"{where}: expected true or false, got {value!r}")
+    if annotation in (int, float, str):
+        if annotation is int and isinstance(value, float) and not value.is_integer():
+            raise ValueError(f"{where}: expected an int, got {value!r}")
+        if annotation in (int, float) and isinstance(value, bool):
+            raise ValueError(f"{where}: expected a number, got {value!r}")
+        try:
+            return annotation(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: expected {annotation.__name__}, got {value!r}") from exc
+    raise TypeError(f"{where}: unsupported field type {annotation!r}")
+
+
+def field_types(cls: type) -> dict[str, Any]:
+    """Resolved annotations of a config dataclass (the module uses postponed annotations)."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def apply_overrides(cfg: TrainConfig, overrides: dict[str, Any], source: str = "overrides") -> TrainConfig:
+    """Return a copy of ``cfg`` with ``overrides`` applied.
+
+    ``overrides`` may be nested (``{"model": {...}}``, as in a JSON file) or flat: a key that is
+    not a ``TrainConfig`` field is looked up among the ``ModelConfig`` fields. Unknown keys raise
+    a ``ValueError`` naming the key and ``source``.
+    """
+    train_types = field_types(TrainConfig)
+    model_types = field_types(ModelConfig)
+    train_changes: dict[str, Any] = {}
+    model_changes: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if key == "model":
+            if not isinstance(value, dict):
+                raise ValueError(f"{source}: 'model' must be an object, got {value!r}")
+            for mkey, mvalue in value.items():
+                if mkey not in model_types:
+                    raise ValueError(f"{source}: unknown model option {mkey!r}")
+                model_changes[mkey] = _coerce(mvalue, model_types[mkey], f"{source}: model.{mkey}")
+        elif key in train_types:
+            train_changes[key] = _coerce(value, train_types[key], f"{source}: {key}")
+        elif key in model_types:
+            model_changes[key] = _coerce(value, model_types[key], f"{source}: {key}")
+        else:
+            raise ValueError(f"{source}: unknown option {key!r}")
+    model = dataclasses.replace(cfg.model, **model_changes)
+    return dataclasses.replace(cfg, **train_changes, model=model)
+
+
+def resolve_config(preset: str | None = None, config_file: Path | None = None,
+                   overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Build a validated ``TrainConfig``: defaults, then preset, then JSON file, then overrides."""
+    cfg = TrainConfig()
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; known presets: {', '.join(sorted(PRESETS))}")
+        cfg = apply_overrides(cfg, PRESETS[preset], source=f"preset {preset!r}")
+    if config_file is not None:
+        path = Path(config_file)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"cannot read config file {path}: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"config file {path}: expected a JSON object")
+        cfg = apply_overrides(cfg, data, source=str(path))
+    if overrides:
+        cfg = apply_overrides(cfg, overrides, source="command line")
+    cfg.validate()
+    return cfg
+
+
+def config_to_dict(cfg: TrainConfig | ModelConfig) -> dict[str, Any]:
+    """JSON-ready dict (tuples become lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def config_from_dict(data: dict[str, Any]) -> TrainConfig:
+    """Inverse of ``config_to_dict`` for a ``TrainConfig`` (as stored in checkpoints)."""
+    cfg = apply_overrides(TrainConfig(), data, source="stored config")
+    cfg.validate()
+    return cfg
+
+
+def model_config_from_dict(data: dict[str, Any]) -> ModelConfig:
+    """Rebuild a ``ModelConfig`` from its dict (as stored in manifests and checkpoints)."""
+    return apply_overrides(TrainConfig(), {"model": data}, source="stored model config").model

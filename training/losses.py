@@ -1,0 +1,71 @@
+"""Losses: the mixture negative log-likelihood (Equation 1), the triplet hinge (Equation 2) and
+the placement regression.
+
+Equation 1 is evaluated in the log-sum-exp form of the paper's Appendix: with 50 dimensions and
+sigmas of at most 0.05, the density of an embedding a few units from every mean is far below the
+smallest float (exp(-1e4)), so a direct ``log(sum(phi * N))`` would return ``inf``. Note the
+Appendix prints ``- log sigma`` inside the sum over dimensions; the Gaussian's normaliser gives
+``+ log sigma`` there (``-log N = (y - mu)^2 / (2 sigma^2) + log sigma + log(2 pi) / 2``), which
+is what is implemented.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def component_log_density(y: torch.Tensor, means: torch.Tensor, log_sigmas: torch.Tensor) -> torch.Tensor:
+    """Log density of ``y`` under each diagonal Gaussian of a mixture.
+
+    Shapes:
+        y (B, D), means (B, K, D), log_sigmas (B, K, D) -> (B, K).
+    """
+    d = y.shape[-1]
+    z = (y.unsqueeze(1) - means) * torch.exp(-log_sigmas)             # (B, K, D)
+    return -(0.5 * z.square() + log_sigmas).sum(dim=-1) - 0.5 * d * math.log(2.0 * math.pi)
+
+
+def mixture_nll(y: torch.Tensor, log_weights: torch.Tensor, means: torch.Tensor,
+                log_sigmas: torch.Tensor) -> torch.Tensor:
+    """E(X, Y) of Equation 1: ``-log sum_k phi_k N(y | mu_k, sigma_k^2)``, one value per row.
+
+    ``torch.logsumexp`` subtracts the per-row maximum before exponentiating (the Appendix's
+    trick), so rows whose every component density underflows still get a finite value and
+    gradient.
+
+    Shapes:
+        y (B, D), log_weights (B, K), means (B, K, D), log_sigmas (B, K, D) -> (B,).
+    """
+    return -torch.logsumexp(log_weights + component_log_density(y, means, log_sigmas), dim=1)
+
+
+def triplet_hinge(e_pos: torch.Tensor, e_neg: torch.Tensor, margin: float) -> torch.Tensor:
+    """Equation 2 per triplet: ``max(m + E(X, Y) - E(X, Z), 0)``.
+
+    Shapes:
+        e_pos (B,), e_neg (B,) -> (B,).
+    """
+    return torch.clamp(margin + e_pos - e_neg, min=0.0)
+
+
+def triplet_loss(y_emb: torch.Tensor, z_emb: torch.Tensor, log_weights: torch.Tensor, means: torch.Tensor,
+                 log_sigmas: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mean triplet hinge over a batch, plus the per-triplet energies (for logging and accuracy).
+
+    Shapes:
+        y_emb (B, D), z_emb (B, D), mixture as in ``mixture_nll`` -> loss (), e_pos (B,), e_neg (B,).
+    """
+    e_pos = mixture_nll(y_emb, log_weights, means, log_sigmas)
+    e_neg = mixture_nll(z_emb, log_weights, means, log_sigmas)
+    return triplet_hinge(e_pos, e_neg, margin).mean(), e_pos, e_neg
+
+
+def placement_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error of predicted translations (squared distance, averaged over the batch).
+
+    Shapes:
+        pred (B, 3), target (B, 3) -> ().
+    """
+    return (pred - target).square().sum(dim=1).mean()

@@ -1,0 +1,212 @@
+"""The three networks of the paper: embedding f, retrieval g (a mixture density network) and
+placement h, all on PointNet encoders without spatial transformers (Section 5, Figure 4).
+
+Every module takes points as ``(B, N, 3)`` and transposes inside, so the exported ONNX graphs have
+the service's input layout; per-point layers are ``Conv1d`` with kernel 1 (3-4x faster in
+onnxruntime than ``Linear`` over ``(B, N, C)``). Max-pooling over points makes every network
+accept any N: training may use fewer points than serving.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from training.config import ModelConfig
+
+
+class PointNetEncoder(nn.Module):
+    """PointNet feature extractor: shared per-point MLP, max-pool over points, FC layers.
+
+    Args:
+        point_layers: widths of the shared per-point layers (paper: 64, 64, 64, 128, 1024).
+        fc_layers: widths of the fully connected layers after the pool (paper: 512, 256).
+        batch_norm: batch norm after every layer (before the ReLU).
+        dropout: dropout probability after each FC layer.
+
+    Shapes:
+        points (B, N, 3) -> features (B, fc_layers[-1]).
+    """
+
+    def __init__(self, point_layers: tuple[int, ...], fc_layers: tuple[int, ...], batch_norm: bool = True,
+                 dropout: float = 0.0):
+        super().__init__()
+        convs: list[nn.Module] = []
+        width = 3
+        for out in point_layers:
+            convs.append(nn.Conv1d(width, out, kernel_size=1, bias=not batch_norm))
+            if batch_norm:
+                convs.append(nn.BatchNorm1d(out))
+            convs.append(nn.ReLU())
+            width = out
+        self.point_mlp = nn.Sequential(*convs)
+        fcs: list[nn.Module] = []
+        for out in fc_layers:
+            fcs.append(nn.Linear(width, out, bias=not batch_norm))
+            if batch_norm:
+                fcs.append(nn.BatchNorm1d(out))
+            fcs.append(nn.ReLU())
+            if dropout > 0:
+                fcs.append(nn.Dropout(dropout))
+            width = out
+        self.fc = nn.Sequential(*fcs)
+        self.out_dim = width
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        x = points.transpose(1, 2)          # (B, 3, N)
+        x = self.point_mlp(x)               # (B, C, N)
+        x = torch.amax(x, dim=2)            # (B, C): symmetric in the points
+        return self.fc(x)                   # (B, F)
+
+
+class EmbeddingNet(nn.Module):
+    """f: a part's points to its coordinates in the D-dimensional embedding space.
+
+    Shapes:
+        points (B, N, 3), centred at the part's bounding-box centre -> embedding (B, D).
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.encoder = PointNetEncoder(cfg.point_layers, cfg.fc_layers, cfg.batch_norm, cfg.dropout)
+        self.out = nn.Linear(self.encoder.out_dim, cfg.embedding_dim)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.out(self.encoder(points))
+
+
+class RetrievalNet(nn.Module):
+    """g: a partial assembly's points to a mixture of K diagonal Gaussians over the embedding.
+
+    One linear layer per mixture parameter on the PointNet feature, as in the paper: softmax for
+    the weights, linear for the means, and a positive, bounded activation for the sigmas. The
+    paper's ``exp`` with a clip at 0.05 gives zero gradient whenever the clip is active, and with
+    a raw value near 0 at initialisation every sigma starts (and stays) clipped; the default
+    ``sigmoid`` parametrisation ``sigma_min + (sigma_max - sigma_min) * sigmoid(raw)`` keeps a
+    gradient everywhere. ``exp_clip`` keeps the paper's form with a low initial bias.
+
+    Shapes:
+        points (B, N, 3) in the shape frame -> weights (B, K), means (B, K, D), sigmas (B, K, D).
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.k, self.d = cfg.n_modes, cfg.embedding_dim
+        self.sigma_param = cfg.sigma_param
+        self.sigma_min, self.sigma_max = cfg.sigma_min, cfg.sigma_max
+        self.encoder = PointNetEncoder(cfg.point_layers, cfg.fc_layers, cfg.batch_norm, cfg.dropout)
+        width = self.encoder.out_dim
+        self.weight_head = nn.Linear(width, self.k)
+        self.mean_head = nn.Linear(width, self.k * self.d)
+        self.sigma_head = nn.Linear(width, self.k * self.d)
+        if self.sigma_param == "exp_clip":
+            nn.init.constant_(self.sigma_head.bias, cfg.sigma_log_bias)
+
+    def forward_log(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Mixture parameters in the form the loss needs: log weights, means and log sigmas.
+
+        Shapes:
+            points (B, N, 3) -> log_weights (B, K), means (B, K, D), log_sigmas (B, K, D).
+        """
+        feat = self.encoder(points)                                   # (B, F)
+        log_weights = F.log_softmax(self.weight_head(feat), dim=1)    # (B, K)
+        means = self.mean_head(feat).view(-1, self.k, self.d)         # (B, K, D)
+        raw = self.sigma_head(feat).view(-1, self.k, self.d)          # (B, K, D)
+        if self.sigma_param == "sigmoid":
+            sigmas = self.sigma_min + (self.sigma_max - self.sigma_min) * torch.sigmoid(raw)
+        else:
+            sigmas = torch.clamp(torch.exp(raw), self.sigma_min, self.sigma_max)
+        return log_weights, means, torch.log(sigmas)
+
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        log_weights, means, log_sigmas = self.forward_log(points)
+        return torch.exp(log_weights), means, torch.exp(log_sigmas)
+
+
+class PlacementHead(nn.Module):
+    """The MLP of h on the concatenated query and part features, ending in a translation.
+
+    Shapes:
+        query_feature (B, Fq), part_feature (B, Fp) -> translation (B, 3).
+    """
+
+    def __init__(self, query_dim: int, part_dim: int, hidden: tuple[int, ...], batch_norm: bool = True):
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = query_dim + part_dim
+        for out in hidden:
+            layers.append(nn.Linear(width, out, bias=not batch_norm))
+            if batch_norm:
+                layers.append(nn.BatchNorm1d(out))
+            layers.append(nn.ReLU())
+            width = out
+        layers.append(nn.Linear(width, 3))
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, query_feature: torch.Tensor, part_feature: torch.Tensor) -> torch.Tensor:
+        return self.mlp(torch.cat([query_feature, part_feature], dim=1))
+
+
+class PlacementNet(nn.Module):
+    """h: where a part goes, given the partial assembly (two PointNet branches and a head).
+
+    Split into ``query`` (X, in the shape frame), ``part`` (Y, centred) and ``head`` so the export
+    writes three graphs and the service encodes each catalog part once, ahead of time.
+
+    Shapes:
+        query (B, N, 3), part (B, M, 3) -> translation (B, 3), the part's bounding-box centre.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.query = PointNetEncoder(cfg.placement_point_layers, cfg.placement_fc_layers, cfg.batch_norm,
+                                     cfg.dropout)
+        self.part = PointNetEncoder(cfg.placement_point_layers, cfg.placement_fc_layers, cfg.batch_norm,
+                                    cfg.dropout)
+        self.head = PlacementHead(self.query.out_dim, self.part.out_dim, cfg.placement_head_layers,
+                                  cfg.batch_norm)
+
+    @property
+    def query_dim(self) -> int:
+        return self.query.out_dim
+
+    @property
+    def part_dim(self) -> int:
+        return self.part.out_dim
+
+    def forward(self, query: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+        return self.head(self.query(query), self.part(part))
+
+
+class RetrievalPair(nn.Module):
+    """f and g together, so one forward (and one DistributedDataParallel wrapper) serves a triplet.
+
+    The positive and negative parts go through f as one batch of 2B: one pass instead of two,
+    and batch-norm statistics over both.
+
+    Shapes:
+        X (B, N, 3), parts (2B, N, 3) -> embeddings (2B, D), log_weights (B, K), means (B, K, D),
+        log_sigmas (B, K, D).
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.f = EmbeddingNet(cfg)
+        self.g = RetrievalNet(cfg)
+
+    def forward(self, X: torch.Tensor, parts: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        embeddings = self.f(parts)
+        log_weights, means, log_sigmas = self.g.forward_log(X)
+        return embeddings, log_weights, means, log_sigmas
+
+
+def build_models(cfg: ModelConfig) -> tuple[RetrievalPair, PlacementNet]:
+    """The networks of one run, freshly initialised from the current torch seed."""
+    cfg.validate()
+    return RetrievalPair(cfg), PlacementNet(cfg)
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

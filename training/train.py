@@ -1,0 +1,337 @@
+"""Joint training of f and g (triplet loss, Section 5.3) and of the placement network h.
+
+f+g and h are trained in the same loop on the same batches, each with its own Adam optimiser
+and schedule: sampling a batch is shared, and h's loss never reaches f or g. A run stops at
+``cfg.steps`` total steps or after ``cfg.minutes`` of this invocation, whichever comes first.
+
+Distributed data-parallel: launched under ``torchrun`` (``WORLD_SIZE`` > 1) every process joins
+a process group (gloo on CPU, nccl on GPUs), samples with its own seed offset, and gradients are
+averaged by ``DistributedDataParallel``; rank 0 alone validates and writes checkpoints and logs.
+
+Run folder contents: ``config.json``, ``split.json``, ``checkpoint.pt``, ``losses.csv``,
+``validation.csv``, ``losses.png``, ``validation.png``, ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from service.artifacts import write_json_atomic
+from training.batches import batch_stream
+from training.checkpoint import checkpoint_path, load_checkpoint, make_state, save_checkpoint
+from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
+from training.data.processed import ProcessedDataset
+from training.losses import placement_loss, triplet_loss
+from training.models import build_models, count_parameters
+from training.plots import (
+    LOSSES_CSV,
+    LOSSES_PNG,
+    VALIDATION_CSV,
+    VALIDATION_PNG,
+    CsvLog,
+    plot_columns,
+    truncate_after,
+)
+from training.split import SPLIT_FILE, load_split, make_split, save_split
+from training.validation import ValidationSet, build_validation_set, validate
+
+log = logging.getLogger(__name__)
+
+CONFIG_FILE = "config.json"
+SUMMARY_FILE = "summary.json"
+LOSS_FIELDS = ["step", "elapsed_s", "lr", "triplet_loss", "e_pos", "e_neg", "batch_triplet_accuracy",
+               "placement_loss", "placement_lr", "seconds_per_step"]
+# Settings a resumed run may change; anything else must match the checkpoint.
+RESUMABLE = {"steps", "minutes", "val_every", "ckpt_every", "log_every", "num_workers", "threads", "run"}
+
+
+@dataclass
+class TrainResult:
+    """What a finished (or budget-stopped) run reached."""
+
+    run_dir: Path
+    step: int
+    elapsed_seconds: float
+    final_losses: dict[str, float] = field(default_factory=dict)
+    validation: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    local_world: int = 1
+    owns_group: bool = False
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def _setup_distributed() -> _Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Dist()
+    owns = False
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if torch.cuda.is_available() else "gloo")
+        owns = True
+    return _Dist(rank=dist.get_rank(), world=dist.get_world_size(),
+                 local_world=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))), owns_group=owns)
+
+
+def lr_factor(step: int, decay: float, decay_steps: int, staircase: bool) -> float:
+    """Multiplier of the initial learning rate after ``step`` steps (``decay`` per ``decay_steps``)."""
+    periods = step // decay_steps if staircase else step / decay_steps
+    return float(decay ** periods)
+
+
+def config_for_resume(run_dir: Path, overrides: dict[str, Any]) -> TrainConfig:
+    """The stored config of a run, with the few settings a resume may change applied."""
+    state = load_checkpoint(checkpoint_path(run_dir))
+    stored = config_from_dict(state["config"])
+    bad = sorted(k for k in overrides if k not in RESUMABLE)
+    if bad:
+        changed = [k for k in bad if getattr(stored, k, getattr(stored.model, k, None)) != overrides[k]]
+        if changed:
+            raise ValueError(f"cannot change {changed} when resuming {run_dir}; "
+                             f"only {sorted(RESUMABLE)} may change")
+    allowed = {k: v for k, v in overrides.items() if k in RESUMABLE}
+    cfg = apply_overrides(stored, allowed, source="command line")
+    cfg = dataclasses.replace(cfg, run=str(run_dir))
+    cfg.validate()
+    return cfg
+
+
+def _unwrap(m: nn.Module) -> nn.Module:
+    return m.module if isinstance(m, DistributedDataParallel) else m
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else math.nan
+
+
+def train(cfg: TrainConfig, resume: bool = False, show_progress: bool = True) -> TrainResult:
+    """Train f, g and h as ``cfg`` says, writing checkpoints and logs into ``cfg.run``."""
+    cfg.validate()
+    env = _setup_distributed()
+    try:
+        return _train(cfg, resume, show_progress, env)
+    finally:
+        if env.owns_group:
+            dist.destroy_process_group()
+
+
+def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> TrainResult:
+    threads = cfg.threads or max(1, (os.cpu_count() or 1) // env.local_world)
+    torch.set_num_threads(threads)
+    run_dir = Path(cfg.run)
+    ckpt = checkpoint_path(run_dir)
+    if env.is_main:
+        if ckpt.exists() and not resume:
+            raise FileExistsError(f"{ckpt} exists: pass --resume to continue that run, "
+                                  "or choose another --run")
+        if resume and not ckpt.exists():
+            raise FileNotFoundError(f"cannot resume: {ckpt} does not exist")
+        run_dir.mkdir(parents=True, exist_ok=True)
+    if env.world > 1:
+        dist.barrier()
+
+    ds = ProcessedDataset.load(Path(cfg.data))
+    if (run_dir / SPLIT_FILE).exists():
+        split = load_split(run_dir, ds)
+    else:
+        split = make_split(ds, cfg.test_fraction, cfg.seed)
+        if env.is_main:
+            save_split(split, ds, run_dir)
+    if len(split.test) == 0:
+        raise ValueError(f"{cfg.data}: too few shapes per category to hold out a test split")
+    train_ds = ds.subset(split.train)
+
+    torch.manual_seed(cfg.seed)
+    pair, placement = build_models(cfg.model)
+    opt_r = torch.optim.Adam(pair.parameters(), lr=cfg.lr)
+    opt_p = torch.optim.Adam(placement.parameters(), lr=cfg.placement_lr)
+    factor = lambda s: lr_factor(s, cfg.lr_decay, cfg.lr_decay_steps, cfg.lr_staircase)  # noqa: E731
+    sched_r = torch.optim.lr_scheduler.LambdaLR(opt_r, factor)
+    sched_p = torch.optim.lr_scheduler.LambdaLR(opt_p, factor)
+    step, elapsed_before = 0, 0.0
+    last_validation: dict[str, float] = {}
+    if resume:
+        state = load_checkpoint(ckpt)
+        pair.load_state_dict(state["retrieval"])
+        placement.load_state_dict(state["placement"])
+        opt_r.load_state_dict(state["optimizers"]["retrieval"])
+        opt_p.load_state_dict(state["optimizers"]["placement"])
+        sched_r.load_state_dict(state["schedulers"]["retrieval"])
+        sched_p.load_state_dict(state["schedulers"]["placement"])
+        step, elapsed_before = int(state["step"]), float(state["elapsed_seconds"])
+        last_validation = dict(state.get("validation", {}))
+        log.info("resuming %s at step %d (%.1f min trained)", run_dir, step, elapsed_before / 60)
+        if env.is_main:
+            truncate_after(run_dir / LOSSES_CSV, step)
+            truncate_after(run_dir / VALIDATION_CSV, step)
+    pair.train()
+    placement.train()
+    pair_run: nn.Module = DistributedDataParallel(pair) if env.world > 1 else pair
+    place_run: nn.Module = DistributedDataParallel(placement) if env.world > 1 else placement
+
+    vset: ValidationSet | None = None
+    loss_log: CsvLog | None = None
+    val_log: CsvLog | None = None
+    if env.is_main:
+        write_json_atomic(run_dir / CONFIG_FILE, config_to_dict(cfg))
+        log.info("f+g: %d parameters, h: %d parameters, %d train / %d test shapes, %d threads x %d processes",
+                 count_parameters(pair), count_parameters(placement), len(split.train), len(split.test),
+                 threads, env.world)
+        vset = build_validation_set(ds, split.test, cfg.val_triplets, cfg.n_points, cfg.seed)
+        loss_log = CsvLog(run_dir / LOSSES_CSV, LOSS_FIELDS)
+        val_log = CsvLog(run_dir / VALIDATION_CSV, ["step", "elapsed_s", *_validation_keys(cfg)])
+
+    stream = batch_stream(train_ds, cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
+                          start_step=step, num_workers=cfg.num_workers)
+    window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:8]}
+    recent: dict[str, deque[float]] = {k: deque(maxlen=100) for k in ("triplet_loss", "placement_loss")}
+    t_start = time.monotonic()
+    t_window = t_start
+    steps_in_window = 0
+    bar = tqdm(total=cfg.steps, initial=step, disable=not (show_progress and env.is_main),
+               desc="train", dynamic_ncols=True)
+
+    def elapsed() -> float:
+        return elapsed_before + time.monotonic() - t_start
+
+    def checkpoint() -> None:
+        if env.is_main:
+            save_checkpoint(ckpt, make_state(cfg, step, elapsed(), pair, placement,
+                                             {"retrieval": opt_r, "placement": opt_p},
+                                             {"retrieval": sched_r, "placement": sched_p},
+                                             {"validation": last_validation}))
+
+    validated_at = -1
+
+    def run_validation() -> None:
+        nonlocal last_validation, validated_at
+        validated_at = step
+        if env.is_main:
+            assert vset is not None and val_log is not None
+            last_validation = validate(pair if cfg.train_retrieval else None,
+                                       placement if cfg.train_placement else None,
+                                       vset, cfg.margin, cfg.val_precision_k)
+            val_log.append({"step": step, "elapsed_s": elapsed(), **last_validation})
+            plot_columns(run_dir / VALIDATION_CSV, run_dir / VALIDATION_PNG, _validation_keys(cfg),
+                         "validation (test split)")
+            log.info("step %d validation: %s", step,
+                     ", ".join(f"{k}={v:.4g}" for k, v in last_validation.items()))
+        if env.world > 1:
+            dist.barrier()
+
+    while step < cfg.steps:
+        stop = cfg.minutes > 0 and time.monotonic() - t_start >= cfg.minutes * 60
+        if env.world > 1:
+            flag = torch.tensor([1 if stop else 0])
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            stop = bool(flag.item())
+        if stop:
+            log.info("time budget of %.1f min reached at step %d", cfg.minutes, step)
+            break
+        batch = next(stream)
+        X, Y, Z, T = batch["X"], batch["Y"], batch["Z"], batch["Y_translation"]
+        if cfg.train_retrieval:
+            emb, log_w, means, log_s = pair_run(X, torch.cat([Y, Z]))
+            loss, e_pos, e_neg = triplet_loss(emb[:len(Y)], emb[len(Y):], log_w, means, log_s, cfg.margin)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"triplet loss is {loss.item()} at step {step}")
+            opt_r.zero_grad(set_to_none=True)
+            loss.backward()
+            opt_r.step()
+            sched_r.step()
+            window["triplet_loss"].append(loss.item())
+            window["e_pos"].append(e_pos.mean().item())
+            window["e_neg"].append(e_neg.mean().item())
+            window["batch_triplet_accuracy"].append((e_pos < e_neg).float().mean().item())
+            recent["triplet_loss"].append(loss.item())
+        if cfg.train_placement:
+            ploss = placement_loss(place_run(X, Y), T)
+            if not torch.isfinite(ploss):
+                raise FloatingPointError(f"placement loss is {ploss.item()} at step {step}")
+            opt_p.zero_grad(set_to_none=True)
+            ploss.backward()
+            opt_p.step()
+            sched_p.step()
+            window["placement_loss"].append(ploss.item())
+            recent["placement_loss"].append(ploss.item())
+        step += 1
+        steps_in_window += 1
+        bar.update(1)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            now = time.monotonic()
+            row = {"step": step, "elapsed_s": elapsed(), "lr": opt_r.param_groups[0]["lr"],
+                   "placement_lr": opt_p.param_groups[0]["lr"],
+                   "seconds_per_step": (now - t_window) / max(steps_in_window, 1),
+                   **{k: _mean(v) for k, v in window.items()}}
+            if loss_log is not None:
+                loss_log.append(row)
+            shown = ("triplet_loss", "placement_loss", "seconds_per_step")
+            bar.set_postfix({k: f"{row[k]:.3g}" for k in shown if not math.isnan(row[k])})
+            window = {k: [] for k in window}
+            t_window, steps_in_window = now, 0
+        if cfg.val_every and step % cfg.val_every == 0:
+            run_validation()
+        if step % cfg.ckpt_every == 0:
+            checkpoint()
+    bar.close()
+
+    if validated_at != step:
+        run_validation()
+    checkpoint()
+    final_losses = {k: _mean(list(v)) for k, v in recent.items() if v}
+    result = TrainResult(run_dir=run_dir, step=step, elapsed_seconds=elapsed(), final_losses=final_losses,
+                         validation=dict(last_validation))
+    if env.is_main:
+        plot_columns(run_dir / LOSSES_CSV, run_dir / LOSSES_PNG,
+                     ["triplet_loss", "batch_triplet_accuracy", "placement_loss", "lr", "seconds_per_step"],
+                     "training losses (rank 0 batches)", log_y=False)
+        write_json_atomic(run_dir / SUMMARY_FILE, {
+            "step": step, "wall_minutes": result.elapsed_seconds / 60, "final_losses": final_losses,
+            "validation": last_validation, "processes": env.world, "threads_per_process": threads,
+        })
+        log.info("finished at step %d after %.1f min: %s", step, result.elapsed_seconds / 60, final_losses)
+    if env.world > 1:
+        dist.barrier()
+    return result
+
+
+def _validation_keys(cfg: TrainConfig) -> list[str]:
+    keys: list[str] = []
+    if cfg.train_retrieval:
+        k = cfg.val_precision_k
+        keys += ["triplet_accuracy", "triplet_loss", f"label_precision_at_{k}", f"category_precision_at_{k}",
+                 "precision_queries", "mean_sigma"]
+    if cfg.train_placement:
+        keys += ["placement_mean_error", "placement_median_error"]
+    return keys
+
+
+def summary_of(run_dir: Path) -> dict[str, Any]:
+    """The ``summary.json`` of a finished run (empty when the run never finished)."""
+    import json
+
+    path = Path(run_dir) / SUMMARY_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
+
