@@ -1,0 +1,160 @@
+"""The Kubernetes manifests in docker/k8s: schema-valid, and consistent with each other and the image."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import kubernetes_validate
+import pytest
+import tomllib
+import yaml
+from dockerfile_model import DOCKERFILE, REPO, env_pairs, parse_dockerfile
+from kubernetes_validate.utils import latest_version
+
+from service.settings import ENV_PREFIX, Settings
+
+K8S = REPO / "docker" / "k8s"
+PENDING_SETTINGS = {"COMPLEMENTME_DATA_DIR"}  # see test_dockerfile.py
+# The oldest Kubernetes release the manifests are meant for, and the newest the validator knows.
+VERSIONS = ["1.29.0", latest_version()]
+
+
+def load_all() -> list[tuple[Path, dict[str, Any]]]:
+    docs = []
+    for path in sorted(K8S.glob("*.yaml")):
+        for doc in yaml.safe_load_all(path.read_text()):
+            if doc is not None:
+                docs.append((path, doc))
+    return docs
+
+
+def one(kind: str) -> dict[str, Any]:
+    found = [doc for _, doc in load_all() if doc["kind"] == kind]
+    assert len(found) == 1, f"expected one {kind} in {K8S}, found {len(found)}"
+    return found[0]
+
+
+def test_the_expected_resources_are_there() -> None:
+    kinds = sorted(doc["kind"] for _, doc in load_all())
+    assert kinds == ["ConfigMap", "Deployment", "HorizontalPodAutoscaler", "PodDisruptionBudget", "Service"]
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_manifests_match_the_kubernetes_schema(version: str) -> None:
+    errors = []
+    for path, doc in load_all():
+        try:
+            kubernetes_validate.validate(doc, version, strict=True)
+        except kubernetes_validate.ValidationError as exc:
+            caught = exc.caught
+            where = "/".join(str(p) for p in caught.absolute_path)
+            errors.append(f"{path.name} ({doc['kind']}) at {where}: {caught.message}")
+    assert not errors, "\n".join(errors)
+
+
+def test_validator_rejects_a_misspelt_field() -> None:
+    # Strict mode must refuse unknown fields, or the check above would let typos through.
+    deployment = one("Deployment")
+    broken = yaml.safe_load(yaml.safe_dump(deployment))
+    broken["spec"]["template"]["spec"]["containers"][0]["readinesProbe"] = {}
+    with pytest.raises(kubernetes_validate.ValidationError):
+        kubernetes_validate.validate(broken, latest_version(), strict=True)
+
+
+def container() -> dict[str, Any]:
+    containers = one("Deployment")["spec"]["template"]["spec"]["containers"]
+    assert len(containers) == 1
+    return containers[0]
+
+
+def settings_env() -> dict[str, str]:
+    return one("ConfigMap")["data"]
+
+
+def test_selectors_find_the_pods() -> None:
+    deployment = one("Deployment")
+    pod_labels = deployment["spec"]["template"]["metadata"]["labels"]
+    selectors = {
+        "Deployment": deployment["spec"]["selector"]["matchLabels"],
+        "Service": one("Service")["spec"]["selector"],
+        "PodDisruptionBudget": one("PodDisruptionBudget")["spec"]["selector"]["matchLabels"],
+    }
+    for kind, selector in selectors.items():
+        assert selector.items() <= pod_labels.items(), f"{kind} selector {selector} misses pods {pod_labels}"
+    target = one("HorizontalPodAutoscaler")["spec"]["scaleTargetRef"]
+    assert (target["kind"], target["name"]) == ("Deployment", deployment["metadata"]["name"])
+
+
+def test_probes_use_the_service_endpoints() -> None:
+    c = container()
+    assert c["readinessProbe"]["httpGet"]["path"] == "/readyz"
+    assert c["livenessProbe"]["httpGet"]["path"] == "/healthz"
+    assert c["startupProbe"]["httpGet"]["path"] == "/healthz"
+    port_names = {p["name"]: p["containerPort"] for p in c["ports"]}
+    for probe in ("readinessProbe", "livenessProbe", "startupProbe"):
+        assert c[probe]["httpGet"]["port"] in port_names, probe
+
+
+def test_ports_agree_everywhere() -> None:
+    c = container()
+    port = int(settings_env()["COMPLEMENTME_PORT"])
+    assert [p["containerPort"] for p in c["ports"]] == [port]
+    assert one("Service")["spec"]["ports"][0]["targetPort"] in {p["name"] for p in c["ports"]}
+    annotations = one("Deployment")["spec"]["template"]["metadata"]["annotations"]
+    assert int(annotations["prometheus.io/port"]) == port
+    assert annotations["prometheus.io/path"] == "/metrics"
+    assert settings_env()["COMPLEMENTME_HOST"] == "0.0.0.0"
+
+
+def test_configmap_sets_only_real_settings_as_strings() -> None:
+    fields = {f"{ENV_PREFIX}{name.upper()}" for name in Settings.model_fields}
+    data = settings_env()
+    assert all(isinstance(v, str) for v in data.values()), data
+    unknown = sorted(set(data) - fields - PENDING_SETTINGS)
+    assert not unknown, f"not settings of service/settings.py: {unknown}"
+    # Every value must parse as that setting (e.g. a port in range, a known log level).
+    known = {k[len(ENV_PREFIX):].lower(): v for k, v in data.items() if k not in PENDING_SETTINGS}
+    Settings.model_validate(known)
+    refs = [s["configMapRef"]["name"] for s in container()["envFrom"]]
+    assert refs == [one("ConfigMap")["metadata"]["name"]]
+
+
+def cpu_cores(quantity: str) -> float:
+    return float(quantity[:-1]) / 1000 if quantity.endswith("m") else float(quantity)
+
+
+def test_threads_fit_the_cpu_limit() -> None:
+    resources = container()["resources"]
+    for kind in ("requests", "limits"):
+        assert {"cpu", "memory"} <= resources[kind].keys(), f"{kind} must set cpu and memory"
+    cores = cpu_cores(resources["limits"]["cpu"])
+    data = settings_env()
+    workers = int(data["COMPLEMENTME_WORKERS"])
+    for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):
+        assert workers * int(data[threads]) <= cores, f"workers x {threads} exceeds the {cores} CPU limit"
+
+
+def test_pods_match_the_image() -> None:
+    runtime = parse_dockerfile(DOCKERFILE)[-1]
+    image_env = dict(kv for ins in runtime.of("ENV") for kv in env_pairs(ins.args))
+    uid = int(runtime.of("USER")[-1].args.split(":")[0])
+    pod = one("Deployment")["spec"]["template"]["spec"]
+    assert pod["securityContext"]["runAsUser"] == uid
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    data = settings_env()
+    assert data["COMPLEMENTME_ARTIFACTS"] == image_env["COMPLEMENTME_ARTIFACTS"]
+    mounts = {m["mountPath"]: m["name"] for m in container()["volumeMounts"]}
+    assert data["COMPLEMENTME_DATA_DIR"] in mounts, "the catalog data folder must be on a volume"
+    assert mounts.get("/tmp"), "a read-only root file system needs a writable /tmp"
+    volumes = {v["name"] for v in pod["volumes"]}
+    assert set(mounts.values()) <= volumes
+    with open(REPO / "pyproject.toml", "rb") as fh:
+        version = tomllib.load(fh)["project"]["version"]
+    assert container()["image"] == f"complementme:{version}", "tag the image with the project version"
+
+
+def test_rollout_waits_for_readiness() -> None:
+    strategy = one("Deployment")["spec"]["strategy"]
+    assert strategy["type"] == "RollingUpdate"
+    assert strategy["rollingUpdate"]["maxUnavailable"] == 0
