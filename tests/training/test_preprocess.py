@@ -1,0 +1,210 @@
+"""Tests of the Section 4 preprocessing: each merge rule, the contact graph, limits and outputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.geometry import points_to_mesh_distance, sample_surface
+from training.data.preprocess import PreprocessConfig, preprocess_folder, preprocess_shape
+from training.data.processed import ProcessedDataset
+from training.data.shapes import RawPiece, RawShape
+
+CONFIG = PreprocessConfig(points_per_component=256)
+# Cached points are float16: coordinates below 1 round by at most 2.4e-4 each.
+FLOAT16_TOL = 1e-3
+
+
+def box(extents: tuple[float, float, float], centre: tuple[float, float, float], name: str,
+        key: str | None = None, label: str | None = None) -> RawPiece:
+    m = trimesh.creation.box(extents=extents)
+    m.apply_translation(centre)
+    return RawPiece(name, np.array(m.vertices), np.array(m.faces), key or name, label)
+
+
+def seat() -> RawPiece:
+    return box((1.0, 0.1, 1.0), (0, 0.5, 0), "seat", label="seat")
+
+
+def back() -> RawPiece:
+    return box((0.8, 0.8, 0.1), (0, 0.95, -0.45), "back", label="back")
+
+
+def legs(keys: bool = True) -> list[RawPiece]:
+    return [box((0.1, 0.45, 0.1), (x, 0.225, z), f"leg{i}", key="leg" if keys else None, label="leg")
+            for i, (x, z) in enumerate([(-0.45, -0.45), (0.45, -0.45), (-0.45, 0.45), (0.45, 0.45)])]
+
+
+def component_sizes(result: dict) -> list[int]:
+    return [len(v) for v, _ in result["meshes"]]
+
+
+def test_small_piece_merges_into_its_largest_neighbour() -> None:
+    # A bolt at the seat/back joint touches both; the seat has the larger area.
+    bolt = box((0.04, 0.04, 0.04), (0, 0.57, -0.42), "bolt", label="bolt")
+    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), bolt]), CONFIG)
+    assert "reason" not in result
+    assert result["merges"] == {"size": 1, "overlap": 0, "identical": 0}
+    assert component_sizes(result) == [16, 8]  # seat + bolt, back
+    assert result["labels"] == ["seat", "back"]
+    assert result["edges"].tolist() == [[0, 1]]
+
+
+@pytest.mark.parametrize("keys", [True, False])
+def test_identical_legs_become_one_component(keys: bool) -> None:
+    # Legs do not touch each other; with or without shared geometry keys they are one component.
+    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs(keys)]), CONFIG)
+    assert "reason" not in result
+    assert result["merges"]["identical"] == 3
+    assert component_sizes(result) == [8, 8, 32]
+    assert result["labels"] == ["seat", "back", "leg"]
+    # The legs' component touches the seat only, through the union of its members' edges.
+    assert result["edges"].tolist() == [[0, 1], [0, 2]]
+
+
+def test_different_pieces_are_not_grouped_as_identical() -> None:
+    short_leg = box((0.1, 0.3, 0.1), (0.45, 0.3, 0.45), "short")
+    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), legs()[0], short_leg]), CONFIG)
+    assert result["merges"]["identical"] == 0
+    assert result["n_components"] == 4
+
+
+def test_overlapping_pieces_are_grouped() -> None:
+    # A thin cushion lying on the seat: every cushion point is within tau_hausdorff of the seat.
+    cushion = box((0.9, 0.03, 0.9), (0, 0.565, 0.02), "cushion", label="cushion")
+    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), cushion]), CONFIG)
+    assert result["merges"] == {"size": 0, "overlap": 1, "identical": 0}
+    assert component_sizes(result) == [16, 8]
+    assert result["labels"][0] == "seat"  # the seat has more area than the cushion
+
+
+def _pair_with_gap(gap: float) -> RawShape:
+    a = box((1.0, 1.0, 1.0), (0, 0, 0), "a")
+    b = box((0.6, 0.8, 0.7), (0.5 + 0.3 + gap, 0, 0), "b")
+    return RawShape("pair", "thing", [a, b])
+
+
+def test_contact_edges_follow_tau_proximity() -> None:
+    whole = np.concatenate([p.vertices for p in _pair_with_gap(0.0).pieces])
+    centre = (whole.min(axis=0) + whole.max(axis=0)) / 2
+    radius = np.linalg.norm(whole - centre, axis=1).max()
+    tau = CONFIG.tau_proximity
+    near = preprocess_shape(_pair_with_gap(0.7 * tau * radius), CONFIG)
+    assert near["edges"].tolist() == [[0, 1]]
+    far = preprocess_shape(_pair_with_gap(1.5 * tau * radius), CONFIG)
+    assert far["code"] == "disconnected" and far["n_components"] == 2
+
+
+def test_distant_pieces_are_not_connected() -> None:
+    shape = RawShape("s", "chair", [seat(), box((0.5, 0.5, 0.5), (3, 3, 3), "floating")])
+    result = preprocess_shape(shape, CONFIG)
+    assert result["code"] == "disconnected"
+    assert "not connected" in result["reason"]
+
+
+def test_component_count_limits() -> None:
+    one = preprocess_shape(RawShape("s", "x", [seat()]), CONFIG)
+    assert one["code"] == "too_few_components"
+    # A row of touching boxes of distinct sizes: none is small, none identical, none overlapping.
+    row = [box((0.5, 0.5 + 0.05 * i, 0.5), (0.5 * i, 0, 0), f"b{i}") for i in range(10)]
+    many = preprocess_shape(RawShape("s", "x", row), CONFIG)
+    assert many["code"] == "too_many_components" and many["n_components"] == 10
+
+
+def test_outputs_are_centred_meshes_with_surface_samples() -> None:
+    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs()]), CONFIG)
+    assert result["points"].shape == (3, 256, 3) and result["points"].dtype == np.float16
+    for k, (v, f) in enumerate(result["meshes"]):
+        assert np.allclose((v.min(axis=0) + v.max(axis=0)) / 2, 0, atol=1e-6)
+        dist = points_to_mesh_distance(result["points"][k].astype(np.float64), v, f)
+        assert dist.max() < FLOAT16_TOL
+        assert result["area"][k] == pytest.approx(trimesh.Trimesh(v, f, process=False).area, rel=1e-5)
+    # Translations put the components back where they were in the unit-radius frame.
+    meshes, translation = result["meshes"], result["translation"]
+    placed = np.concatenate([v + t for (v, _), t in zip(meshes, translation, strict=True)])
+    assert np.linalg.norm(placed - (placed.min(axis=0) + placed.max(axis=0)) / 2, axis=1).max() == \
+        pytest.approx(1.0, abs=1e-5)
+
+
+def test_point_only_components_use_their_points() -> None:
+    # A segmented point cloud: a seat slab and a back slab, no triangles.
+    s, b = seat(), back()
+    pieces = [RawPiece(p.name, sample_surface(p.vertices, p.faces, 600, seed=i).astype(np.float64),
+                       np.zeros((0, 3), np.int64), p.name, p.name) for i, p in enumerate((s, b))]
+    result = preprocess_shape(RawShape("pc", "chair", pieces), CONFIG)
+    assert "reason" not in result, result.get("reason")
+    assert result["edges"].tolist() == [[0, 1]]
+    assert result["points"].shape == (2, 256, 3)
+    assert result["area"].tolist() == pytest.approx([0.5, 0.5])
+    # The cached points are input points (in the normalised, centred frame).
+    v, f = result["meshes"][0]
+    assert len(f) == 0 and len(v) == 600
+    cached = result["points"][0].astype(np.float64)
+    assert np.linalg.norm(cached[:, None] - v[None], axis=-1).min(axis=1).max() < FLOAT16_TOL
+
+
+# ---- folder runs ---------------------------------------------------------------------------
+
+
+def write_obj(path: Path, pieces: list[RawPiece]) -> None:
+    lines, offset = [], 1
+    for p in pieces:
+        lines.append(f"o {p.name}")
+        lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in p.vertices.tolist()]
+        lines += [f"f {a + offset} {b + offset} {c + offset}" for a, b, c in p.faces.tolist()]
+        offset += len(p.vertices)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def make_raw_folder(root: Path) -> Path:
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        w = rng.uniform(0.8, 1.2)
+        pieces = [box((w, 0.1, 1.0), (0, 0.5, 0), "seat"), box((w, 0.8, 0.1), (0, 0.95, -0.45), "back"),
+                  *[box((0.1, 0.45, 0.1), (x * (w / 2 - 0.05), 0.225, z), f"leg{k}")
+                    for k, (x, z) in enumerate([(-1, -0.45), (1, -0.45), (-1, 0.45), (1, 0.45)])]]
+        write_obj(root / "chair" / f"c{i}.obj", pieces)
+    write_obj(root / "table" / "t0.obj", [box((1.5, 0.05, 1), (0, 0.7, 0), "top"),
+                                          box((0.1, 0.7, 0.1), (0, 0.35, 0), "stem")])
+    write_obj(root / "table" / "single.obj", [box((1, 1, 1), (0, 0, 0), "block")])
+    (root / "table" / "broken.obj").write_text("v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    return root
+
+
+@pytest.fixture(scope="module")
+def raw_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_raw_folder(tmp_path_factory.mktemp("raw"))
+
+
+def test_folder_output_is_byte_identical_across_runs_and_workers(raw_folder: Path, tmp_path: Path) -> None:
+    ds = preprocess_folder(raw_folder, tmp_path / "a", CONFIG, workers=1)
+    preprocess_folder(raw_folder, tmp_path / "b", CONFIG, workers=1)
+    preprocess_folder(raw_folder, tmp_path / "c", CONFIG, workers=2)
+    for name in ("arrays.npz", "dataset.json"):
+        a = (tmp_path / "a" / name).read_bytes()
+        assert a == (tmp_path / "b" / name).read_bytes()
+        assert a == (tmp_path / "c" / name).read_bytes()
+    loaded = ProcessedDataset.load(tmp_path / "a")
+    assert loaded.content_hash() == ds.content_hash()
+    # Sorted by category then id; the one-block and the NaN shapes are rejected with reasons.
+    assert [(s["category"], s["shape_id"]) for s in loaded.shapes] == \
+        [("chair", "c0"), ("chair", "c1"), ("chair", "c2"), ("table", "t0")]
+    rejected = {r["shape_id"]: r for r in loaded.info["rejected"]}
+    assert rejected["single"]["code"] == "too_few_components"
+    assert rejected["broken"]["code"] == "unreadable" and "broken.obj" in rejected["broken"]["reason"]
+    assert loaded.info["merge_counts"]["identical"] == 9  # three legs joined per chair
+    assert loaded.info["counts"] == {"shapes_in": 6, "kept": 4, "rejected": 2, "pieces_in": 21,
+                                     "components": 11}
+    assert loaded.info["components_histogram"] == {"chair": {"3": 3}, "table": {"1": 1, "2": 1}}
+
+
+def test_seed_changes_samples_but_not_structure(raw_folder: Path, tmp_path: Path) -> None:
+    a = preprocess_folder(raw_folder, tmp_path / "a", CONFIG, workers=1)
+    b = preprocess_folder(raw_folder, tmp_path / "b", PreprocessConfig(points_per_component=256, seed=1),
+                          workers=1)
+    assert np.array_equal(a.edges, b.edges) and np.array_equal(a.first_comp, b.first_comp)
+    assert not np.array_equal(a.points, b.points)

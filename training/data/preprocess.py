@@ -1,0 +1,556 @@
+"""Components and contact graphs from raw shapes (paper, Section 4 "Data Preprocessing").
+
+Per shape: normalise (bounding-box centre, unit radius), take the pieces (scene-graph leaves or
+connected components) as initial components, build the contact graph (an edge where two
+components come closer than ``tau_proximity``), then merge in the paper's order:
+
+1. size: a component whose PCA-aligned bounding-box diagonal is below ``tau_size`` is merged
+   into its largest neighbour (by area), smallest first, until none is left that has one;
+2. overlap: adjacent components whose directional Hausdorff distance is below
+   ``tau_hausdorff`` in either direction (one lies on or inside the other) are grouped;
+3. identical: components with the same geometry (the same multiset of scene-graph geometry
+   keys, or the same vertices up to a translation) become one component even when they do not
+   touch; its contact edges are the union of its members'.
+
+Shapes with ``min_components..max_components`` components and a connected graph are kept. Each
+kept component stores its mesh centred at its bounding-box centre, that centre (translation),
+its area, its majority label and cached area-weighted surface samples.
+
+Distances are measured on dense surface samples plus vertices with KD-trees (sample samples are
+on the surface, so they never *under*estimate a distance), refined by exact point-to-triangle
+distances near the threshold where the mesh is small enough.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import multiprocessing
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from service.geometry import (
+    MeshError,
+    mesh_area,
+    normalize_frame,
+    points_to_mesh_distance,
+    resample_points,
+    sample_surface,
+)
+from training.data.ingest import ShapeFileError, find_shape_files, load_shape_file
+from training.data.processed import ProcessedDataset
+from training.data.shapes import RawShape
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PreprocessConfig:
+    """Thresholds of Section 4 (distances are fractions of the shape's radius) and sampling."""
+
+    # Contact edge when the minimum distance between two components is below this (paper: 0.05).
+    tau_proximity: float = 0.05
+    # Merge a component whose PCA-aligned bounding-box diagonal is below this (paper: 0.2).
+    tau_size: float = 0.2
+    # Group components whose directional Hausdorff distance is below this (paper: 0.05).
+    tau_hausdorff: float = 0.05
+    # Keep shapes with this many components after merging (paper: at most N_max CC = 8).
+    min_components: int = 2
+    max_components: int = 8
+    # Area-weighted surface samples cached per component (float16); training draws from them.
+    points_per_component: int = 2048
+    # Root seed; each shape's seed derives from it and the shape's category and id.
+    seed: int = 0
+    # Density of the samples used to measure distances, per unit area of the unit-radius shape:
+    # spacing ~ 1/sqrt(density) = 0.02 keeps sampling error well under tau_proximity.
+    contact_samples_per_area: float = 2500.0
+    min_contact_samples: int = 32
+    max_contact_samples: int = 4096
+    # Exact point-to-triangle refinement is skipped beyond this many (point, triangle) pairs.
+    exact_distance_budget: int = 2_000_000
+    # Two components are identical up to translation when their centred vertex sets match
+    # within this distance (unit-radius frame).
+    identical_tolerance: float = 1e-3
+
+
+# --------------------------------------------------------------------------------------------
+# Per-shape work.
+
+
+def shape_seed(config: PreprocessConfig, category: str, shape_id: str) -> np.random.SeedSequence:
+    """A seed sequence that depends only on the root seed and the shape: order/worker independent."""
+    digest = hashlib.sha256(f"{category}/{shape_id}".encode()).digest()
+    return np.random.SeedSequence([config.seed, int.from_bytes(digest[:8], "little")])
+
+
+def _int_seed(ss: np.random.SeedSequence) -> int:
+    return int(ss.generate_state(1, dtype=np.uint64)[0])
+
+
+@dataclass
+class _Piece:
+    """A piece in the unit-radius frame with its distance-test samples."""
+
+    name: str
+    vertices: np.ndarray   # (V, 3) float64
+    faces: np.ndarray      # (F, 3) int64; empty for point-only pieces
+    key: str
+    label: str | None
+    area: float
+    points: np.ndarray     # (K, 3) float64: surface samples + vertices (or the raw points)
+    samples: np.ndarray    # (S, 3) float64: area-weighted samples only (for PCA axes)
+    lo: np.ndarray = field(init=False)
+    hi: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.lo, self.hi = self.points.min(axis=0), self.points.max(axis=0)
+
+
+def _prepare_pieces(shape: RawShape, config: PreprocessConfig, ss: np.random.SeedSequence) -> list[_Piece]:
+    if not shape.pieces:
+        raise ValueError("has no pieces")
+    all_vertices = np.concatenate([p.vertices for p in shape.pieces])
+    _, center, radius = normalize_frame(all_vertices)
+    point_only = [len(p.faces) == 0 for p in shape.pieces]
+    n_points_total = sum(len(p.vertices) for p, po in zip(shape.pieces, point_only, strict=True) if po)
+    seeds = ss.spawn(len(shape.pieces))
+    pieces = []
+    for raw, po, child in zip(shape.pieces, point_only, seeds, strict=True):
+        v = (np.asarray(raw.vertices, dtype=np.float64) - center) / radius
+        f = np.asarray(raw.faces, dtype=np.int64).reshape(-1, 3)
+        area = mesh_area(v, f)
+        if po or area <= 0:
+            # Point clouds are sampled uniformly on the surface: the share of points is the share
+            # of area. Degenerate meshes contribute their vertices only.
+            area = len(v) / n_points_total if po else 0.0
+            pts = resample_points(v, min(len(v), config.max_contact_samples), _int_seed(child))
+            samples = pts
+            f = np.zeros((0, 3), np.int64)
+        else:
+            n = int(np.clip(round(config.contact_samples_per_area * area), config.min_contact_samples,
+                            config.max_contact_samples))
+            samples = sample_surface(v, f, n, _int_seed(child)).astype(np.float64)
+            pts = np.concatenate([samples, v])
+        pieces.append(_Piece(raw.name, v, f, raw.geometry_key, raw.label, area, pts, samples))
+    return pieces
+
+
+class _Measure:
+    """Distance tests between point sets of pieces or groups, with exact refinement."""
+
+    def __init__(self, config: PreprocessConfig):
+        self.config = config
+        self.slack = 2.0 / np.sqrt(config.contact_samples_per_area)
+
+    def exact(self, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
+        if len(faces) == 0 or len(points) * len(faces) > self.config.exact_distance_budget:
+            return None
+        return points_to_mesh_distance(points, vertices, faces)
+
+    def in_contact(self, a: _Piece, b: _Piece, tree_b: cKDTree) -> bool:
+        """Is the minimum distance between two pieces below tau_proximity?"""
+        tau = self.config.tau_proximity
+        reach = tau + self.slack
+        near = a.points[np.all((a.points > b.lo - reach) & (a.points < b.hi + reach), axis=1)]
+        if len(near) == 0:
+            return False
+        d, _ = tree_b.query(near, k=1, distance_upper_bound=reach)
+        if d.min() < tau:
+            return True
+        if not np.isfinite(d).any():
+            return False
+        # Samples overestimate distances by up to their spacing: check the closest ones exactly.
+        order = np.argsort(d, kind="stable")[:256]
+        cand = near[order[np.isfinite(d[order])]]
+        exact = self.exact(cand, b.vertices, b.faces)
+        return exact is not None and bool(exact.min() < tau)
+
+    def within_hausdorff(self, a_points: np.ndarray, tree_b: cKDTree, b_vertices: np.ndarray,
+                         b_faces: np.ndarray) -> bool:
+        """Is the directional Hausdorff distance from A's points to B below tau_hausdorff?"""
+        tau = self.config.tau_hausdorff
+        # Most pairs fail on a few points (a leg is far from most of a seat): try a strided subset first.
+        probe = a_points[::max(1, len(a_points) // 64)]
+        d, _ = tree_b.query(probe, k=1, distance_upper_bound=tau + self.slack)
+        if not np.isfinite(d).all():
+            return False
+        d, _ = tree_b.query(a_points, k=1, distance_upper_bound=tau + self.slack)
+        if not np.isfinite(d).all():
+            return False
+        far = a_points[d >= tau]
+        if len(far) == 0:
+            return True
+        exact = self.exact(far, b_vertices, b_faces)
+        return exact is not None and bool(exact.max() < tau)
+
+
+def _contact_edges(pieces: list[_Piece], measure: _Measure, trees: list[cKDTree]) -> set[tuple[int, int]]:
+    tau = measure.config.tau_proximity
+    lo = np.stack([p.lo for p in pieces])
+    hi = np.stack([p.hi for p in pieces])
+    # Axis-aligned boxes further apart than tau cannot be in contact.
+    gap = np.maximum(lo[:, None] - hi[None], lo[None] - hi[:, None]).max(axis=2)
+    edges = set()
+    for i, j in zip(*np.nonzero(np.triu(gap < tau, k=1)), strict=True):
+        a, b = (int(i), int(j)) if len(pieces[i].points) <= len(pieces[j].points) else (int(j), int(i))
+        if measure.in_contact(pieces[a], pieces[b], trees[b]) \
+                or measure.in_contact(pieces[b], pieces[a], trees[a]):
+            edges.add((int(i), int(j)))
+    return edges
+
+
+class _Groups:
+    """Union-find over pieces, with per-group caches for the merge rules."""
+
+    def __init__(self, pieces: list[_Piece]):
+        self.pieces = pieces
+        self.parent = list(range(len(pieces)))
+        self._tree: dict[int, cKDTree] = {}
+        self._diagonal: dict[int, float] = {}
+
+    def find(self, i: int) -> int:
+        while self.parent[i] != i:
+            self.parent[i] = self.parent[self.parent[i]]
+            i = self.parent[i]
+        return i
+
+    def union(self, i: int, j: int) -> bool:
+        ri, rj = self.find(i), self.find(j)
+        if ri == rj:
+            return False
+        keep, drop = min(ri, rj), max(ri, rj)
+        self.parent[drop] = keep
+        for cache in (self._tree, self._diagonal):
+            cache.pop(keep, None)
+            cache.pop(drop, None)
+        return True
+
+    def members(self) -> dict[int, list[int]]:
+        out: dict[int, list[int]] = {}
+        for i in range(len(self.pieces)):
+            out.setdefault(self.find(i), []).append(i)
+        return out
+
+    def adjacency(self, edges: set[tuple[int, int]]) -> dict[int, set[int]]:
+        adj: dict[int, set[int]] = {r: set() for r in self.members()}
+        for i, j in edges:
+            ri, rj = self.find(i), self.find(j)
+            if ri != rj:
+                adj[ri].add(rj)
+                adj[rj].add(ri)
+        return adj
+
+    def points(self, members: list[int]) -> np.ndarray:
+        return np.concatenate([self.pieces[m].points for m in members])
+
+    def mesh(self, members: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        vs = [self.pieces[m].vertices for m in members if len(self.pieces[m].faces)]
+        fs = [self.pieces[m].faces for m in members if len(self.pieces[m].faces)]
+        if not vs:
+            return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        offsets = np.cumsum([0] + [len(v) for v in vs[:-1]])
+        return np.concatenate(vs), np.concatenate([f + o for f, o in zip(fs, offsets, strict=True)])
+
+    def tree(self, root: int, members: list[int]) -> cKDTree:
+        if root not in self._tree:
+            self._tree[root] = cKDTree(self.points(members))
+        return self._tree[root]
+
+    def area(self, members: list[int]) -> float:
+        return float(sum(self.pieces[m].area for m in members))
+
+    def pca_diagonal(self, root: int, members: list[int]) -> float:
+        """Diagonal of the bounding box aligned with the principal axes of the surface samples."""
+        if root not in self._diagonal:
+            self._diagonal[root] = self._pca_diagonal(members)
+        return self._diagonal[root]
+
+    def _pca_diagonal(self, members: list[int]) -> float:
+        samples = np.concatenate([self.pieces[m].samples for m in members])
+        extent_pts = np.concatenate([self.pieces[m].vertices for m in members])
+        centred = samples - samples.mean(axis=0)
+        if len(samples) < 3:
+            axes = np.eye(3)
+        else:
+            _, _, axes = np.linalg.svd(centred, full_matrices=False)
+        proj = extent_pts @ axes.T
+        return float(np.linalg.norm(proj.max(axis=0) - proj.min(axis=0)))
+
+
+def _merge_small(groups: _Groups, edges: set[tuple[int, int]], tau_size: float) -> int:
+    merges = 0
+    while True:
+        members = groups.members()
+        adj = groups.adjacency(edges)
+        diagonal = {r: groups.pca_diagonal(r, m) for r, m in members.items()}
+        small = sorted((diagonal[r], r) for r in members if adj[r] and diagonal[r] < tau_size)
+        if not small:
+            return merges
+        _, r = small[0]
+        target = max(adj[r], key=lambda n: (groups.area(members[n]), -n))
+        groups.union(r, target)
+        merges += 1
+
+
+def _merge_overlapping(groups: _Groups, edges: set[tuple[int, int]], measure: _Measure) -> int:
+    members = groups.members()
+    adj = groups.adjacency(edges)
+    pairs = sorted({(min(a, b), max(a, b)) for a in adj for b in adj[a]})
+    meshes = {r: groups.mesh(m) for r, m in members.items()}
+    trees = {r: groups.tree(r, m) for r, m in members.items()}
+    points = {r: groups.points(m) for r, m in members.items()}
+    found = [(a, b) for a, b in pairs
+             if measure.within_hausdorff(points[a], trees[b], *meshes[b])
+             or measure.within_hausdorff(points[b], trees[a], *meshes[a])]
+    return sum(groups.union(a, b) for a, b in found)
+
+
+def _identical_signature(groups: _Groups, members: list[int]) -> tuple[np.ndarray, float]:
+    v = np.concatenate([groups.pieces[m].vertices for m in members])
+    return v - (v.min(axis=0) + v.max(axis=0)) / 2, groups.area(members)
+
+
+def _merge_identical(groups: _Groups, tol: float) -> int:
+    members = groups.members()
+    roots = sorted(members)
+    keys = {r: tuple(sorted(groups.pieces[m].key for m in members[r])) for r in roots}
+    found = []
+    by_key: dict[tuple[str, ...], list[int]] = {}
+    for r in roots:
+        by_key.setdefault(keys[r], []).append(r)
+    for same in by_key.values():
+        found += [(same[0], other) for other in same[1:]]
+    # Identical up to translation, for sources without shared geometry: same vertex count and
+    # area, then centred vertex sets that match both ways.
+    sigs = {r: _identical_signature(groups, members[r]) for r in roots}
+    for i, a in enumerate(roots):
+        va, area_a = sigs[a]
+        for b in roots[i + 1:]:
+            vb, area_b = sigs[b]
+            if len(va) != len(vb) or abs(area_a - area_b) > 1e-3 * max(area_a, area_b, 1e-12):
+                continue
+            if np.abs(np.ptp(va, axis=0) - np.ptp(vb, axis=0)).max() > tol:
+                continue
+            d_ab, _ = cKDTree(vb).query(va, distance_upper_bound=tol)
+            if np.isfinite(d_ab).all():
+                d_ba, _ = cKDTree(va).query(vb, distance_upper_bound=tol)
+                if np.isfinite(d_ba).all():
+                    found.append((a, b))
+    return sum(groups.union(a, b) for a, b in found)
+
+
+def _connected(n: int, edges: list[tuple[int, int]]) -> int:
+    """Number of connected parts of a graph over nodes 0..n-1."""
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in edges:
+        parent[find(i)] = find(j)
+    return len({find(i) for i in range(n)})
+
+
+def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> dict[str, Any]:
+    """Merge one shape's pieces into components and build its contact graph.
+
+    Returns:
+        a dict with ``merges`` ({"size", "overlap", "identical"}: unions done), ``pieces`` and
+        ``n_components``; ``reason`` (why the shape is rejected) or the kept shape's arrays:
+        ``points`` (C, P, 3) float16, ``translation`` (C, 3) float32, ``area`` (C,) float32,
+        ``edges`` (E, 2) int32 local indices (i < j), ``meshes`` list of ((V, 3) float32,
+        (F, 3) int32) centred meshes, and ``labels`` (majority label per component or None).
+    """
+    ss = shape_seed(config, shape.category, shape.shape_id)
+    prep_ss, out_ss = ss.spawn(2)
+    result: dict[str, Any] = {"pieces": len(shape.pieces),
+                              "merges": {"size": 0, "overlap": 0, "identical": 0}}
+    try:
+        pieces = _prepare_pieces(shape, config, prep_ss)
+    except (MeshError, ValueError) as err:
+        result.update(n_components=0, reason=f"invalid geometry: {err}", code="invalid")
+        return result
+    measure = _Measure(config)
+    trees = [cKDTree(p.points) for p in pieces]
+    edges = _contact_edges(pieces, measure, trees)
+    groups = _Groups(pieces)
+    result["merges"]["size"] = _merge_small(groups, edges, config.tau_size)
+    result["merges"]["overlap"] = _merge_overlapping(groups, edges, measure)
+    result["merges"]["identical"] = _merge_identical(groups, config.identical_tolerance)
+
+    members = groups.members()
+    roots = sorted(members)  # a group's root is its smallest piece index: a stable order
+    index = {r: k for k, r in enumerate(roots)}
+    comp_edges = sorted({(min(index[a], index[b]), max(index[a], index[b]))
+                         for a, nbrs in groups.adjacency(edges).items() for b in nbrs})
+    n = len(roots)
+    result["n_components"] = n
+    if n < config.min_components:
+        result.update(reason=f"{n} component(s) after merging, fewer than {config.min_components}",
+                      code="too_few_components")
+        return result
+    if n > config.max_components:
+        result.update(reason=f"{n} components after merging, more than {config.max_components}",
+                      code="too_many_components")
+        return result
+    parts = _connected(n, comp_edges)
+    if parts > 1:
+        result.update(reason=f"contact graph is not connected ({parts} separate parts)", code="disconnected")
+        return result
+
+    P = config.points_per_component
+    points = np.empty((n, P, 3), np.float16)
+    translation = np.empty((n, 3), np.float32)
+    area = np.empty(n, np.float32)
+    meshes, labels = [], []
+    for k, (r, comp_ss) in enumerate(zip(roots, out_ss.spawn(n), strict=True)):
+        m = members[r]
+        v, f = groups.mesh(m)
+        if len(f):
+            centre = (v.min(axis=0) + v.max(axis=0)) / 2
+            pts = sample_surface(v, f, P, _int_seed(comp_ss)).astype(np.float64)
+        else:  # point-only component: its points are the samples
+            v = np.concatenate([pieces[i].vertices for i in m])
+            centre = (v.min(axis=0) + v.max(axis=0)) / 2
+            pts = resample_points(v, P, _int_seed(comp_ss))
+        points[k] = (pts - centre).astype(np.float16)
+        translation[k] = centre
+        area[k] = groups.area(m)
+        meshes.append(((v - centre).astype(np.float32), f.astype(np.int32)))
+        votes: dict[str, float] = {}
+        for i in m:
+            label = pieces[i].label
+            if label is not None:
+                votes[label] = votes.get(label, 0.0) + pieces[i].area
+        # Majority by area; ties broken by name so the result does not depend on piece order.
+        labels.append(max(sorted(votes), key=lambda lab: votes[lab]) if votes else None)
+    result.update(points=points, translation=translation, area=area,
+                  edges=np.asarray(comp_edges, np.int32).reshape(-1, 2), meshes=meshes, labels=labels)
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# Folder.
+
+
+def _process_file(job: tuple[str, str, dict[str, Any]]) -> dict[str, Any]:
+    path_s, raw_s, config_d = job
+    path, config = Path(path_s), PreprocessConfig(**config_d)
+    source = path.relative_to(raw_s).as_posix()
+    try:
+        shape = load_shape_file(path)
+    except (ShapeFileError, MeshError) as err:
+        return {"shape_id": path.stem, "category": path.parent.name, "style": None, "source": source,
+                "pieces": 0, "n_components": 0, "merges": {"size": 0, "overlap": 0, "identical": 0},
+                "reason": f"unreadable: {err}", "code": "unreadable"}
+    result = preprocess_shape(shape, config)
+    result.update(shape_id=shape.shape_id, category=shape.category, style=shape.style, source=source)
+    return result
+
+
+def _run(jobs: list[tuple[str, str, dict[str, Any]]], workers: int) -> Iterator[dict[str, Any]]:
+    if workers <= 1:
+        yield from map(_process_file, jobs)
+        return
+    # spawn, not fork: the parent may hold BLAS or tqdm threads.
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        yield from pool.imap(_process_file, jobs, chunksize=4)
+
+
+def assemble(results: list[dict[str, Any]], config: PreprocessConfig) -> ProcessedDataset:
+    """Concatenate per-shape results (in the given order) into a ProcessedDataset."""
+    kept = [r for r in results if "reason" not in r]
+    P = config.points_per_component
+    first = np.zeros(len(kept) + 1, np.int64)
+    first[1:] = np.cumsum([len(r["translation"]) for r in kept])
+    meshes = [m for r in kept for m in r["meshes"]]
+    vfirst = np.zeros(len(meshes) + 1, np.int64)
+    vfirst[1:] = np.cumsum([len(v) for v, _ in meshes])
+    ffirst = np.zeros(len(meshes) + 1, np.int64)
+    ffirst[1:] = np.cumsum([len(f) for _, f in meshes])
+    edges = [r["edges"] + first[s] for s, r in enumerate(kept)]
+
+    merges = {k: int(sum(r["merges"][k] for r in results)) for k in ("size", "overlap", "identical")}
+    histogram: dict[str, dict[str, int]] = {}
+    per_category: dict[str, dict[str, Any]] = {}
+    for r in results:
+        if r.get("code") != "unreadable":
+            h = histogram.setdefault(r["category"], {})
+            h[str(r["n_components"])] = h.get(str(r["n_components"]), 0) + 1
+        c = per_category.setdefault(r["category"], {"kept": 0, "rejected": {}})
+        if "reason" in r:
+            c["rejected"][r["code"]] = c["rejected"].get(r["code"], 0) + 1
+        else:
+            c["kept"] += 1
+    info = {
+        "config": asdict(config),
+        "seed": config.seed,
+        "counts": {"shapes_in": len(results), "kept": len(kept), "rejected": len(results) - len(kept),
+                   "pieces_in": int(sum(r["pieces"] for r in results)), "components": int(first[-1])},
+        "merge_counts": merges,
+        "per_category": per_category,
+        "components_histogram": histogram,
+        "rejected": [{"shape_id": r["shape_id"], "category": r["category"], "source": r["source"],
+                      "code": r["code"], "reason": r["reason"]} for r in results if "reason" in r],
+    }
+    shapes = [{"shape_id": r["shape_id"], "category": r["category"], "style": r["style"],
+               "source": r["source"], "labels": r["labels"], "pieces": r["pieces"]} for r in kept]
+    def cat(name: str, empty: np.ndarray) -> np.ndarray:
+        return np.concatenate([r[name] for r in kept]) if kept else empty
+
+    return ProcessedDataset(
+        points=cat("points", np.zeros((0, P, 3), np.float16)),
+        translation=cat("translation", np.zeros((0, 3), np.float32)),
+        area=cat("area", np.zeros(0, np.float32)),
+        shape_of=np.repeat(np.arange(len(kept), dtype=np.int32), np.diff(first)),
+        first_comp=first,
+        edges=np.concatenate(edges).astype(np.int32) if edges else np.zeros((0, 2), np.int32),
+        mesh_vertices=np.concatenate([v for v, _ in meshes]) if meshes else np.zeros((0, 3), np.float32),
+        mesh_faces=np.concatenate([f for _, f in meshes]) if meshes else np.zeros((0, 3), np.int32),
+        vertex_first=vfirst, face_first=ffirst, shapes=shapes, info=info,
+    )
+
+
+def preprocess_folder(raw: Path, out: Path, config: PreprocessConfig | None = None,
+                      workers: int = 2) -> ProcessedDataset:
+    """Preprocess every shape file under ``raw`` and write the dataset to ``out``.
+
+    The output depends only on the files and the config (not on ``workers`` or file order):
+    shapes are sorted by category then id, and each shape's randomness comes from its own seed.
+    """
+    raw, out = Path(raw), Path(out)
+    config = config or PreprocessConfig()
+    if not raw.is_dir():
+        raise FileNotFoundError(f"raw shape folder not found: {raw} (run `complementme data generate` or "
+                                "`complementme data ingest` first)")
+    files = find_shape_files(raw)
+    if not files:
+        raise FileNotFoundError(f"no shape files ({', '.join(('.glb', '.obj', '.pts', '...'))}) under {raw}")
+    jobs = [(str(p), str(raw), asdict(config)) for p in files]
+    results = []
+    with tqdm(total=len(jobs), desc="preprocess", unit="shape") as bar:
+        for r in _run(jobs, workers):
+            results.append(r)
+            bar.update()
+    results.sort(key=lambda r: (r["category"], r["shape_id"], r["source"]))
+    seen: dict[tuple[str, str], str] = {}
+    for r in results:
+        key = (r["category"], r["shape_id"])
+        if key in seen:
+            raise ValueError(f"duplicate shape id {r['shape_id']!r} in category {r['category']!r}: "
+                             f"{seen[key]} and {r['source']} under {raw}")
+        seen[key] = r["source"]
+    ds = assemble(results, config)
+    ds.save(out)
+    log.info("preprocessed %d shapes: %d kept, %d rejected", len(results), ds.n_shapes,
+             len(results) - ds.n_shapes)
+    return ds
