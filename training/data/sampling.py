@@ -96,11 +96,21 @@ class TripletSampler:
             return self.sample_triplet(rng)
         positive = neighbours[int(rng.integers(len(neighbours)))]
         blocked = qset | set(neighbours)
-        while True:
-            negative = int(rng.integers(ds.n_components))
-            if negative not in blocked:
-                break
+        negative = self._negative(blocked, rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative)
+
+    def _negative(self, blocked: set[int], rng: np.random.Generator, tries: int = 64) -> int:
+        """A random component outside ``blocked``: rejection sampling, then an explicit draw."""
+        for _ in range(tries):
+            negative = int(rng.integers(self.ds.n_components))
+            if negative not in blocked:
+                return negative
+        # Only reached when nearly every component is blocked (tiny datasets): draw exactly.
+        free = np.setdiff1d(np.arange(self.ds.n_components), np.fromiter(blocked, dtype=np.int64))
+        if len(free) == 0:
+            raise ValueError(f"no negative component exists: all {self.ds.n_components} components are in "
+                             "the query or adjacent to it (the dataset needs more shapes)")
+        return int(free[int(rng.integers(len(free)))])
 
     def batch(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         """A batch of triplets as arrays.

@@ -1,0 +1,139 @@
+"""Invariants of the triplet sampler (paper, Sec. 5.3) on a dataset made by the real preprocessing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.geometry import points_to_mesh_distance
+from training.data.preprocess import PreprocessConfig, assemble, preprocess_shape
+from training.data.processed import ProcessedDataset
+from training.data.sampling import TripletSampler, sample_assembly, sample_part
+from training.data.shapes import RawPiece, RawShape
+
+# Cached points are float16: coordinates below 1 round by at most 2.4e-4 each.
+FLOAT16_TOL = 1e-3
+
+
+def box(extents: tuple[float, float, float], centre: tuple[float, float, float], name: str,
+        key: str | None = None) -> RawPiece:
+    m = trimesh.creation.box(extents=extents)
+    m.apply_translation(centre)
+    return RawPiece(name, np.array(m.vertices), np.array(m.faces), key or name, name)
+
+
+def chair(rng: np.random.Generator, i: int) -> RawShape:
+    w, d, h = rng.uniform(0.8, 1.2), rng.uniform(0.8, 1.2), rng.uniform(0.4, 0.6)
+    pieces = [box((w, 0.1, d), (0, h + 0.05, 0), "seat"),
+              box((w, 0.8, 0.1), (0, h + 0.5, -d / 2 + 0.05), "back")]
+    pieces += [box((0.1, h, 0.1), (sx * (w / 2 - 0.05), h / 2, sz * (d / 2 - 0.05)), f"leg{k}", key="leg")
+               for k, (sx, sz) in enumerate([(-1, -1), (1, -1), (-1, 1), (1, 1)])]
+    if i % 2:  # arms resting on the seat, touching the back
+        pieces += [box((0.1, 0.3, d - 0.1), (sx * (w / 2 - 0.05), h + 0.25, 0.05), f"arm{k}", key="arm")
+                   for k, sx in enumerate((-1, 1))]
+    return RawShape(f"chair-{i}", "chair", pieces)
+
+
+def lamp(rng: np.random.Generator, i: int) -> RawShape:
+    pole = rng.uniform(0.8, 1.4)
+    pieces = [box((0.6, 0.08, 0.6), (0, 0.04, 0), "base"),
+              box((0.08, pole, 0.08), (0, 0.08 + pole / 2, 0), "pole"),
+              box((0.7, 0.3, 0.7), (0, 0.08 + pole + 0.15, 0), "shade")]
+    return RawShape(f"lamp-{i}", "lamp", pieces)
+
+
+@pytest.fixture(scope="module")
+def dataset() -> ProcessedDataset:
+    rng = np.random.default_rng(0)
+    config = PreprocessConfig(points_per_component=256)
+    results = []
+    for shape in [chair(rng, i) for i in range(4)] + [lamp(rng, i) for i in range(3)]:
+        r = preprocess_shape(shape, config)
+        assert "reason" not in r, r.get("reason")
+        r.update(shape_id=shape.shape_id, category=shape.category, style=None, source="test")
+        results.append(r)
+    return assemble(results, config)
+
+
+def test_dataset_has_the_expected_graphs(dataset: ProcessedDataset) -> None:
+    sizes = np.diff(dataset.first_comp).tolist()
+    assert sizes == [3, 4, 3, 4, 3, 3, 3]  # seat, back, legs (+ arms); base, pole, shade
+
+
+def _connected_within(nodes: list[int], adj: list[set[int]]) -> bool:
+    seen, todo = {nodes[0]}, [nodes[0]]
+    while todo:
+        for nb in adj[todo.pop()] & set(nodes):
+            if nb not in seen:
+                seen.add(nb)
+                todo.append(nb)
+    return seen == set(nodes)
+
+
+def test_triplets_respect_the_contact_graph(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=64)
+    adj = dataset.adjacency()
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        t = sampler.sample_triplet(rng)
+        comps = set(dataset.components_of(t.shape).tolist())
+        assert set(t.query) <= comps and 1 <= len(t.query) <= len(comps) - 1
+        assert len(set(t.query)) == len(t.query)
+        assert _connected_within(t.query, adj)
+        assert t.positive in comps and t.positive not in t.query
+        assert any(t.positive in adj[q] for q in t.query)
+        assert t.negative not in t.query
+        assert not any(t.negative in adj[q] for q in t.query)
+
+
+def test_sampled_points_lie_on_the_components(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=128)
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        t = sampler.sample_triplet(rng)
+        x = sample_assembly(dataset, t.query, 128, rng)
+        placed = [(v + dataset.translation[c], f) for c in t.query for v, f in [dataset.component_mesh(c)]]
+        dist = np.min([points_to_mesh_distance(x, v, f) for v, f in placed], axis=0)
+        assert x.shape == (128, 3) and x.dtype == np.float32 and dist.max() < FLOAT16_TOL
+        for comp in (t.positive, t.negative):
+            y = sample_part(dataset, comp, 128, rng)
+            v, f = dataset.component_mesh(comp)
+            assert points_to_mesh_distance(y, v, f).max() < FLOAT16_TOL
+
+
+def test_assembly_samples_are_area_weighted(dataset: ProcessedDataset) -> None:
+    comps = dataset.components_of(0)[:2]
+    x = sample_assembly(dataset, comps, 20_000, np.random.default_rng(3))
+    v, f = dataset.component_mesh(int(comps[0]))
+    on_first = points_to_mesh_distance(x[:2000] - dataset.translation[comps[0]], v, f) < FLOAT16_TOL
+    share = dataset.area[comps[0]] / dataset.area[comps].sum()
+    assert on_first.mean() == pytest.approx(share, abs=0.04)
+
+
+def test_batch_arrays(dataset: ProcessedDataset) -> None:
+    batch = TripletSampler(dataset, n_points=32).batch(5, np.random.default_rng(4))
+    for key in ("X", "Y", "Z"):
+        assert batch[key].shape == (5, 32, 3) and batch[key].dtype == np.float32
+    assert batch["Y_translation"].shape == (5, 3)
+
+
+def test_a_dataset_without_any_possible_negative_is_refused(dataset: ProcessedDataset) -> None:
+    # One shape of two touching components (a lamp's base and pole): every component is in X or
+    # adjacent to it, so no negative exists.
+    tiny = _first_components(dataset.subset([4]), 2)
+    assert tiny.edges.tolist() == [[0, 1]]
+    with pytest.raises(ValueError, match="negative"):
+        TripletSampler(tiny, n_points=8).sample_triplet(np.random.default_rng(0))
+
+
+def _first_components(ds: ProcessedDataset, n: int) -> ProcessedDataset:
+    """A one-shape dataset holding only the first ``n`` (connected) components of shape 0."""
+    comps = np.arange(n)
+    edges = ds.edges[(ds.edges < n).all(axis=1)]
+    return ProcessedDataset(
+        points=ds.points[comps], translation=ds.translation[comps], area=ds.area[comps],
+        shape_of=np.zeros(n, np.int32), first_comp=np.array([0, n]), edges=edges,
+        mesh_vertices=ds.mesh_vertices[:ds.vertex_first[n]], mesh_faces=ds.mesh_faces[:ds.face_first[n]],
+        vertex_first=ds.vertex_first[:n + 1], face_first=ds.face_first[:n + 1],
+        shapes=[{**ds.shapes[0], "labels": ds.shapes[0]["labels"][:n]}], info={})
