@@ -38,8 +38,12 @@ def legs(keys: bool = True) -> list[RawPiece]:
             for i, (x, z) in enumerate([(-0.45, -0.45), (0.45, -0.45), (-0.45, 0.45), (0.45, 0.45)])]
 
 
-def component_sizes(result: dict) -> list[int]:
-    return [len(v) for v, _ in result["meshes"]]
+def vertices_by_label(result: dict) -> dict[str, int]:
+    return {label: len(v) for label, (v, _) in zip(result["labels"], result["meshes"], strict=True)}
+
+
+def edges_by_label(result: dict) -> set[tuple[str, ...]]:
+    return {tuple(sorted((result["labels"][i], result["labels"][j]))) for i, j in result["edges"].tolist()}
 
 
 def test_small_piece_merges_into_its_largest_neighbour() -> None:
@@ -48,9 +52,8 @@ def test_small_piece_merges_into_its_largest_neighbour() -> None:
     result = preprocess_shape(RawShape("s", "chair", [seat(), back(), bolt]), CONFIG)
     assert "reason" not in result
     assert result["merges"] == {"size": 1, "overlap": 0, "identical": 0}
-    assert component_sizes(result) == [16, 8]  # seat + bolt, back
-    assert result["labels"] == ["seat", "back"]
-    assert result["edges"].tolist() == [[0, 1]]
+    assert vertices_by_label(result) == {"seat": 16, "back": 8}  # the bolt went to the seat
+    assert edges_by_label(result) == {("back", "seat")}
 
 
 @pytest.mark.parametrize("keys", [True, False])
@@ -59,10 +62,9 @@ def test_identical_legs_become_one_component(keys: bool) -> None:
     result = preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs(keys)]), CONFIG)
     assert "reason" not in result
     assert result["merges"]["identical"] == 3
-    assert component_sizes(result) == [8, 8, 32]
-    assert result["labels"] == ["seat", "back", "leg"]
+    assert vertices_by_label(result) == {"seat": 8, "back": 8, "leg": 32}
     # The legs' component touches the seat only, through the union of its members' edges.
-    assert result["edges"].tolist() == [[0, 1], [0, 2]]
+    assert edges_by_label(result) == {("back", "seat"), ("leg", "seat")}
 
 
 def test_different_pieces_are_not_grouped_as_identical() -> None:
@@ -77,8 +79,8 @@ def test_overlapping_pieces_are_grouped() -> None:
     cushion = box((0.9, 0.03, 0.9), (0, 0.565, 0.02), "cushion", label="cushion")
     result = preprocess_shape(RawShape("s", "chair", [seat(), back(), cushion]), CONFIG)
     assert result["merges"] == {"size": 0, "overlap": 1, "identical": 0}
-    assert component_sizes(result) == [16, 8]
-    assert result["labels"][0] == "seat"  # the seat has more area than the cushion
+    # The majority label by area: the seat has more area than the cushion.
+    assert vertices_by_label(result) == {"seat": 16, "back": 8}
 
 
 def _pair_with_gap(gap: float) -> RawShape:
@@ -112,6 +114,13 @@ def test_component_count_limits() -> None:
     row = [box((0.5, 0.5 + 0.05 * i, 0.5), (0.5 * i, 0, 0), f"b{i}") for i in range(10)]
     many = preprocess_shape(RawShape("s", "x", row), CONFIG)
     assert many["code"] == "too_many_components" and many["n_components"] == 10
+
+
+def test_piece_order_does_not_matter() -> None:
+    pieces = [seat(), back(), *legs()]
+    a = preprocess_shape(RawShape("s", "chair", pieces), CONFIG)
+    b = preprocess_shape(RawShape("s", "chair", pieces[::-1]), CONFIG)
+    assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["edges"], b["edges"])
 
 
 def test_outputs_are_centred_meshes_with_surface_samples() -> None:

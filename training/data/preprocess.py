@@ -370,6 +370,11 @@ def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> dict[str, Any
         ``edges`` (E, 2) int32 local indices (i < j), ``meshes`` list of ((V, 3) float32,
         (F, 3) int32) centred meshes, and ``labels`` (majority label per component or None).
     """
+    # Loaders list scene nodes in their own order: sort by name so the result depends on the
+    # shape alone (components come out in the order of their first piece's name).
+    order = sorted(range(len(shape.pieces)), key=lambda i: (shape.pieces[i].name, i))
+    shape = RawShape(shape.shape_id, shape.category, [shape.pieces[i] for i in order], shape.style,
+                     shape.source)
     ss = shape_seed(config, shape.category, shape.shape_id)
     prep_ss, out_ss = ss.spawn(2)
     result: dict[str, Any] = {"pieces": len(shape.pieces),
