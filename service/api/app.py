@@ -1,0 +1,87 @@
+"""The FastAPI app factory: settings in, app out; artifacts loaded once in the lifespan.
+
+``create_app(settings)`` wires routers, error handlers and middleware. Its lifespan loads the
+artifact folder (ONNX sessions, FAISS index, catalog), checks it against the manifest and
+refuses to start with an error naming the bad file; then it runs a warm-up suggestion, after
+which ``/readyz`` answers 200. ``uvicorn --factory service.api.app:create_app`` works too.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from service import __version__
+from service.api.errors import install_error_handlers
+from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.routes import parts, probes, suggest
+from service.artifacts import ArtifactError
+from service.engine import SuggestionEngine
+from service.loading import load_artifacts
+from service.metrics import Metrics
+from service.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """\
+Component suggestions for 3D modeling (ComplementMe, SIGGRAPH Asia 2017): send a partial
+assembly as points or as a mesh; get catalog parts that complete it, ranked by the retrieval
+network's mixture, each with the translation the placement network predicts for it.
+
+Points are in the canonical frame (y up, the complete object centred and scaled to unit radius)
+unless a request gives its own `frame` (`center`, `radius`, `up_axis`); answers are then in that
+frame. Part ids contain a slash and are used verbatim in paths: `/parts/chair-0007/2/mesh`.
+Every error is `{"error": {"code": ..., "message": ...}}`.
+"""
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    try:
+        artifacts = load_artifacts(settings.artifacts, onnx_threads=settings.onnx_threads,
+                                   faiss_threads=settings.faiss_threads,
+                                   faiss_blas_threshold=settings.faiss_blas_threshold,
+                                   verify_checksums=settings.verify_checksums)
+    except ArtifactError as exc:
+        log.error("refusing to start: %s", exc)
+        raise
+    engine = SuggestionEngine(artifacts, settings)
+    app.state.metrics.set_model(engine.model_version, len(engine.catalog))
+    app.state.engine = engine
+    if settings.warmup:
+        engine.warmup()
+    app.state.ready = True
+    try:
+        yield
+    finally:
+        app.state.ready = False
+        app.state.engine = None
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app; artifacts load when its lifespan starts (uvicorn, or ``with TestClient(app)``)."""
+    settings = settings or get_settings()
+    app = FastAPI(title="ComplementMe suggestion service", version=__version__, description=DESCRIPTION,
+                  lifespan=lifespan)
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    app.state.engine = None
+    app.state.ready = False
+    install_error_handlers(app)
+    app.include_router(suggest.router)
+    app.include_router(parts.router)
+    app.include_router(probes.router)
+
+    def model_version() -> str | None:
+        engine = app.state.engine
+        return engine.model_version if engine is not None else None
+
+    # Added last = outermost: metrics see every response, including a 413 from the body limit.
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
+                       max_upload_bytes=settings.max_upload_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
+    return app

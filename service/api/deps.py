@@ -1,0 +1,35 @@
+"""Typed dependencies of the routes: the loaded engine, the settings and the metrics.
+
+They are ``async`` on purpose: sync dependencies would each cost a threadpool hop per request.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from service.engine import SuggestionEngine
+from service.errors import NotReadyError
+from service.metrics import Metrics
+from service.settings import Settings
+
+
+async def get_engine(request: Request) -> SuggestionEngine:
+    engine = getattr(request.app.state, "engine", None)
+    if engine is None:
+        raise NotReadyError("not_ready", "the artifacts are not loaded yet")
+    return engine
+
+
+async def get_app_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+async def get_metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
+
+
+EngineDep = Annotated[SuggestionEngine, Depends(get_engine)]
+SettingsDep = Annotated[Settings, Depends(get_app_settings)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]

@@ -1,0 +1,76 @@
+"""Engine results to JSON-ready dicts matching the response schemas (checked by the tests).
+
+Routes return these through ``OrjsonResponse`` directly: building pydantic response objects for
+every suggestion would cost more than the scoring does.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+from urllib.parse import quote
+
+import numpy as np
+
+from service.catalog import Catalog
+from service.engine import PlaceResult, SuggestResult
+from service.frames import Frame
+
+
+def part_links(part_id: str) -> dict[str, str]:
+    """Links to a part's record, mesh and points (ids keep their slash; other characters quoted)."""
+    base = "/parts/" + quote(part_id, safe="/")
+    return {"part": base, "mesh": base + "/mesh", "points": base + "/points"}
+
+
+def _vec(a: np.ndarray) -> list[float]:
+    return [float(x) for x in a]
+
+
+def render_frame(frame: Frame) -> dict[str, Any]:
+    return {"center": _vec(frame.center), "radius": float(frame.radius), "up_axis": frame.up_axis,
+            "scale": float(frame.radius), "rotation": frame.part_rotation.tolist()}
+
+
+def render_suggest(result: SuggestResult, model_version: str) -> dict[str, Any]:
+    return {
+        "model_version": model_version,
+        "frame": render_frame(result.frame),
+        "input_points": result.n_input_points,
+        "candidates": result.candidates,
+        "modes": [{"mode": k, "weight": float(w)} for k, w in enumerate(result.mode_weights.tolist())],
+        "suggestions": [{
+            "rank": s.rank, "part_id": s.part_id, "shape_id": s.shape_id, "category": s.category,
+            "label": s.label, "score": s.score, "mode": s.mode, "mode_weight": s.mode_weight,
+            "duplicates": s.duplicates, "translation": _vec(s.translation), "bbox_min": _vec(s.bbox_min),
+            "bbox_max": _vec(s.bbox_max), "links": part_links(s.part_id),
+        } for s in result.suggestions],
+    }
+
+
+def render_place(result: PlaceResult, model_version: str) -> dict[str, Any]:
+    return {
+        "model_version": model_version,
+        "frame": render_frame(result.frame),
+        "placements": [{
+            "part_id": p.part_id, "translation": _vec(p.translation), "bbox_min": _vec(p.bbox_min),
+            "bbox_max": _vec(p.bbox_max), "links": part_links(p.part_id),
+        } for p in result.placements],
+    }
+
+
+def render_part(catalog: Catalog, i: int) -> dict[str, Any]:
+    rec = catalog.records[i]
+    dup = rec["duplicate_of"]
+    return {
+        "part_id": rec["part_id"], "shape_id": rec["shape_id"], "category": rec["category"],
+        "style": rec["style"], "label": rec["label"], "split": rec["split"],
+        "translation": [float(x) for x in rec["translation"]],
+        "bbox_min": [float(x) for x in rec["bbox_min"]], "bbox_max": [float(x) for x in rec["bbox_max"]],
+        "area": float(rec["area"]),
+        "duplicate_of": catalog.part_ids[dup] if dup is not None else None,
+        "duplicates": int(catalog.group_size[i]),
+        "n_points": catalog.n_points,
+        "n_vertices": int(catalog.vertex_first[i + 1] - catalog.vertex_first[i]),
+        "n_faces": int(catalog.face_first[i + 1] - catalog.face_first[i]),
+        "links": part_links(rec["part_id"]),
+    }

@@ -1,0 +1,1 @@
+"""Routers, one module per resource: suggestions and placement, catalog parts, probes."""

@@ -1,0 +1,103 @@
+"""Catalog reads: ``GET /parts``, ``/parts/{id}``, ``/parts/{id}/mesh``, ``/parts/{id}/points``.
+
+Part ids contain a slash ("chair-0007/2"), so routes take them with the ``path`` converter and
+use them verbatim: ``/parts/chair-0007/2/mesh``. A client may also percent-encode the slash
+(``chair-0007%2F2``), which decodes to the same id. The mesh and points routes are declared
+before the record route so that their suffixes are not swallowed into the id.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+import trimesh
+from fastapi import APIRouter, Query
+from starlette.responses import Response
+
+from service.api.deps import EngineDep, SettingsDep
+from service.api.render import render_part
+from service.api.responses import OrjsonResponse
+from service.api.schemas import CategoryOut, ErrorResponse, PartOut, PartPointsOut, PartsPage
+from service.errors import InputError
+from service.inputs import points_to_base64
+
+router = APIRouter(tags=["parts"])
+
+MESH_MEDIA_TYPES = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/x-ply"}
+_NOT_FOUND: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorResponse, "description": "Unknown part id."}}
+
+
+@router.get("/parts", response_model=PartsPage, summary="List catalog parts, paged",
+            responses={422: {"model": ErrorResponse, "description": "Unknown category or bad paging."}})
+def list_parts(
+    engine: EngineDep, settings: SettingsDep,
+    category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
+    shape_id: str | None = Query(None, description="Only parts of this source shape.",
+                                 examples=["chair-0007"]),
+    offset: int = Query(0, ge=0, description="Parts to skip."),
+    limit: int = Query(50, ge=1, description="Parts per page (at most COMPLEMENTME_MAX_PAGE_SIZE)."),
+) -> OrjsonResponse:
+    if limit > settings.max_page_size:
+        raise InputError("limit_out_of_range",
+                         f"limit must be at most {settings.max_page_size}, found {limit}")
+    cat = engine.catalog
+    mask = np.ones(len(cat), dtype=bool)
+    if category is not None:
+        mask &= cat.category_of == cat.category_codes([category])[0]
+    if shape_id is not None:
+        mask &= cat.shape_of == cat.shape_code(shape_id)
+    rows = np.flatnonzero(mask)
+    page = rows[offset:offset + limit].tolist()
+    return OrjsonResponse({"total": len(rows), "offset": offset, "limit": limit,
+                           "items": [render_part(cat, i) for i in page]})
+
+
+@router.get("/categories", response_model=list[CategoryOut], summary="Categories in the catalog")
+def list_categories(engine: EngineDep) -> OrjsonResponse:
+    cat = engine.catalog
+    counts = np.bincount(cat.category_of, minlength=len(cat.categories))
+    return OrjsonResponse([{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)])
+
+
+@router.get("/parts/{part_id:path}/mesh", summary="A part's mesh (GLB, OBJ or PLY), centred", responses={
+    **_NOT_FOUND,
+    200: {"content": {t: {} for t in MESH_MEDIA_TYPES.values()},
+          "description": "The mesh, centred at its bounding-box centre, in canonical units. "
+                         "Place it at a suggestion's translation (times the frame's scale and rotation)."}})
+def get_part_mesh(
+    part_id: str, engine: EngineDep,
+    format: Literal["glb", "obj", "ply"] = Query("glb", description="Mesh file format."),
+) -> Response:
+    i = engine.catalog.lookup(part_id)
+    vertices, faces = engine.catalog.mesh(i)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    data = mesh.export(file_type=format)
+    body = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    filename = part_id.replace("/", "_") + "." + format
+    return Response(body, media_type=MESH_MEDIA_TYPES[format],
+                    headers={"Content-Disposition": f'inline; filename="{filename}"'})
+
+
+@router.get("/parts/{part_id:path}/points", response_model=PartPointsOut, responses=_NOT_FOUND,
+            summary="A part's point samples, centred")
+def get_part_points(
+    part_id: str, engine: EngineDep,
+    encoding: Literal["json", "base64"] = Query("json", description=(
+        "Points as a JSON list or base64 float32.")),
+) -> OrjsonResponse:
+    i = engine.catalog.lookup(part_id)
+    pts = engine.catalog.part_points(i)
+    body: dict[str, Any] = {"part_id": part_id, "n_points": len(pts)}
+    if encoding == "base64":
+        body["points_base64"] = points_to_base64(pts)
+    else:
+        body["points"] = pts
+    return OrjsonResponse(body)
+
+
+@router.get("/parts/{part_id:path}", response_model=PartOut, responses=_NOT_FOUND,
+            summary="One catalog part's record")
+def get_part(part_id: str, engine: EngineDep) -> OrjsonResponse:
+    return OrjsonResponse(render_part(engine.catalog, engine.catalog.lookup(part_id)))

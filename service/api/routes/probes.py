@@ -1,0 +1,55 @@
+"""Probes and model facts: ``GET /healthz``, ``/readyz``, ``/metrics``, ``/model``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Request
+from starlette.responses import Response
+
+from service.api.deps import EngineDep, MetricsDep, SettingsDep
+from service.api.errors import error_response
+from service.api.responses import OrjsonResponse
+from service.api.schemas import ErrorResponse, Health, ModelInfo
+from service.metrics import CONTENT_TYPE
+
+router = APIRouter(tags=["probes"])
+
+LIMIT_SETTINGS = ("min_points", "max_points", "default_k", "max_k", "max_place_parts", "max_exclude",
+                  "max_batch_items", "max_body_bytes", "max_upload_bytes", "max_mesh_vertices",
+                  "max_mesh_faces", "max_page_size")
+
+
+@router.get("/healthz", response_model=Health, summary="Liveness: the process answers")
+async def get_healthz() -> OrjsonResponse:
+    return OrjsonResponse({"status": "ok"})
+
+
+@router.get("/readyz", response_model=Health, summary="Readiness: artifacts loaded and warm-up passed",
+            responses={503: {"model": ErrorResponse, "description": "Not ready (yet)."}})
+async def get_readyz(request: Request) -> OrjsonResponse:
+    engine = getattr(request.app.state, "engine", None)
+    if engine is None or not request.app.state.ready:
+        return error_response(503, "not_ready", "artifacts not loaded or warm-up not passed")
+    return OrjsonResponse({"status": "ready", "model_version": engine.model_version})
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {CONTENT_TYPE: {}}, "description": "Prometheus text format."}})
+async def get_metrics(metrics: MetricsDep) -> Response:
+    return Response(metrics.render(), media_type=CONTENT_TYPE)
+
+
+@router.get("/model", response_model=ModelInfo, summary="The loaded model, its catalog and the limits")
+async def get_model(engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
+    m, cat = engine.artifacts.manifest, engine.catalog
+    counts = np.bincount(cat.category_of, minlength=len(cat.categories))
+    body: dict[str, Any] = {
+        "model_version": engine.model_version, "format_version": m["format_version"],
+        "n_points": m["n_points"], "embedding_dim": m["embedding_dim"], "n_modes": m["n_modes"],
+        "part_count": m["part_count"],
+        "categories": [{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)],
+        "limits": {name: getattr(settings, name) for name in LIMIT_SETTINGS},
+    }
+    return OrjsonResponse(body)

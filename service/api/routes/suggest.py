@@ -1,0 +1,124 @@
+"""Suggestions and placement: ``POST /suggest``, ``/suggest/mesh``, ``/suggest/batch``, ``/place``.
+
+Handlers are plain ``def``: FastAPI runs them in its threadpool, where ONNX Runtime and FAISS
+release the GIL while they compute.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, File, Form, UploadFile
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+
+from service.api.deps import EngineDep, MetricsDep, SettingsDep
+from service.api.errors import service_error_body, validation_error
+from service.api.render import render_place, render_suggest
+from service.api.responses import OrjsonResponse
+from service.api.schemas import (
+    BatchRequest,
+    BatchResponse,
+    ErrorResponse,
+    PlaceRequest,
+    PlaceResponse,
+    SuggestOptionsIn,
+    SuggestRequest,
+    SuggestResponse,
+)
+from service.errors import InputError, ServiceError
+from service.inputs import mesh_format, points_from_mesh
+
+router = APIRouter(tags=["suggest"])
+
+_POINT_ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "The body is not JSON."},
+    404: {"model": ErrorResponse, "description": "An excluded or placed part (or shape) is unknown."},
+    413: {"model": ErrorResponse, "description": "The body is larger than COMPLEMENTME_MAX_BODY_BYTES."},
+    422: {"model": ErrorResponse, "description": (
+        "Empty input, too few or too many points, NaN or infinite values, wrong shape, "
+        "non-numeric values, bad base64, k out of range, unknown category.")},
+}
+
+
+@router.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
+             summary="Suggest complementary parts for a partial assembly given as points")
+def post_suggest(body: SuggestRequest, engine: EngineDep, settings: SettingsDep,
+                 metrics: MetricsDep) -> OrjsonResponse:
+    points = body.to_points(settings.max_points)
+    result = engine.suggest(points, body.to_options())
+    metrics.observe_engine(result.timings, 1, [result.candidates])
+    return OrjsonResponse(render_suggest(result, engine.model_version))
+
+
+@router.post("/suggest/mesh", response_model=SuggestResponse, summary=(
+    "Suggest complementary parts for a partial assembly uploaded as a mesh"), responses={
+    413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
+          "with more vertices or faces than the limits."},
+    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
+})
+def post_suggest_mesh(
+    engine: EngineDep, settings: SettingsDep, metrics: MetricsDep,
+    file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
+    options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
+                               examples=['{"k": 5, "category": "chair"}']),
+    format: str | None = Form(None, description="Mesh format, when the file name has no extension.",
+                              examples=["obj"]),
+) -> OrjsonResponse:
+    """The mesh's surface is sampled area-weighted (seeded) to the model's point count."""
+    fmt = mesh_format(file.filename, format)
+    try:
+        opts = SuggestOptionsIn.model_validate_json(options) if options else SuggestOptionsIn()
+    except ValidationError as exc:
+        raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
+                                      for e in exc.errors()]) from None
+    points = points_from_mesh(file.file.read(), fmt, n=engine.artifacts.n_points, seed=settings.seed,
+                              name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
+                              max_faces=settings.max_mesh_faces)
+    result = engine.suggest(points, opts.to_options())
+    metrics.observe_engine(result.timings, 1, [result.candidates])
+    return OrjsonResponse(render_suggest(result, engine.model_version))
+
+
+@router.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
+             summary="Suggest for many partial assemblies at once (batched inference)")
+def post_suggest_batch(body: BatchRequest, engine: EngineDep, settings: SettingsDep,
+                       metrics: MetricsDep) -> OrjsonResponse:
+    """Each item is validated on its own: a bad item gets an error entry, the others are answered."""
+    if not body.items:
+        raise InputError("empty_batch", "items is empty; send at least one query")
+    if len(body.items) > settings.max_batch_items:
+        raise InputError("too_many_items", f"{len(body.items)} items given, at most "
+                         f"{settings.max_batch_items} are accepted")
+    results: list[dict[str, Any] | None] = [None] * len(body.items)
+    valid, queries = [], []
+    for i, raw in enumerate(body.items):
+        try:
+            req = SuggestRequest.model_validate(raw)
+            queries.append((req.to_points(settings.max_points), req.to_options()))
+            valid.append(i)
+        except ValidationError as exc:
+            results[i] = {"index": i, "ok": False, "error": validation_error(exc)[1]["error"]}
+        except ServiceError as exc:
+            results[i] = {"index": i, "ok": False, "error": service_error_body(exc)["error"]}
+    answers = engine.suggest_batch(queries) if queries else []
+    done = [a for a in answers if not isinstance(a, ServiceError)]
+    if done:
+        metrics.observe_engine(done[0].timings, len(done), [a.candidates for a in done])
+    for i, answer in zip(valid, answers, strict=True):
+        if isinstance(answer, ServiceError):
+            results[i] = {"index": i, "ok": False, "error": service_error_body(answer)["error"]}
+        else:
+            results[i] = {"index": i, "ok": True, "result": render_suggest(answer, engine.model_version)}
+    return OrjsonResponse({"model_version": engine.model_version, "results": results})
+
+
+@router.post("/place", response_model=PlaceResponse, responses=_POINT_ERRORS,
+             summary="Place chosen catalog parts next to a partial assembly")
+def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
+               metrics: MetricsDep) -> OrjsonResponse:
+    points = body.to_points(settings.max_points)
+    result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None)
+    metrics.observe_engine(result.timings, 1, [])
+    return OrjsonResponse(render_place(result, engine.model_version))

@@ -1,0 +1,329 @@
+"""Request and response schemas of the HTTP API, with the examples shown at ``/docs``.
+
+Requests validate types and static bounds here; limits that are settings (point counts, ``k``,
+batch size) are checked by the engine so that one settings class stays the source of truth.
+Request schemas convert themselves into engine types (``to_points``, ``to_options``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from service.engine import SuggestOptions
+from service.errors import InputError
+from service.frames import Frame
+from service.inputs import points_from_base64, points_from_list, points_to_base64
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[float, float, float]
+
+# A small valid query for the examples: a ring of 16 points (a chair seat's rim, say).
+_RING: list[Any] = [[round(0.5 * math.cos(a), 4), 0.0, round(0.5 * math.sin(a), 4)]
+         for a in np.linspace(0, 2 * math.pi, 16, endpoint=False).tolist()]
+_RING_B64 = points_to_base64(np.array(_RING, dtype=np.float32))
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class FrameIn(_Strict):
+    """The caller's frame; omit for the canonical frame (y up, object centred, unit radius)."""
+
+    center: tuple[Finite, Finite, Finite] = Field(
+        default=(0.0, 0.0, 0.0), description="Centre of the complete object in caller units.")
+    radius: Finite = Field(default=1.0, gt=0, description="Radius of the complete object in caller units.")
+    up_axis: Literal["y", "z"] = Field(default="y", description="The caller's up axis.")
+
+    def to_frame(self) -> Frame:
+        return Frame(center=np.array(self.center, dtype=np.float64), radius=self.radius, up_axis=self.up_axis)
+
+
+class SuggestOptionsIn(_Strict):
+    """Options of one suggestion query."""
+
+    k: int | None = Field(default=None, description=(
+        "Suggestions to return (default and maximum: settings COMPLEMENTME_DEFAULT_K, COMPLEMENTME_MAX_K)."))
+    category: str | list[str] | None = Field(default=None, description=(
+        "Only parts of this category (or categories)."))
+    exclude_parts: list[str] = Field(default_factory=list, description=(
+        "Part ids never to suggest; their near-duplicates are excluded too."))
+    exclude_shapes: list[str] = Field(default_factory=list, description=(
+        "Source shape ids whose parts are never suggested."))
+    collapse_duplicates: bool = Field(default=True, description=(
+        "Show one part per group of near-identical parts."))
+    frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
+
+    def to_options(self) -> SuggestOptions:
+        cats = [self.category] if isinstance(self.category, str) else list(self.category or [])
+        return SuggestOptions(k=self.k, categories=tuple(cats), exclude_parts=tuple(self.exclude_parts),
+                              exclude_shapes=tuple(self.exclude_shapes),
+                              collapse_duplicates=self.collapse_duplicates,
+                              frame=self.frame.to_frame() if self.frame else Frame())
+
+
+class PointsIn(_Strict):
+    """A partial assembly as points: a JSON list, or base64 float32 (faster) - exactly one of them."""
+
+    points: list[list[float]] | None = Field(default=None, description=(
+        "[[x, y, z], ...] in the request's frame."))
+    points_base64: str | None = Field(default=None, description=(
+        "Base64 of little-endian float32 x, y, z triples (12 bytes per point)."))
+
+    @model_validator(mode="after")
+    def _one_source(self) -> PointsIn:
+        if self.points is not None and self.points_base64 is not None:
+            raise ValueError("give either points or points_base64, not both")
+        return self
+
+    def to_points(self, max_points: int) -> np.ndarray:
+        """The points as ``(M, 3) float32``; ``InputError`` when missing or malformed."""
+        if self.points_base64 is not None:
+            return points_from_base64(self.points_base64, max_points)
+        if self.points is None:
+            raise InputError("missing_points", "give the partial assembly as points or points_base64")
+        if len(self.points) > max_points:
+            raise InputError("too_many_points", f"{len(self.points)} points given, at most {max_points} "
+                             "are accepted")
+        return points_from_list(self.points)
+
+
+class SuggestRequest(PointsIn, SuggestOptionsIn):
+    """A partial assembly and the options of its suggestions."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"points": _RING, "k": 5},
+        {"points_base64": _RING_B64, "k": 10, "category": "chair", "exclude_shapes": ["chair-0007"],
+         "frame": {"center": [0.0, 0.0, 0.45], "radius": 0.6, "up_axis": "z"}},
+    ]})
+
+
+class PlaceRequest(PointsIn):
+    """A partial assembly and the parts the user chose for it."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"points": _RING, "part_ids": ["chair-0007/2", "chair-0011/0"]},
+    ]})
+
+    part_ids: list[str] = Field(..., description="Catalog part ids to place.")
+    frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
+
+
+class BatchRequest(_Strict):
+    """Many suggestion queries answered with batched inference."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"items": [{"points": _RING, "k": 3}, {"points_base64": _RING_B64, "category": "table"}]},
+    ]})
+
+    # Items are validated one by one, so one malformed item fails alone.
+    items: list[dict[str, Any]] = Field(..., description=(
+        "Suggestion requests (each a SuggestRequest); at most COMPLEMENTME_MAX_BATCH_ITEMS."),
+        json_schema_extra={"items": {"$ref": "#/components/schemas/SuggestRequest"}})
+
+
+# --------------------------------------------------------------------------------------------
+# Responses.
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(..., description="Stable machine-readable error code.")
+    message: str = Field(..., description="What was wrong, for humans.")
+    details: list[dict[str, Any]] | None = Field(default=None, description=(
+        "Per-field problems (validation errors)."))
+
+
+class ErrorResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"error": {"code": "too_few_points", "message": "3 points given, at least 16 are needed"}},
+    ]})
+
+    error: ErrorDetail
+
+
+class FrameOut(BaseModel):
+    center: Vec3
+    radius: float
+    up_axis: Literal["y", "z"]
+    scale: float = Field(..., description="Factor to apply to catalog part geometry (canonical units).")
+    rotation: list[list[float]] = Field(..., description=(
+        "3x3 matrix turning catalog part geometry into the caller's axes: "
+        "placed vertex = scale * rotation @ v + translation."))
+
+
+class PartLinks(BaseModel):
+    part: str = Field(..., description="The part's record.")
+    mesh: str = Field(..., description="The part's mesh as GLB (add ?format=obj or ?format=ply).")
+    points: str = Field(..., description="The part's point samples.")
+
+
+class SuggestionOut(BaseModel):
+    rank: int
+    part_id: str
+    shape_id: str
+    category: str
+    label: str | None
+    score: float = Field(..., description=(
+        "Log-likelihood of the part's embedding under the predicted mixture."))
+    mode: int = Field(..., description="The mixture mode that explains the part best.")
+    mode_weight: float = Field(..., description="That mode's weight.")
+    duplicates: int = Field(..., description="Catalog parts in this part's near-duplicate group.")
+    translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
+    bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame).")
+    bbox_max: Vec3
+    links: PartLinks
+
+
+class ModeOut(BaseModel):
+    mode: int
+    weight: float
+
+
+class SuggestResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model_version": "2025.01-chairs", "input_points": 16, "candidates": 212,
+        "frame": {"center": [0, 0, 0], "radius": 1.0, "up_axis": "y", "scale": 1.0,
+                  "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+        "modes": [{"mode": 0, "weight": 0.61}, {"mode": 1, "weight": 0.39}],
+        "suggestions": [{
+            "rank": 1, "part_id": "chair-0007/2", "shape_id": "chair-0007", "category": "chair",
+            "label": "leg", "score": 41.2, "mode": 0, "mode_weight": 0.61, "duplicates": 4,
+            "translation": [0.31, -0.52, 0.28], "bbox_min": [0.27, -0.98, 0.24],
+            "bbox_max": [0.35, -0.06, 0.32],
+            "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
+                      "points": "/parts/chair-0007/2/points"}}],
+    }]})
+
+    model_version: str
+    frame: FrameOut
+    input_points: int = Field(..., description="Points received (before resampling to the model's count).")
+    candidates: int = Field(..., description="Distinct catalog parts re-scored before ranking.")
+    modes: list[ModeOut]
+    suggestions: list[SuggestionOut]
+
+
+class PlacementOut(BaseModel):
+    part_id: str
+    translation: Vec3
+    bbox_min: Vec3
+    bbox_max: Vec3
+    links: PartLinks
+
+
+class PlaceResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model_version": "2025.01-chairs",
+        "frame": {"center": [0, 0, 0], "radius": 1.0, "up_axis": "y", "scale": 1.0,
+                  "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+        "placements": [{"part_id": "chair-0007/2", "translation": [0.31, -0.52, 0.28],
+                        "bbox_min": [0.27, -0.98, 0.24], "bbox_max": [0.35, -0.06, 0.32],
+                        "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
+                                  "points": "/parts/chair-0007/2/points"}}],
+    }]})
+
+    model_version: str
+    frame: FrameOut
+    placements: list[PlacementOut]
+
+
+class BatchItemOut(BaseModel):
+    index: int
+    ok: bool
+    result: SuggestResponse | None = None
+    error: ErrorDetail | None = None
+
+
+class BatchResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model_version": "2025.01-chairs",
+        "results": [
+            {"index": 0, "ok": True, "result": {"...": "a SuggestResponse"}},
+            {"index": 1, "ok": False, "error": {"code": "non_finite_points",
+                                                "message": "point 3 has a NaN or infinite coordinate"}},
+        ]}]})
+
+    model_version: str
+    results: list[BatchItemOut]
+
+
+_PART_EXAMPLE: dict[str, Any] = {
+    "part_id": "chair-0007/2", "shape_id": "chair-0007", "category": "chair", "style": "armchair",
+    "label": "leg", "split": "train", "translation": [0.31, -0.52, 0.28],
+    "bbox_min": [-0.04, -0.46, -0.04], "bbox_max": [0.04, 0.46, 0.04], "area": 0.15,
+    "duplicate_of": None, "duplicates": 4, "n_points": 1000, "n_vertices": 24, "n_faces": 44,
+    "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
+              "points": "/parts/chair-0007/2/points"}}
+
+
+class PartOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [_PART_EXAMPLE]})
+
+    part_id: str
+    shape_id: str
+    category: str
+    style: str | None
+    label: str | None
+    split: str
+    translation: Vec3 = Field(..., description="Bounding-box centre in the source shape (canonical frame).")
+    bbox_min: Vec3 = Field(..., description="Centred bounding box.")
+    bbox_max: Vec3
+    area: float
+    duplicate_of: str | None = Field(..., description="Part id this part is a near-duplicate of.")
+    duplicates: int = Field(..., description="Catalog parts in this part's near-duplicate group.")
+    n_points: int
+    n_vertices: int
+    n_faces: int
+    links: PartLinks
+
+
+class PartsPage(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "total": 1, "offset": 0, "limit": 50, "items": [_PART_EXAMPLE],
+    }]})
+
+    total: int
+    offset: int
+    limit: int
+    items: list[PartOut]
+
+
+class PartPointsOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"part_id": "chair-0007/2", "n_points": 2, "points": [[0.01, -0.4, 0.02], [-0.03, 0.1, 0.0]]},
+    ]})
+
+    part_id: str
+    n_points: int
+    points: list[list[float]] | None = Field(default=None, description="Centred samples (encoding=json).")
+    points_base64: str | None = Field(default=None, description=(
+        "Little-endian float32 triples (encoding=base64)."))
+
+
+class CategoryOut(BaseModel):
+    name: str
+    parts: int
+
+
+class ModelInfo(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model_version": "2025.01-chairs", "format_version": 1, "n_points": 1000, "embedding_dim": 50,
+        "n_modes": 10, "part_count": 4210, "categories": [{"name": "chair", "parts": 2210}],
+        "limits": {"min_points": 16, "max_points": 100000, "default_k": 10, "max_k": 100}}]})
+
+    model_version: str
+    format_version: int
+    n_points: int
+    embedding_dim: int
+    n_modes: int
+    part_count: int
+    categories: list[CategoryOut]
+    limits: dict[str, int]
+
+
+class Health(BaseModel):
+    status: str
+    model_version: str | None = None

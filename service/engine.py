@@ -1,0 +1,372 @@
+"""The suggestion engine: partial assembly in, ranked and placed catalog parts out.
+
+One request (or a batch of them) goes through these steps, each one batched:
+
+1. points to the canonical frame, resampled to the networks' N points (seeded);
+2. g: the mixture {phi_k, mu_k, sigma_k} and h_query: the query's placement feature, one run
+   each for the whole batch;
+3. FAISS: the nearest catalog parts of every mean, all K means (of all queries sharing the same
+   filter) in one search;
+4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
+   parts collapsed (catalog ``duplicate_of``), the top k kept;
+5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
+   features from catalog.npz; translations and boxes mapped back to the caller's frame.
+
+No HTTP here: routes, the CLI and tests call these methods directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import faiss
+import numpy as np
+
+from service.errors import InputError, ServiceError
+from service.frames import Frame
+from service.geometry import resample_points
+from service.inputs import check_points
+from service.loading import Artifacts
+from service.mixture import mixture_log_likelihood
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SuggestOptions:
+    """What a caller may ask of one suggestion query (all optional)."""
+
+    k: int | None = None                     # suggestions to return (None: the default setting)
+    categories: tuple[str, ...] = ()         # only parts from these categories (empty: all)
+    exclude_parts: tuple[str, ...] = ()      # never these parts, nor their near-duplicates
+    exclude_shapes: tuple[str, ...] = ()     # never parts of these source shapes
+    collapse_duplicates: bool = True         # one part per near-duplicate group
+    frame: Frame = field(default_factory=Frame)
+
+
+@dataclass
+class Suggestion:
+    """One ranked suggestion, placed in the caller's frame.
+
+    Shapes:
+        translation, bbox_min, bbox_max: (3,) float64 in the caller's frame.
+    """
+
+    rank: int
+    part_index: int
+    part_id: str
+    shape_id: str
+    category: str
+    label: str | None
+    score: float          # log-likelihood of the part's embedding under the mixture
+    mode: int             # mixture mode that explains the part best
+    mode_weight: float    # that mode's weight phi_k
+    duplicates: int       # catalog parts in this part's near-duplicate group (1: none)
+    translation: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+
+
+@dataclass
+class SuggestResult:
+    """The answer to one query.
+
+    Shapes:
+        mode_weights: (K,) float32.
+    """
+
+    suggestions: list[Suggestion]
+    mode_weights: np.ndarray
+    frame: Frame
+    n_input_points: int
+    candidates: int                       # distinct parts re-scored before ranking
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage (whole batch)
+
+
+@dataclass
+class Placement:
+    """Where one chosen part goes. Shapes: translation, bbox_min, bbox_max: (3,) caller frame."""
+
+    part_index: int
+    part_id: str
+    translation: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+
+
+@dataclass
+class PlaceResult:
+    placements: list[Placement]
+    frame: Frame
+    n_input_points: int
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Query:
+    """One validated query inside a batch: canonical points and its resolved filter."""
+
+    item: int
+    points: np.ndarray                 # (N, 3) float32 canonical, resampled
+    n_input: int
+    options: SuggestOptions
+    k: int
+    allowed: np.ndarray | None         # (P,) bool, None when nothing is filtered
+    filter_key: tuple[tuple[str, ...], ...]
+
+
+class SuggestionEngine:
+    """Suggest and place catalog parts for partial assemblies, on loaded artifacts."""
+
+    def __init__(self, artifacts: Artifacts, settings: Settings):
+        self.artifacts = artifacts
+        self.settings = settings
+        self.catalog = artifacts.catalog
+        self.networks = artifacts.networks
+        self.index = artifacts.index
+
+    @property
+    def model_version(self) -> str:
+        return self.artifacts.model_version
+
+    # ---------------------------------------------------------------- step 1: input
+    def prepare(self, points: np.ndarray, frame: Frame) -> np.ndarray:
+        """Check limits, map to the canonical frame and resample to N points.
+
+        Shapes:
+            points: (M, 3) in the caller's frame -> (N, 3) float32 canonical.
+        """
+        s = self.settings
+        pts = frame.to_canonical(check_points(points, s.min_points, s.max_points))
+        n = self.artifacts.n_points
+        if len(pts) != n:
+            pts = resample_points(pts, n, s.seed)
+        return np.ascontiguousarray(pts, dtype=np.float32)
+
+    def _resolve(self, item: int, points: np.ndarray, options: SuggestOptions) -> _Query:
+        s, cat = self.settings, self.catalog
+        k = s.default_k if options.k is None else options.k
+        if not 1 <= k <= s.max_k:
+            raise InputError("k_out_of_range", f"k must be between 1 and {s.max_k}, found {k}")
+        if len(options.exclude_parts) + len(options.exclude_shapes) > s.max_exclude:
+            raise InputError("too_many_exclusions", f"at most {s.max_exclude} part and shape ids may be "
+                             "excluded per request")
+        allowed: np.ndarray | None = None
+        if options.categories:
+            allowed = np.isin(cat.category_of, cat.category_codes(list(options.categories)))
+        if options.exclude_parts:
+            groups = cat.group[[cat.lookup(p) for p in options.exclude_parts]]
+            keep = ~np.isin(cat.group, groups)
+            allowed = keep if allowed is None else allowed & keep
+        if options.exclude_shapes:
+            keep = ~np.isin(cat.shape_of, [cat.shape_code(sid) for sid in options.exclude_shapes])
+            allowed = keep if allowed is None else allowed & keep
+        key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
+               tuple(sorted(options.exclude_shapes)))
+        canonical = self.prepare(points, options.frame)
+        return _Query(item, canonical, len(points), options, k, allowed, key)
+
+    # ---------------------------------------------------------------- public API
+    def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
+        """Ranked, placed suggestions for one partial assembly; raises ``ServiceError`` on bad input.
+
+        Shapes:
+            points: (M, 3) in the caller's frame (``options.frame``).
+        """
+        result = self.suggest_batch([(points, options or SuggestOptions())])[0]
+        if isinstance(result, ServiceError):
+            raise result
+        return result
+
+    def suggest_batch(self, items: list[tuple[np.ndarray, SuggestOptions]]
+                      ) -> list[SuggestResult | ServiceError]:
+        """Suggestions for many queries with batched inference; a bad item yields its own error.
+
+        Returns one entry per item, in order: a ``SuggestResult`` or the ``ServiceError`` that
+        item raised (the other items are unaffected).
+        """
+        t0 = time.perf_counter()
+        out: list[SuggestResult | ServiceError] = []
+        queries: list[_Query] = []
+        for i, (points, options) in enumerate(items):
+            try:
+                queries.append(self._resolve(i, points, options))
+                out.append(None)  # type: ignore[arg-type]  # filled below
+            except ServiceError as exc:
+                out.append(exc)
+        if not queries:
+            return out
+        timings = {"prepare": time.perf_counter() - t0}
+        batch = np.stack([q.points for q in queries])  # (B, N, 3)
+        t = time.perf_counter()
+        mix = self.networks.mixture(batch)
+        timings["g"] = time.perf_counter() - t
+        t = time.perf_counter()
+        qf = self.networks.query_features(batch)
+        timings["h_query"] = time.perf_counter() - t
+        t = time.perf_counter()
+        candidates = self._search(queries, mix.means)
+        timings["search"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        ranked = []
+        for b, q in enumerate(queries):
+            ranked.append(self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b]))
+        timings["score"] = time.perf_counter() - t
+
+        # One h_head run over every kept candidate of every query.
+        t = time.perf_counter()
+        rows = np.concatenate([np.full(len(r[0]), b) for b, r in enumerate(ranked)]).astype(np.int64)
+        parts = np.concatenate([r[0] for r in ranked]).astype(np.int64)
+        translations = (self.networks.place(qf[rows], self.catalog.part_features[parts])
+                        if len(parts) else np.zeros((0, 3), np.float32))
+        timings["h_head"] = time.perf_counter() - t
+
+        start = 0
+        for b, q in enumerate(queries):
+            idx, scores, modes, n_cand = ranked[b]
+            tr = translations[start:start + len(idx)]
+            start += len(idx)
+            out[q.item] = SuggestResult(
+                suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, q.options.frame),
+                mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
+                candidates=n_cand, timings=timings)
+        timings["total"] = time.perf_counter() - t0
+        return out
+
+    def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None) -> PlaceResult:
+        """Translations (and placed boxes) of chosen parts next to a partial assembly.
+
+        Shapes:
+            points: (M, 3) in the caller's frame.
+        """
+        frame = frame or Frame()
+        if not part_ids:
+            raise InputError("no_parts", "give at least one part id to place")
+        if len(part_ids) > self.settings.max_place_parts:
+            raise InputError("too_many_parts", f"{len(part_ids)} part ids given, at most "
+                             f"{self.settings.max_place_parts} are accepted")
+        idx = np.array([self.catalog.lookup(p) for p in part_ids], dtype=np.int64)
+        t0 = time.perf_counter()
+        canonical = self.prepare(points, frame)
+        timings = {"prepare": time.perf_counter() - t0}
+        t = time.perf_counter()
+        qf = self.networks.query_features(canonical[None])
+        timings["h_query"] = time.perf_counter() - t
+        t = time.perf_counter()
+        tr = self.networks.place(np.repeat(qf, len(idx), axis=0), self.catalog.part_features[idx])
+        timings["h_head"] = time.perf_counter() - t
+        trans, lo, hi = self._placed(idx, tr, frame)
+        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j])
+                      for j, i in enumerate(idx)]
+        return PlaceResult(placements, frame, len(points), timings)
+
+    def warmup(self) -> None:
+        """Run one suggestion and one placement on a query made from the first catalog shape."""
+        cat = self.catalog
+        parts = np.flatnonzero(cat.shape_of == cat.shape_of[0])
+        points = np.concatenate([cat.part_points(int(i)) + cat.translations[i] for i in parts])
+        result = self.suggest(points, SuggestOptions(k=min(5, self.settings.max_k)))
+        if result.suggestions:
+            self.place(points, [result.suggestions[0].part_id])
+        log.info("warm-up passed: %d suggestions in %.1f ms", len(result.suggestions),
+                 1000 * result.timings.get("total", 0.0))
+
+    # ---------------------------------------------------------------- steps 3-5
+    def _search(self, queries: list[_Query], means: np.ndarray) -> list[np.ndarray]:
+        """Candidate catalog rows per query: FAISS neighbours of all its modes' means.
+
+        Queries sharing a filter share one search call (all their K means at once).
+
+        Shapes:
+            means: (B, K, D) -> list of B arrays of distinct catalog rows (int64).
+        """
+        K = means.shape[1]
+        nn = min(len(self.catalog), self.settings.neighbours_per_mode)
+        groups: dict[tuple, list[int]] = defaultdict(list)
+        for b, q in enumerate(queries):
+            groups[q.filter_key].append(b)
+        found: list[np.ndarray] = [np.zeros(0, np.int64)] * len(queries)
+        for members in groups.values():
+            allowed = queries[members[0]].allowed
+            flat = np.ascontiguousarray(means[members].reshape(-1, means.shape[2]), dtype=np.float32)
+            labels = self._faiss_search(flat, nn, allowed)
+            for j, b in enumerate(members):
+                ids = labels[j * K:(j + 1) * K].ravel()
+                ids = np.unique(ids[ids >= 0])
+                if allowed is not None:
+                    ids = ids[allowed[ids]]  # also covers indexes that ignore selectors
+                found[b] = ids
+        return found
+
+    def _faiss_search(self, x: np.ndarray, nn: int, allowed: np.ndarray | None) -> np.ndarray:
+        """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""
+        if allowed is None:
+            return self.index.search(x, nn)[1]
+        packed = np.packbits(allowed, bitorder="little")
+        sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
+        params = _search_parameters(self.index, sel)
+        if params is None:  # an index type without selector support: filter afterwards
+            return self.index.search(x, min(len(self.catalog), 4 * nn))[1]
+        return self.index.search(x, nn, params=params)[1]
+
+    def _rank(self, q: _Query, cand: np.ndarray, weights: np.ndarray, means: np.ndarray,
+              sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Score candidates under the mixture, sort, collapse duplicates, keep the top k.
+
+        Returns kept rows (k',), their log-likelihoods (k',), best modes (k',) and the number
+        of candidates scored.
+        """
+        if len(cand) == 0:
+            empty = np.zeros(0, np.int64)
+            return empty, np.zeros(0), empty, 0
+        ll, mode = mixture_log_likelihood(self.catalog.embeddings[cand], weights, means, sigmas)
+        order = np.argsort(-ll, kind="stable")  # ties keep catalog order: deterministic
+        cand, ll, mode = cand[order], ll[order], mode[order]
+        if q.options.collapse_duplicates:
+            _, first = np.unique(self.catalog.group[cand], return_index=True)
+            keep = np.sort(first)[:q.k]
+        else:
+            keep = np.arange(min(q.k, len(cand)))
+        return cand[keep], ll[keep], mode[keep], len(order)
+
+    def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Canonical translations of parts to caller-frame translations and placed boxes."""
+        t = translations.astype(np.float64)
+        lo, hi = frame.box_from_canonical(t + self.catalog.bbox_min[idx], t + self.catalog.bbox_max[idx])
+        return frame.from_canonical(t), lo, hi
+
+    def _suggestions(self, idx: np.ndarray, scores: np.ndarray, modes: np.ndarray, weights: np.ndarray,
+                     translations: np.ndarray, frame: Frame) -> list[Suggestion]:
+        cat = self.catalog
+        trans, lo, hi = self._placed(idx, translations, frame)
+        out = []
+        for r, i in enumerate(idx.tolist()):
+            rec = cat.records[i]
+            out.append(Suggestion(
+                rank=r + 1, part_index=i, part_id=rec["part_id"], shape_id=rec["shape_id"],
+                category=rec["category"], label=rec["label"], score=float(scores[r]),
+                mode=int(modes[r]), mode_weight=float(weights[modes[r]]),
+                duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r]))
+        return out
+
+
+def _search_parameters(index: faiss.Index, sel: faiss.IDSelector) -> faiss.SearchParameters | None:
+    """Search parameters carrying an ID selector, of the kind this index type expects."""
+    params: Any
+    if isinstance(index, faiss.IndexIVF):
+        params = faiss.SearchParametersIVF()
+    elif isinstance(index, faiss.IndexHNSW):
+        params = getattr(faiss, "SearchParametersHNSW")()  # noqa: B009  (missing from faiss's stubs)
+    elif isinstance(index, faiss.IndexFlat):
+        params = faiss.SearchParameters()
+    else:
+        return None
+    params.sel = sel
+    return params

@@ -1,0 +1,48 @@
+"""Errors the engine raises for a caller's bad input, each with a stable machine-readable code.
+
+They carry no HTTP types: the API maps them to statuses (``InputError`` 422, ``NotFoundError``
+404, ``PayloadTooLargeError`` 413), and the CLI and tests catch them as plain exceptions.
+"""
+
+from __future__ import annotations
+
+
+class ServiceError(Exception):
+    """A request the service refuses; ``code`` is stable, ``message`` says what was wrong."""
+
+    status = 400
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+class InputError(ServiceError, ValueError):
+    """The request is well-formed but its content cannot be used (bad points, k out of range, ...)."""
+
+    status = 422
+
+
+class NotFoundError(ServiceError, LookupError):
+    """A part, shape or category the request names is not in the catalog."""
+
+    status = 404
+
+
+class PayloadTooLargeError(ServiceError):
+    """The request body is larger than the configured limit."""
+
+    status = 413
+
+
+class UnsupportedMediaError(ServiceError):
+    """An upload in a format the service cannot read."""
+
+    status = 415
+
+
+class NotReadyError(ServiceError):
+    """The artifacts are not loaded (yet)."""
+
+    status = 503

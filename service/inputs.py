@@ -1,0 +1,106 @@
+"""Turn what a caller sends (a list of points, base64 float32, a mesh file) into an (N, 3) array.
+
+Each decoder only decodes and checks the shape; ``check_points`` applies the count and value
+limits. Every failure is an ``InputError`` (or ``UnsupportedMediaError``, ``PayloadTooLargeError``)
+with a code a client can branch on.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+from collections.abc import Sequence
+from pathlib import PurePath
+
+import numpy as np
+
+from service.errors import InputError, PayloadTooLargeError, UnsupportedMediaError
+from service.geometry import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface
+
+# Mesh error codes that are the caller's format or size choice rather than a broken file.
+_MESH_CODE_ERRORS: dict[str, type[InputError] | type[UnsupportedMediaError] | type[PayloadTooLargeError]] = {
+    "unsupported_format": UnsupportedMediaError,
+    "too_large": PayloadTooLargeError,
+}
+
+
+def points_from_list(values: Sequence[Sequence[float]]) -> np.ndarray:
+    """A JSON list of [x, y, z] triples as ``(N, 3) float32``; ``bad_shape`` if not triples."""
+    if len(values) == 0:
+        raise InputError("empty_points", "points is empty; send at least one [x, y, z] triple")
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise InputError("bad_shape", "points must be a list of [x, y, z] triples of equal length") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError("bad_shape", f"points must have shape (N, 3), found {arr.shape}")
+    return arr.astype(np.float32)
+
+
+def points_from_base64(text: str, max_points: int) -> np.ndarray:
+    """Base64 of little-endian float32 x, y, z triples (12 bytes per point) as ``(N, 3) float32``."""
+    if not text:
+        raise InputError("empty_points", "points_base64 is empty")
+    # Refuse oversized payloads before decoding them (4 base64 characters carry 3 bytes).
+    if len(text) > 4 * ((12 * max_points + 2) // 3):
+        raise InputError("too_many_points", f"points_base64 holds more than the limit of {max_points} points")
+    try:
+        raw = base64.b64decode(text, validate=True)
+    except (binascii.Error, ValueError) as exc:
+        raise InputError("invalid_base64", f"points_base64 is not valid base64 ({exc})") from None
+    if len(raw) % 12:
+        raise InputError("bad_shape", f"points_base64 decodes to {len(raw)} bytes, not a multiple of 12 "
+                         "(3 little-endian float32 per point)")
+    if not raw:
+        raise InputError("empty_points", "points_base64 decodes to no points")
+    return np.frombuffer(raw, dtype="<f4").reshape(-1, 3).astype(np.float32)
+
+
+def points_to_base64(points: np.ndarray) -> str:
+    """The inverse of ``points_from_base64``: (N, 3) -> base64 of little-endian float32."""
+    return base64.b64encode(np.ascontiguousarray(points, dtype="<f4").tobytes()).decode("ascii")
+
+
+def check_points(points: np.ndarray, min_points: int, max_points: int) -> np.ndarray:
+    """Enforce the point-count limits and finite values; returns ``(N, 3) float32``."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError("bad_shape", f"points must have shape (N, 3), found {points.shape}")
+    n = len(points)
+    if n == 0:
+        raise InputError("empty_points", "no points given")
+    if n < min_points:
+        raise InputError("too_few_points", f"{n} points given, at least {min_points} are needed")
+    if n > max_points:
+        raise InputError("too_many_points", f"{n} points given, at most {max_points} are accepted")
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise InputError("non_finite_points", f"point {bad} has a NaN or infinite coordinate "
+                         f"({int((~finite).sum())} such points)")
+    return np.asarray(points, dtype=np.float32)
+
+
+def mesh_format(filename: str | None, declared: str | None) -> str:
+    """The mesh format from an explicit ``format`` field, else from the file name's extension."""
+    fmt = (declared or PurePath(filename or "").suffix).lower().lstrip(".")
+    if fmt not in MESH_FORMATS:
+        shown = fmt or "(none: give a file name with an extension or a format field)"
+        raise UnsupportedMediaError("unsupported_format", f"mesh format {shown!r} is not supported; "
+                                    f"expected one of {', '.join(MESH_FORMATS)}")
+    return fmt
+
+
+def points_from_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str,
+                     max_vertices: int, max_faces: int) -> np.ndarray:
+    """Load an uploaded mesh and sample ``n`` points on its surface, area-weighted and seeded.
+
+    Shapes:
+        returns (n, 3) float32, in the mesh's own frame.
+    """
+    try:
+        mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
+                               ignore_obj_materials=True)
+        return sample_surface(mesh.vertices, mesh.faces, n, seed)
+    except MeshError as exc:
+        cls = _MESH_CODE_ERRORS.get(exc.code, InputError)
+        raise cls(exc.code, exc.message) from None

@@ -1,0 +1,205 @@
+"""Open an artifact folder once, check every file against the manifest, refuse bad folders.
+
+``load_artifacts`` is what the server's lifespan calls: it opens the five ONNX graphs with
+explicit session options, the FAISS index and the catalog, checks names, dimensions and counts
+against ``manifest.json`` and each other, runs every graph once on catalog data, and raises
+``ArtifactError`` naming the offending file at the first problem.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+import onnxruntime as ort
+
+from service.artifacts import (
+    CATALOG_ARRAYS,
+    CATALOG_JSON,
+    GRAPH_FILES,
+    GRAPH_INPUTS,
+    GRAPH_OUTPUTS,
+    INDEX_FILE,
+    ArtifactError,
+    read_manifest,
+)
+from service.catalog import Catalog, load_catalog
+from service.models import Networks
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Artifacts:
+    """Everything loaded from one artifact folder, checked and ready to serve."""
+
+    folder: Path
+    manifest: dict[str, Any]
+    networks: Networks
+    index: faiss.Index
+    catalog: Catalog
+
+    @property
+    def model_version(self) -> str:
+        return str(self.manifest["model_version"])
+
+    @property
+    def n_points(self) -> int:
+        """Points per query the networks were trained on (N)."""
+        return int(self.manifest["n_points"])
+
+    @property
+    def n_modes(self) -> int:
+        return int(self.manifest["n_modes"])
+
+    @property
+    def embedding_dim(self) -> int:
+        return int(self.manifest["embedding_dim"])
+
+
+def session_options(threads: int) -> ort.SessionOptions:
+    """ONNX Runtime options for serving: fixed threads, no spinning, full graph optimisation.
+
+    Idle onnxruntime workers spin by default and starve FAISS's threads in the same process
+    (searches 3-4x slower), so spinning is turned off for both thread pools.
+    """
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    opts.log_severity_level = 3  # errors only: warnings about unused initialisers are noise
+    return opts
+
+
+def open_session(path: Path, graph: str, threads: int) -> ort.InferenceSession:
+    """Open one graph and check its input and output names against the artifact contract."""
+    if not path.is_file():
+        raise ArtifactError(f"artifact file missing: {path}")
+    try:
+        sess = ort.InferenceSession(str(path), sess_options=session_options(threads),
+                                    providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own untyped errors on bad files
+        raise ArtifactError(f"{path}: cannot be opened as an ONNX graph ({exc})") from exc
+    for kind, found, expected in (
+        ("inputs", [i.name for i in sess.get_inputs()], GRAPH_INPUTS[graph]),
+        ("outputs", [o.name for o in sess.get_outputs()], GRAPH_OUTPUTS[graph]),
+    ):
+        if found != expected:
+            raise ArtifactError(f"{path}: graph {graph!r} has {kind} {found}, expected {expected}")
+    for inp in sess.get_inputs():
+        if inp.type != "tensor(float)":
+            raise ArtifactError(f"{path}: input {inp.name!r} has type {inp.type}, expected tensor(float)")
+    return sess
+
+
+def _static_dim(sess: ort.InferenceSession, output: str, axis: int) -> int | None:
+    """A fixed dimension of an output, or None when the graph leaves it symbolic."""
+    for o in sess.get_outputs():
+        if o.name == output:
+            dim = o.shape[axis] if len(o.shape) > axis else None
+            return dim if isinstance(dim, int) else None
+    return None
+
+
+def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: int) -> faiss.Index:
+    """Read the FAISS index and check it holds ``count`` vectors of size ``dim``."""
+    if not path.is_file():
+        raise ArtifactError(f"artifact file missing: {path}")
+    try:
+        index = faiss.read_index(str(path))
+    except RuntimeError as exc:
+        raise ArtifactError(f"{path}: cannot read FAISS index ({str(exc).splitlines()[0]})") from exc
+    if index.d != dim:
+        raise ArtifactError(f"{path}: index dimension {index.d}, but the manifest says embedding_dim={dim}")
+    if index.ntotal != count:
+        raise ArtifactError(f"{path}: index holds {index.ntotal} vectors, but the manifest says "
+                            f"part_count={count}")
+    if not index.is_trained:
+        raise ArtifactError(f"{path}: index is not trained")
+    faiss.omp_set_num_threads(threads)
+    faiss.cvar.distance_compute_blas_threshold = blas_threshold
+    return index
+
+
+def _check_run(folder: Path, nets: Networks, catalog: Catalog, manifest: dict[str, Any]) -> None:
+    """Run every graph once on two catalog parts and check output shapes and values.
+
+    Symbolic output shapes cannot be checked statically; this catches a graph exported with the
+    wrong embedding size, mode count or feature size before the first request does.
+    """
+    n, K, D = int(manifest["n_points"]), int(manifest["n_modes"]), int(manifest["embedding_dim"])
+    parts = catalog.points[:2].astype(np.float32)
+    B = len(parts)
+    rng = np.random.default_rng(0)
+    query = rng.uniform(-0.5, 0.5, size=(B, n, 3)).astype(np.float32)
+    fp = catalog.part_features.shape[1]
+    runs: list[tuple[str, Any, tuple[int, ...]]] = []
+
+    def run(graph: str, fn: Any, *args: Any) -> Any:
+        try:
+            return fn(*args)
+        except Exception as exc:  # onnxruntime reports shape mismatches as generic errors
+            raise ArtifactError(f"{folder / GRAPH_FILES[graph]}: test run failed ({exc})") from exc
+
+    emb = run("f", nets.embed, parts)
+    runs.append(("f", emb, (B, D)))
+    mix = run("g", nets.mixture, query)
+    runs += [("g", mix.weights, (B, K)), ("g", mix.means, (B, K, D)), ("g", mix.sigmas, (B, K, D))]
+    qf = run("h_query", nets.query_features, query)
+    pf = run("h_part", nets.part_features, parts)
+    runs += [("h_query", qf, (B, qf.shape[1] if qf.ndim == 2 else -1)), ("h_part", pf, (B, fp))]
+    tr = run("h_head", nets.place, qf, catalog.part_features[:B])
+    runs.append(("h_head", tr, (B, 3)))
+    for graph, out, shape in runs:
+        path = folder / GRAPH_FILES[graph]
+        if tuple(out.shape) != shape:
+            raise ArtifactError(f"{path}: output of shape {tuple(out.shape)}, expected {shape} "
+                                "(from manifest.json and catalog.npz)")
+        if not np.all(np.isfinite(out)):
+            raise ArtifactError(f"{path}: test run gave NaN or infinite values")
+    if np.any(mix.sigmas <= 0):
+        raise ArtifactError(f"{folder / GRAPH_FILES['g']}: sigmas must be positive")
+    # The catalog must come from these graphs: f and h_part of its own points should reproduce
+    # its stored embeddings and features (loosely: the points are stored as float16).
+    for graph, got, stored in (("f", emb, catalog.embeddings[:B]), ("h_part", pf, catalog.part_features[:B])):
+        rel = float(np.abs(got - stored).max() / (np.abs(stored).max() + 1e-6))
+        if rel > 0.05:
+            log.warning("%s: recomputed %s outputs differ from %s by %.3f (relative); "
+                        "is the catalog exported with these graphs?", folder / GRAPH_FILES[graph],
+                        graph, folder / CATALOG_ARRAYS, rel)
+
+
+def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 1,
+                   faiss_blas_threshold: int = 20, verify_checksums: bool = True) -> Artifacts:
+    """Load and check an artifact folder; ``ArtifactError`` names the first bad file."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ArtifactError(f"artifact folder not found: {folder}")
+    manifest = read_manifest(folder, verify_checksums=verify_checksums)
+    for key in ("n_points", "embedding_dim", "n_modes", "part_count"):
+        value = manifest[key]
+        if not (isinstance(value, int) and value > 0):
+            raise ArtifactError(f"{folder / 'manifest.json'}: {key} must be a positive integer, "
+                                f"found {value!r}")
+    D, K, P = int(manifest["embedding_dim"]), int(manifest["n_modes"]), int(manifest["part_count"])
+    sessions = {g: open_session(folder / name, g, onnx_threads) for g, name in GRAPH_FILES.items()}
+    for graph, output, axis, expected in (("f", "embedding", 1, D), ("g", "weights", 1, K),
+                                          ("g", "means", 2, D)):
+        dim = _static_dim(sessions[graph], output, axis)
+        if dim is not None and dim != expected:
+            raise ArtifactError(f"{folder / GRAPH_FILES[graph]}: output {output!r} has size {dim} on axis "
+                                f"{axis}, but manifest.json says {expected}")
+    index = load_index(folder / INDEX_FILE, D, P, faiss_threads, faiss_blas_threshold)
+    catalog = load_catalog(folder / CATALOG_JSON, folder / CATALOG_ARRAYS, P, D)
+    nets = Networks(**sessions)
+    _check_run(folder, nets, catalog, manifest)
+    log.info("loaded artifacts %s: model %s, %d parts in %d categories", folder,
+             manifest["model_version"], P, len(catalog.categories))
+    return Artifacts(folder=folder, manifest=manifest, networks=nets, index=index, catalog=catalog)

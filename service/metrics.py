@@ -1,0 +1,81 @@
+"""Prometheus metrics of one server process, in a registry of its own.
+
+A registry per app (not prometheus-client's global one) lets tests build many apps in one
+process. With several uvicorn workers each process reports its own numbers.
+"""
+
+from __future__ import annotations
+
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    disable_created_metrics,
+    generate_latest,
+)
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+# Request latencies run from sub-millisecond probes to multi-second batches and mesh uploads.
+_LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
+_STAGE_BUCKETS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.5, 1.0)
+_SIZE_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+
+# The *_created series double the output for no use on a scrape target like this one.
+disable_created_metrics()
+
+
+class Metrics:
+    """The service's counters, histograms and gauges."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.requests = Counter("complementme_http_requests", "HTTP requests by method, route and status.",
+                                ["method", "route", "status"], registry=r)
+        self.latency = Histogram("complementme_http_request_duration_seconds",
+                                 "HTTP request latency by method, route and status.",
+                                 ["method", "route", "status"], buckets=_LATENCY_BUCKETS, registry=r)
+        self.inference = Histogram("complementme_inference_duration_seconds",
+                                   "ONNX Runtime time per engine call, by graph.", ["graph"],
+                                   buckets=_STAGE_BUCKETS, registry=r)
+        self.search = Histogram("complementme_search_duration_seconds",
+                                "FAISS search time per engine call.", buckets=_STAGE_BUCKETS, registry=r)
+        self.scoring = Histogram("complementme_scoring_duration_seconds",
+                                 "Mixture re-scoring and ranking time per engine call.",
+                                 buckets=_STAGE_BUCKETS, registry=r)
+        self.batch_size = Histogram("complementme_batch_size", "Queries per engine call.",
+                                    buckets=_SIZE_BUCKETS, registry=r)
+        self.candidates = Histogram("complementme_candidates", "Catalog parts re-scored per query.",
+                                    buckets=_SIZE_BUCKETS, registry=r)
+        self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.", registry=r)
+        self.model_info = Gauge("complementme_model_info", "The loaded model version (value 1).",
+                                ["model_version"], registry=r)
+
+    def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
+        labels = (method, route, str(status))
+        self.requests.labels(*labels).inc()
+        self.latency.labels(*labels).observe(seconds)
+
+    def observe_engine(self, timings: dict[str, float], batch_size: int, candidates: list[int]) -> None:
+        """Record one engine call's stage timings (seconds) and sizes."""
+        for graph in ("g", "h_query", "h_head"):
+            if graph in timings:
+                self.inference.labels(graph).observe(timings[graph])
+        if "search" in timings:
+            self.search.observe(timings["search"])
+        if "score" in timings:
+            self.scoring.observe(timings["score"])
+        self.batch_size.observe(batch_size)
+        for c in candidates:
+            self.candidates.observe(c)
+
+    def set_model(self, model_version: str, parts: int) -> None:
+        self.catalog_parts.set(parts)
+        self.model_info.clear()
+        self.model_info.labels(model_version).set(1)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

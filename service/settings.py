@@ -1,0 +1,117 @@
+"""Settings of the suggestion service, read from ``COMPLEMENTME_*`` environment variables.
+
+One class holds every knob and every limit of the running server, so the README's table of
+settings can be generated from it (``python -m service.settings > docs/settings.md``; a test
+checks the file is up to date). Read settings through ``get_settings()``, never at import:
+tests clear its cache to change them.
+"""
+
+from __future__ import annotations
+
+import sys
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+ENV_PREFIX = "COMPLEMENTME_"
+
+# The shipped artifacts live at the repository root, next to the `service` package.
+DEFAULT_ARTIFACTS = Path(__file__).resolve().parent.parent / "exported"
+
+
+class Settings(BaseSettings):
+    """Every setting of the service; each field's description is its documentation."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
+
+    # --- where and how to serve -------------------------------------------------------------
+    artifacts: Path = Field(default=DEFAULT_ARTIFACTS, description=(
+        "Folder of exported artifacts (manifest.json, ONNX graphs, FAISS index, catalog). "
+        "Defaults to `exported/` at the repository root."))
+    host: str = Field(default="127.0.0.1", description="Address `complementme serve` binds to.")
+    port: int = Field(default=8000, ge=1, le=65535, description="Port `complementme serve` listens on.")
+    workers: int = Field(default=1, ge=1, le=64, description=(
+        "Uvicorn worker processes; each loads its own copy of the artifacts."))
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        default="info", description="Log level of the server.")
+    verify_checksums: bool = Field(default=True, description=(
+        "Check every artifact file against its SHA-256 in manifest.json at start."))
+
+    # --- compute ----------------------------------------------------------------------------
+    onnx_threads: int = Field(default=1, ge=1, le=64, description=(
+        "Intra-op threads of each ONNX Runtime session (spinning is always off, so idle "
+        "threads do not starve FAISS)."))
+    faiss_threads: int = Field(default=1, ge=1, le=64, description="OpenMP threads FAISS searches with.")
+    faiss_blas_threshold: int = Field(default=20, ge=1, description=(
+        "Batches of at least this many queries take FAISS's BLAS path (faster for batched "
+        "searches; FAISS's own default of 128000 never takes it)."))
+    neighbours_per_mode: int = Field(default=64, ge=1, le=4096, description=(
+        "Catalog parts FAISS returns for each mixture mean; their union is re-scored by the "
+        "exact mixture log-likelihood."))
+    seed: int = Field(default=0, description=(
+        "Seed of the deterministic resampling of inputs to the model's point count and of "
+        "mesh surface sampling."))
+    warmup: bool = Field(default=True, description=(
+        "Run one suggestion at start; `/readyz` reports ready only after it passed."))
+
+    # --- limits on requests -----------------------------------------------------------------
+    min_points: int = Field(default=16, ge=1, description="Fewest points a query may have.")
+    max_points: int = Field(default=100_000, ge=1, description="Most points a query may have.")
+    default_k: int = Field(default=10, ge=1, description="Suggestions returned when a request gives no `k`.")
+    max_k: int = Field(default=100, ge=1, description="Largest `k` a request may ask for.")
+    max_place_parts: int = Field(default=100, ge=1, description=(
+        "Most part ids one `/place` request may give."))
+    max_exclude: int = Field(default=1000, ge=0, description=(
+        "Most part ids plus shape ids one request may exclude."))
+    max_batch_items: int = Field(default=64, ge=1, description=(
+        "Most queries in one `/suggest/batch` request."))
+    max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024, description=(
+        "Largest JSON request body in bytes (checked against Content-Length before reading "
+        "and enforced while reading)."))
+    max_upload_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, description=(
+        "Largest multipart mesh upload in bytes (whole request body)."))
+    max_mesh_vertices: int = Field(default=2_000_000, ge=3, description=(
+        "Most vertices an uploaded mesh may have."))
+    max_mesh_faces: int = Field(default=2_000_000, ge=1, description="Most faces an uploaded mesh may have.")
+    max_page_size: int = Field(default=500, ge=1, description="Largest `limit` of a `GET /parts` page.")
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process's settings, read once from the environment (``cache_clear()`` to re-read)."""
+    return Settings()
+
+
+def _env_default(name: str) -> str:
+    field = Settings.model_fields[name]
+    if name == "artifacts":
+        return "`exported/` at the repository root"
+    value = field.default
+    if isinstance(value, bool):
+        return "`true`" if value else "`false`"
+    return f"`{value}`"
+
+
+def render_settings_markdown() -> str:
+    """The settings table for the docs, generated from the field descriptions above."""
+    lines = [
+        "# Service settings",
+        "",
+        "<!-- Generated by `python -m service.settings > docs/settings.md`; do not edit by hand. -->",
+        "",
+        f"Every setting is an environment variable with the prefix `{ENV_PREFIX}`.",
+        "",
+        "| Variable | Default | Meaning |",
+        "|---|---|---|",
+    ]
+    for name, field in Settings.model_fields.items():
+        desc = (field.description or "").replace("|", "\\|")
+        lines.append(f"| `{ENV_PREFIX}{name.upper()}` | {_env_default(name)} | {desc} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render_settings_markdown())
