@@ -5,9 +5,72 @@ Each command is a thin wrapper: parse options, call one function of the data pac
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 data_app = typer.Typer(help="Shape data: generate, ingest, preprocess (paper Section 4), statistics.",
                        no_args_is_help=True)
 
 # Commands are added below, one function each: generate (generator), ingest, preprocess, stats.
+
+
+# ---- ingest, preprocess, stats ---------------------------------------------------------------
+
+@data_app.command("ingest")
+def ingest_cmd(
+    src: Path = typer.Argument(..., help="Folder of shape files: OBJ, GLB/GLTF, PLY, OFF, STL, .pts + .seg."),
+    out: Path = typer.Option(Path("data/raw"), "--out", help="Raw dataset folder to write (GLB + sidecar)."),
+    category: str | None = typer.Option(
+        None, "--category", help="Category of every shape (default: the sidecar's, else the folder's)."),
+    ignore_obj_materials: bool = typer.Option(
+        False, "--ignore-obj-materials", help="Drop OBJ mtllib/usemtl lines instead of refusing the file."),
+    max_vertices: int = typer.Option(2_000_000, help="Refuse meshes with more vertices."),
+    max_faces: int = typer.Option(4_000_000, help="Refuse meshes with more triangles."),
+) -> None:
+    """Convert a folder of user meshes or segmented point clouds into the built-in raw format."""
+    from training.data.ingest import IngestConfig, ingest_folder
+
+    config = IngestConfig(ignore_obj_materials=ignore_obj_materials, max_vertices=max_vertices,
+                          max_faces=max_faces)
+    report = ingest_folder(src, out, category, config)
+    typer.echo(report.table())
+    if not report.written:
+        raise typer.Exit(code=1)
+
+
+@data_app.command("preprocess")
+def preprocess_cmd(
+    raw: Path = typer.Option(Path("data/raw"), "--raw", help="Raw shapes (data generate / ingest)."),
+    out: Path = typer.Option(Path("data/processed"), "--out", help="Processed dataset folder to write."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Worker processes (the output does not change)."),
+    tau_proximity: float = typer.Option(0.05, help="Contact edge below this distance (fraction of radius)."),
+    tau_size: float = typer.Option(0.2, help="Merge components whose PCA box diagonal is below this."),
+    tau_hausdorff: float = typer.Option(0.05, help="Group components within this directional Hausdorff."),
+    min_components: int = typer.Option(2, help="Discard shapes with fewer components after merging."),
+    max_components: int = typer.Option(8, help="Discard shapes with more components after merging."),
+    points_per_component: int = typer.Option(2048, help="Surface samples cached per component."),
+    seed: int = typer.Option(0, help="Root seed of all sampling."),
+) -> None:
+    """Merge pieces into components and build contact graphs (paper Section 4)."""
+    from training.data.preprocess import PreprocessConfig, preprocess_folder
+
+    config = PreprocessConfig(tau_proximity=tau_proximity, tau_size=tau_size, tau_hausdorff=tau_hausdorff,
+                              min_components=min_components, max_components=max_components,
+                              points_per_component=points_per_component, seed=seed)
+    ds = preprocess_folder(raw, out, config, workers=workers)
+    counts = ds.info["counts"]
+    typer.echo(f"{out}: {counts['kept']} shapes kept ({counts['components']} components), "
+               f"{counts['rejected']} discarded; merges {ds.info['merge_counts']}")
+
+
+@data_app.command("stats")
+def stats_cmd(
+    processed: Path = typer.Option(Path("data/processed"), "--processed", help="Processed dataset folder."),
+    out: Path = typer.Option(Path("docs/data"), "--out", help="Where to write the PNG, table and JSON."),
+) -> None:
+    """Histograms of components per shape, merge counts and discarded shapes."""
+    from training.data.stats import TABLE_TXT, write_stats
+
+    write_stats(processed, out)
+    typer.echo((out / TABLE_TXT).read_text(), nl=False)

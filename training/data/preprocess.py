@@ -488,7 +488,7 @@ def assemble(results: list[dict[str, Any]], config: PreprocessConfig) -> Process
     histogram: dict[str, dict[str, int]] = {}
     per_category: dict[str, dict[str, Any]] = {}
     for r in results:
-        if r.get("code") != "unreadable":
+        if r.get("code") not in ("unreadable", "invalid"):  # counted only when merging ran
             h = histogram.setdefault(r["category"], {})
             h[str(r["n_components"])] = h.get(str(r["n_components"]), 0) + 1
         c = per_category.setdefault(r["category"], {"kept": 0, "rejected": {}})
