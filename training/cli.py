@@ -25,3 +25,7 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug 
 
 
 # Training commands (train, export, evaluate) are registered below.
+
+from training.commands import register_training_commands  # noqa: E402
+
+register_training_commands(app)

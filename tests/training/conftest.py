@@ -90,41 +90,45 @@ MAKERS = {"chair": _chair, "table": _table, "lamp": _lamp}
 
 
 def make_toy_dataset(n_per_category: int = 6, seed: int = 0, cached_points: int = 256,
-                     categories: tuple[str, ...] = ("chair", "table", "lamp")) -> ProcessedDataset:
+                     categories: tuple[str, ...] = ("chair", "table", "lamp"),
+                     copies_of_first: int = 0) -> ProcessedDataset:
     """A ProcessedDataset of ``n_per_category`` random shapes per category.
+
+    ``copies_of_first`` appends that many copies of the first shape (same meshes, new point
+    samples, new shape ids): near-duplicate parts across shapes.
 
     Shapes:
         points (C, cached_points, 3) float16, as the real preprocessing writes them.
     """
     rng = np.random.default_rng(seed)
+    specs = [(f"{cat}-{i:04d}", cat, *MAKERS[cat](rng)) for cat in categories for i in range(n_per_category)]
+    specs += [(f"{specs[0][0]}-copy{j}", *specs[0][1:]) for j in range(copies_of_first)]
     points, translation, area, shape_of, edges = [], [], [], [], []
     vblocks, fblocks, shapes = [], [], []
     first = [0]
-    for cat in categories:
-        for i in range(n_per_category):
-            style, parts, local_edges = MAKERS[cat](rng)
-            whole = trimesh.util.concatenate([m for _, m in parts])
-            lo, hi = whole.bounds
-            centre = (lo + hi) / 2
-            scale = 1.0 / np.linalg.norm(whole.vertices - centre, axis=1).max()
-            base = first[-1]
-            for _, mesh in parts:
-                m = mesh.copy()
-                m.apply_translation(-centre)
-                m.apply_scale(scale)
-                c = m.bounds.mean(axis=0)
-                m.apply_translation(-c)
-                pts, _ = trimesh.sample.sample_surface(m, cached_points, seed=int(rng.integers(2**31)))
-                points.append(pts.astype(np.float16))
-                translation.append(c.astype(np.float32))
-                area.append(np.float32(m.area))
-                shape_of.append(len(shapes))
-                vblocks.append(m.vertices.astype(np.float32))
-                fblocks.append(m.faces.astype(np.int32))
-            edges += [(base + a, base + b) for a, b in local_edges]
-            first.append(base + len(parts))
-            shapes.append({"shape_id": f"{cat}-{i:04d}", "category": cat, "style": style, "source": "toy",
-                           "labels": [label for label, _ in parts]})
+    for shape_id, cat, style, parts, local_edges in specs:
+        whole = trimesh.util.concatenate([m for _, m in parts])
+        lo, hi = whole.bounds
+        centre = (lo + hi) / 2
+        scale = 1.0 / np.linalg.norm(whole.vertices - centre, axis=1).max()
+        base = first[-1]
+        for _, mesh in parts:
+            m = mesh.copy()
+            m.apply_translation(-centre)
+            m.apply_scale(scale)
+            c = m.bounds.mean(axis=0)
+            m.apply_translation(-c)
+            pts, _ = trimesh.sample.sample_surface(m, cached_points, seed=int(rng.integers(2**31)))
+            points.append(pts.astype(np.float16))
+            translation.append(c.astype(np.float32))
+            area.append(np.float32(m.area))
+            shape_of.append(len(shapes))
+            vblocks.append(m.vertices.astype(np.float32))
+            fblocks.append(m.faces.astype(np.int32))
+        edges += [(base + a, base + b) for a, b in local_edges]
+        first.append(base + len(parts))
+        shapes.append({"shape_id": shape_id, "category": cat, "style": style, "source": "toy",
+                       "labels": [label for label, _ in parts]})
     vfirst = np.concatenate([[0], np.cumsum([len(v) for v in vblocks])]).astype(np.int64)
     ffirst = np.concatenate([[0], np.cumsum([len(f) for f in fblocks])]).astype(np.int64)
     info: dict[str, Any] = {"seed": seed, "source": "toy"}
@@ -145,3 +149,22 @@ def toy_dataset_dir(tmp_path_factory: pytest.TempPathFactory, toy_dataset: Proce
     folder = tmp_path_factory.mktemp("toy_processed")
     toy_dataset.save(folder)
     return folder
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory, toy_dataset_dir: Path) -> Path:
+    """A run folder trained for a few steps of the tiny preset (for export tests)."""
+    from training.config import resolve_config
+    from training.train import train
+
+    run = tmp_path_factory.mktemp("tiny_run") / "run"
+    cfg = resolve_config("tiny", overrides={"data": str(toy_dataset_dir), "run": str(run), "steps": 20,
+                                            "log_every": 5, "val_triplets": 16})
+    train(cfg, show_progress=False)
+    return run
+
+
+@pytest.fixture(scope="session")
+def toy_dataset_factory():
+    """``make_toy_dataset`` itself, for tests that need a dataset of their own."""
+    return make_toy_dataset

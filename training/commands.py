@@ -1,0 +1,143 @@
+"""`complementme train` and `complementme export`.
+
+The train command's options are generated from the ``TrainConfig`` and ``ModelConfig`` fields
+(one ``--field-name`` per field, help text from the field's metadata), so a new config field is
+a new option without touching this file. An option left out keeps the value of the preset or
+``--config`` file; list-valued fields take comma-separated ints (``--point-layers 64,128,256``).
+
+Torch is imported inside the commands only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import logging
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from training.config import PRESETS, ModelConfig, TrainConfig, field_types
+
+log = logging.getLogger(__name__)
+
+# Options of `train` that are not config fields.
+_FIXED = ("preset", "config", "resume", "progress")
+
+
+def _option_type(annotation: Any) -> Any:
+    """The CLI type of a config field: tuples are read as comma-separated strings."""
+    if getattr(annotation, "__origin__", None) is tuple:
+        return str | None
+    return annotation | None
+
+
+def _config_fields() -> list[tuple[str, Any, str]]:
+    """(name, annotation, help) of every TrainConfig field and, flattened, every ModelConfig field."""
+    out = []
+    for cls in (TrainConfig, ModelConfig):
+        types_ = field_types(cls)
+        for f in dataclasses.fields(cls):
+            if f.name == "model":
+                continue
+            default = f.default if f.default is not dataclasses.MISSING else None
+            shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
+            help_text = f"{f.metadata.get('help', '')} (default: {shown})"
+            out.append((f.name, types_[f.name], help_text))
+    return out
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    typer.echo(f"error: {exc}", err=True)
+    return typer.Exit(code=2)
+
+
+def train_command(**kwargs: Any) -> None:
+    """Train f, g and h jointly (see training/train.py); resumable, time-budgeted, torchrun-ready."""
+    preset, config_file = kwargs.pop("preset"), kwargs.pop("config")
+    resume, progress = kwargs.pop("resume"), kwargs.pop("progress")
+    overrides = {k: v for k, v in kwargs.items() if v is not None}
+    from training.config import resolve_config
+    from training.train import config_for_resume, train
+
+    try:
+        if resume:
+            if preset is not None or config_file is not None:
+                raise ValueError("--resume reads the run's stored config; drop --preset and --config")
+            run = overrides.get("run")
+            if run is None:
+                raise ValueError("--resume needs --run RUN_DIR")
+            cfg = config_for_resume(Path(run), overrides)
+        else:
+            cfg = resolve_config(preset, config_file, overrides)
+        result = train(cfg, resume=resume, show_progress=progress)
+    except (ValueError, FileExistsError, FileNotFoundError) as exc:
+        raise _fail(exc) from exc
+    log.info("run %s: %d steps, %.1f min, validation %s", result.run_dir, result.step,
+             result.elapsed_seconds / 60, result.validation)
+
+
+def _build_train_signature() -> inspect.Signature:
+    params = [
+        inspect.Parameter("preset", inspect.Parameter.KEYWORD_ONLY, annotation=str | None,
+                          default=typer.Option(None, "--preset",
+                                               help=f"Starting values: {', '.join(sorted(PRESETS))}.")),
+        inspect.Parameter("config", inspect.Parameter.KEYWORD_ONLY, annotation=Path | None,
+                          default=typer.Option(None, "--config", help="JSON file of config values.")),
+        inspect.Parameter("resume", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+                          default=typer.Option(False, "--resume",
+                                               help="Continue the run in --run from its checkpoint.")),
+        inspect.Parameter("progress", inspect.Parameter.KEYWORD_ONLY, annotation=bool,
+                          default=typer.Option(True, "--progress/--no-progress",
+                                               help="Show a progress bar.")),
+    ]
+    for name, annotation, help_text in _config_fields():
+        flag = "--" + name.replace("_", "-")
+        decls = [f"{flag}/--no-{name.replace('_', '-')}"] if annotation is bool else [flag]
+        option = typer.Option(None, *decls, help=help_text, show_default=False)
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                                        annotation=_option_type(annotation), default=option))
+    return inspect.Signature(params, return_annotation=None)
+
+
+def export_command(
+    run: Path = typer.Option(..., "--run", help="Run folder holding checkpoint.pt and split.json."),
+    out: Path = typer.Option(Path("exported"), "--out", help="Artifact folder to write."),
+    data: Path | None = typer.Option(None, "--data", help="Processed dataset (default: the run's)."),
+    n_points: int | None = typer.Option(None, "--n-points",
+                                        help="Points per query or part when serving (default: training N)."),
+    catalog_points: int = typer.Option(256, "--catalog-points", help="Points stored per catalog part."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the catalog point samples."),
+    duplicate_embedding_radius: float = typer.Option(0.05, "--duplicate-embedding-radius",
+                                                     help="Near-duplicate: max embedding distance."),
+    duplicate_chamfer_factor: float = typer.Option(
+        0.65, "--duplicate-chamfer-factor",
+        help="Near-duplicate: max Chamfer distance of the cached samples, in units of sqrt(area / samples)."),
+    duplicate_size_tolerance: float = typer.Option(
+        0.02, "--duplicate-size-tolerance",
+        help="Near-duplicate: max relative difference of area and bounding-box extents."),
+    max_megabytes: float = typer.Option(30.0, "--max-megabytes", help="Refuse to write a larger folder."),
+) -> None:
+    """Export a run: ONNX graphs, FAISS index, part catalog and manifest (layout: service/artifacts.py)."""
+    from training.export import ExportOptions, export_run
+
+    opts = ExportOptions(n_points=n_points, catalog_points=catalog_points, seed=seed,
+                         duplicate_embedding_radius=duplicate_embedding_radius,
+                         duplicate_chamfer_factor=duplicate_chamfer_factor,
+                         duplicate_size_tolerance=duplicate_size_tolerance, max_megabytes=max_megabytes)
+    try:
+        manifest = export_run(run, out, data=data, options=opts)
+    except (ValueError, FileNotFoundError) as exc:
+        raise _fail(exc) from exc
+    log.info("wrote %s (model %s, %d parts)", out, manifest["model_version"], manifest["part_count"])
+
+
+def register_training_commands(app: typer.Typer) -> None:
+    """Add `train` and `export` to the root CLI."""
+    signature = _build_train_signature()
+    train_command.__signature__ = signature  # type: ignore[attr-defined]
+    train_command.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
+    train_command.__annotations__["return"] = None
+    app.command("train")(train_command)
+    app.command("export")(export_command)

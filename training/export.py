@@ -1,0 +1,255 @@
+"""Export a trained run as the artifact folder the service loads (layout: ``service.artifacts``).
+
+Writes the five ONNX graphs (f, g, h_query, h_part, h_head; one file each, dynamic batch and
+point axes), then computes the catalog with the *exported* graphs run in onnxruntime (so the
+shipped embeddings and placement features are exactly what the shipped graphs produce), the
+FAISS index over the embeddings, ``catalog.json`` / ``catalog.npz`` and finally the manifest.
+
+Files are written into a temporary folder beside the destination and moved in one by one, the
+manifest last, so a reader never pairs a new graph with an old manifest's checksums (it refuses
+the folder instead until the manifest lands).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shutil
+import warnings
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import nn
+
+from service.artifacts import (
+    CATALOG_ARRAYS,
+    CATALOG_JSON,
+    GRAPH_FILES,
+    GRAPH_INPUTS,
+    GRAPH_OUTPUTS,
+    INDEX_FILE,
+    MANIFEST,
+    write_json_atomic,
+    write_manifest,
+)
+from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
+from training.checkpoint import Trained, load_trained
+from training.config import config_to_dict
+from training.data.processed import ProcessedDataset, save_npz_deterministic
+from training.models import PlacementNet, RetrievalPair
+from training.split import load_split
+from training.train import summary_of
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ExportOptions:
+    """Settings of an export (every limit is a setting)."""
+
+    # Points the service samples per query or part (manifest n_points); None = the training N.
+    n_points: int | None = None
+    # Points stored per catalog part (float16) for the service's previews and checks.
+    catalog_points: int = 256
+    # Seed of the catalog's point samples.
+    seed: int = 0
+    # Near-duplicates: embedding distance below this radius AND Chamfer distance of the cached
+    # samples below factor * sqrt(area / samples) (the noise is about 0.5).
+    duplicate_embedding_radius: float = 0.05
+    duplicate_chamfer_factor: float = 0.65
+    # ... AND area and bounding-box extents equal within this relative tolerance.
+    duplicate_size_tolerance: float = 0.02
+    # The whole folder must stay under this size (the repository ships it).
+    max_megabytes: float = 30.0
+    opset: int = 17
+    # Parts per onnxruntime call when encoding the catalog.
+    chunk: int = 256
+
+
+def _dynamic_axes(graph: str) -> dict[str, dict[int, str]]:
+    axes: dict[str, dict[int, str]] = {}
+    for name in GRAPH_INPUTS[graph]:
+        axes[name] = {0: "batch", 1: "n_points"} if name == "points" else {0: "batch"}
+    for name in GRAPH_OUTPUTS[graph]:
+        axes[name] = {0: "batch"}
+    return axes
+
+
+def graph_modules(pair: RetrievalPair, placement: PlacementNet) -> dict[str, nn.Module]:
+    """The torch module behind each exported graph (in the order of ``GRAPH_FILES``)."""
+    return {"f": pair.f, "g": pair.g, "h_query": placement.query, "h_part": placement.part,
+            "h_head": placement.head}
+
+
+def example_inputs(graph: str, placement: PlacementNet, batch: int = 2, n: int = 64,
+                   seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Random inputs of the right shapes for one graph (used for tracing and parity tests)."""
+    gen = torch.Generator().manual_seed(seed)
+    if graph == "h_head":
+        return (torch.randn(batch, placement.query_dim, generator=gen),
+                torch.randn(batch, placement.part_dim, generator=gen))
+    return (torch.rand(batch, n, 3, generator=gen) - 0.5,)
+
+
+def export_graph(module: nn.Module, graph: str, inputs: tuple[torch.Tensor, ...], path: Path,
+                 opset: int = 17) -> None:
+    """Write one graph as a single ONNX file (legacy exporter) and check it with onnx.checker."""
+    module.eval()
+    with warnings.catch_warnings():
+        # The legacy exporter is deprecated, but it is the one that writes a single file per graph.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(module, inputs, str(path), dynamo=False, opset_version=opset,
+                          input_names=GRAPH_INPUTS[graph], output_names=GRAPH_OUTPUTS[graph],
+                          dynamic_axes=_dynamic_axes(graph))
+    onnx.checker.check_model(onnx.load(str(path)))
+
+
+def export_graphs(pair: RetrievalPair, placement: PlacementNet, folder: Path, opset: int = 17) -> None:
+    """Write f.onnx, g.onnx, h_query.onnx, h_part.onnx and h_head.onnx into ``folder``."""
+    pair.eval()
+    placement.eval()
+    with torch.no_grad():
+        for graph, module in graph_modules(pair, placement).items():
+            export_graph(module, graph, example_inputs(graph, placement), Path(folder) / GRAPH_FILES[graph],
+                         opset)
+
+
+def open_session(path: Path) -> ort.InferenceSession:
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = max(1, torch.get_num_threads())
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+
+
+def run_chunked(session: ort.InferenceSession, points: np.ndarray, chunk: int) -> np.ndarray:
+    """Run a single-input graph over ``points`` in chunks; returns the first output, concatenated.
+
+    Shapes:
+        points (P, N, 3) -> (P, ...).
+    """
+    name = session.get_inputs()[0].name
+    outs = [session.run(None, {name: np.ascontiguousarray(points[s:s + chunk], np.float32)})[0]
+            for s in range(0, len(points), chunk)]
+    return np.concatenate(outs)
+
+
+def folder_megabytes(folder: Path) -> dict[str, float]:
+    return {p.name: p.stat().st_size / 1e6 for p in sorted(Path(folder).iterdir()) if p.is_file()}
+
+
+def _models_hash(folder: Path) -> str:
+    h = hashlib.sha256()
+    for name in GRAPH_FILES.values():
+        h.update((Path(folder) / name).read_bytes())
+    return h.hexdigest()[:10]
+
+
+def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
+               options: ExportOptions | None = None) -> dict[str, Any]:
+    """Export the run in ``run_dir`` to ``out_dir``; returns the manifest written.
+
+    ``data`` overrides the processed dataset folder stored in the run's config (the catalog is
+    every component of that dataset; the run's ``split.json`` must match it).
+    """
+    opts = options or ExportOptions()
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    trained = load_trained(run_dir)
+    cfg = trained.config
+    data_dir = Path(data) if data is not None else Path(cfg.data)
+    ds = ProcessedDataset.load(data_dir)
+    split = load_split(run_dir, ds)
+    n_points = opts.n_points or cfg.n_points
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.parent / f".{out_dir.name}.export-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        manifest = _write_artifacts(trained, ds, split.split_of_shape(ds.n_shapes), tmp, n_points, opts,
+                                    data_dir, run_dir)
+        sizes = folder_megabytes(tmp)
+        total = sum(sizes.values())
+        if total > opts.max_megabytes:
+            detail = ", ".join(f"{k} {v:.2f} MB" for k, v in sizes.items())
+            raise ValueError(f"export of {run_dir} would take {total:.1f} MB, over the limit of "
+                             f"{opts.max_megabytes} MB ({detail})")
+        for stale in out_dir.glob("*.onnx.data"):
+            stale.unlink()
+        for p in sorted(tmp.iterdir()):
+            if p.name != MANIFEST:
+                os.replace(p, out_dir / p.name)
+        os.replace(tmp / MANIFEST, out_dir / MANIFEST)
+        log.info("exported %s to %s: %d parts, %.2f MB (%s)", run_dir, out_dir, manifest["part_count"], total,
+                 ", ".join(f"{k} {v:.2f}" for k, v in sizes.items()))
+        return manifest
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: list[str], folder: Path,
+                     n_points: int, opts: ExportOptions, data_dir: Path, run_dir: Path) -> dict[str, Any]:
+    cfg = trained.config
+    export_graphs(trained.pair, trained.placement, folder, opts.opset)
+    f_sess = open_session(folder / GRAPH_FILES["f"])
+    part_sess = open_session(folder / GRAPH_FILES["h_part"])
+
+    # Embeddings and placement features from the shipped graphs, on n_points samples per part.
+    parts = sample_parts(ds, n_points, opts.seed)
+    embeddings = run_chunked(f_sess, parts, opts.chunk).astype(np.float32)
+    part_features = run_chunked(part_sess, parts, opts.chunk).astype(np.float32)
+    preview = sample_parts(ds, opts.catalog_points, opts.seed + 1).astype(np.float16)
+
+    records = part_records(ds, split_of_shape)
+    extents = np.array([np.subtract(r["bbox_max"], r["bbox_min"]) for r in records]).reshape(-1, 3)
+    duplicates = find_duplicates(embeddings, ds.points, ds.area, extents, opts.duplicate_embedding_radius,
+                                 opts.duplicate_chamfer_factor, opts.duplicate_size_tolerance)
+    for rec, dup in zip(records, duplicates, strict=True):
+        rec["duplicate_of"] = dup
+    write_json_atomic(folder / CATALOG_JSON, records)
+    save_npz_deterministic(folder / CATALOG_ARRAYS, {
+        "embeddings": embeddings, "part_features": part_features, "points": preview, **concat_meshes(ds)})
+
+    index = faiss.IndexFlatL2(embeddings.shape[1])
+    index.add(embeddings)
+    faiss.write_index(index, str(folder / INDEX_FILE))
+
+    state = trained.state
+    summary = summary_of(run_dir)
+    n_dups = sum(d is not None for d in duplicates)
+    manifest = {
+        "model_version": f"{run_dir.name}-s{int(state['step'])}-{_models_hash(folder)}",
+        "n_points": int(n_points),
+        "embedding_dim": cfg.model.embedding_dim,
+        "n_modes": cfg.model.n_modes,
+        "part_count": len(records),
+        "query_feature_dim": trained.placement.query_dim,
+        "part_feature_dim": trained.placement.part_dim,
+        "catalog_points": opts.catalog_points,
+        "index": {"type": "IndexFlatL2", "params": {"metric": "l2", "dim": int(embeddings.shape[1])}},
+        "model_config": config_to_dict(cfg.model),
+        "dataset": {"seed": ds.info.get("seed"), "hash": ds.info.get("hash") or ds.content_hash(),
+                    "path": str(data_dir), "shapes": ds.n_shapes},
+        "split": {"train_shapes": split_of_shape.count("train"), "test_shapes": split_of_shape.count("test")},
+        "duplicates": {"count": n_dups, "embedding_radius": opts.duplicate_embedding_radius,
+                       "chamfer_factor": opts.duplicate_chamfer_factor,
+                       "size_tolerance": opts.duplicate_size_tolerance},
+        "training": {
+            "steps": int(state["step"]),
+            "wall_minutes": float(state.get("elapsed_seconds", 0.0)) / 60,
+            "final_losses": summary.get("final_losses", {}),
+            "validation": dict(state.get("validation", {})),
+            "n_points": cfg.n_points,
+            "batch_size": cfg.batch_size,
+            "seed": cfg.seed,
+        },
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    return write_manifest(folder, manifest)
