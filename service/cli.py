@@ -1,9 +1,172 @@
-"""Service commands of the `complementme` CLI: serve, suggest, batch."""
+"""Service commands of the `complementme` CLI: serve, suggest, batch.
+
+Each command is a thin wrapper: parse options, call the app factory or the client. Nothing here
+imports torch, so `complementme serve` runs with the service's dependencies alone.
+"""
 
 from __future__ import annotations
 
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
 import typer
+
+log = logging.getLogger(__name__)
+
+
+def _quiet_libraries() -> None:
+    """Keep per-request and loader chatter of libraries out of the CLI's INFO log."""
+    for name in ("httpx", "httpcore", "faiss.loader"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def _frame_options(up_axis: str | None, center: str | None, radius: float | None,
+                   fit: bool, path: Path) -> dict[str, Any] | None:
+    """The request's ``frame`` from the command's options (``--fit``: from the file's bounding box)."""
+    if fit:
+        from service.geometry import normalize_frame
+
+        _, c, r = normalize_frame(_file_geometry(path))
+        return {"center": [float(x) for x in c], "radius": r, "up_axis": up_axis or "y"}
+    if up_axis is None and center is None and radius is None:
+        return None
+    frame: dict[str, Any] = {"up_axis": up_axis or "y"}
+    if center is not None:
+        try:
+            frame["center"] = [float(x) for x in center.split(",")]
+        except ValueError:
+            raise typer.BadParameter(f"--center must be x,y,z numbers, found {center!r}") from None
+        if len(frame["center"]) != 3:
+            raise typer.BadParameter(f"--center must be three numbers x,y,z, found {center!r}")
+    if radius is not None:
+        frame["radius"] = radius
+    return frame
+
+
+def _file_geometry(path: Path) -> np.ndarray:
+    """Vertices or points of a query file, for ``--fit``."""
+    from service.client import MESH_SUFFIXES, read_points_file
+    from service.geometry import load_mesh_bytes
+
+    if path.suffix.lower() in MESH_SUFFIXES:
+        mesh = load_mesh_bytes(path.read_bytes(), path.suffix, name=str(path), max_vertices=10_000_000,
+                               max_faces=10_000_000, ignore_obj_materials=True)
+        return np.asarray(mesh.vertices)
+    return read_points_file(path)
+
+
+def _options(k: int | None, category: list[str] | None, exclude_shape: list[str] | None,
+             frame: dict[str, Any] | None) -> dict[str, Any]:
+    opts: dict[str, Any] = {"k": k, "frame": frame}
+    if category:
+        opts["category"] = category
+    if exclude_shape:
+        opts["exclude_shapes"] = exclude_shape
+    return opts
+
+
+def _table(answer: dict[str, Any]) -> str:
+    rows = [("rank", "part_id", "category", "label", "score", "mode (weight)", "translation")]
+    for s in answer["suggestions"]:
+        t = ", ".join(f"{x:.3f}" for x in s["translation"])
+        rows.append((str(s["rank"]), s["part_id"], s["category"], s["label"] or "-", f"{s['score']:.2f}",
+                     f"{s['mode']} ({s['mode_weight']:.2f})", f"[{t}]"))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    return "\n".join([f"model {answer['model_version']}", *lines])
 
 
 def register_service_commands(app: typer.Typer) -> None:
     """Add the service's commands to the root CLI (kept here so they need no torch)."""
+
+    @app.command()
+    def serve(
+        artifacts: Path | None = typer.Option(None, help="Artifact folder (default: COMPLEMENTME_ARTIFACTS "
+                                              "or exported/ at the repository root)."),
+        host: str | None = typer.Option(None, help="Bind address (default: COMPLEMENTME_HOST)."),
+        port: int | None = typer.Option(None, help="Port (default: COMPLEMENTME_PORT)."),
+        workers: int | None = typer.Option(None, help="Worker processes (default: COMPLEMENTME_WORKERS)."),
+    ) -> None:
+        """Serve the suggestion API with uvicorn on the exported artifacts."""
+        import uvicorn
+
+        _quiet_libraries()
+        from service.settings import ENV_PREFIX, get_settings
+
+        # Options become environment settings so that every worker process reads the same ones.
+        if artifacts is not None:
+            os.environ[ENV_PREFIX + "ARTIFACTS"] = str(artifacts.resolve())
+        for name, value in (("HOST", host), ("PORT", port), ("WORKERS", workers)):
+            if value is not None:
+                os.environ[ENV_PREFIX + name] = str(value)
+        get_settings.cache_clear()
+        s = get_settings()
+        log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
+        uvicorn.run("service.api.app:create_app", factory=True, host=s.host, port=s.port, workers=s.workers,
+                    log_level=s.log_level, timeout_graceful_shutdown=10)
+
+    @app.command()
+    def suggest(
+        file: Path = typer.Argument(..., exists=True, dir_okay=False, help=(
+            "A mesh (.obj .ply .stl .off .glb .gltf) or points (.npy .xyz .pts).")),
+        url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
+        k: int | None = typer.Option(None, "--k", "-k", help="Suggestions to show."),
+        category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
+        exclude_shape: list[str] | None = typer.Option(None, help="Never parts of this shape (repeatable)."),
+        up_axis: str | None = typer.Option(None, help="The file's up axis: y or z."),
+        center: str | None = typer.Option(None, help="Centre of the complete object in file units: x,y,z."),
+        radius: float | None = typer.Option(None, help="Radius of the complete object in file units."),
+        fit: bool = typer.Option(False, help="Take centre and radius from the file's bounding box."),
+        as_json: bool = typer.Option(False, "--json", help="Print the service's JSON answer."),
+        timeout: float = typer.Option(30.0, help="Seconds per request."),
+    ) -> None:
+        """Ask a running service for suggestions for one file and print a ranked table."""
+        import orjson
+
+        _quiet_libraries()
+        from service.client import ClientError, ComplementMeClient, suggest_file
+
+        options = _options(k, category, exclude_shape, _frame_options(up_axis, center, radius, fit, file))
+        with ComplementMeClient(url, timeout=timeout) as client:
+            try:
+                answer = suggest_file(client, file, **options)
+            except ClientError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(1) from None
+        typer.echo(orjson.dumps(answer, option=orjson.OPT_INDENT_2).decode() if as_json else _table(answer))
+
+    @app.command()
+    def batch(
+        folder: Path = typer.Argument(..., exists=True, file_okay=False,
+                                      help="Folder of meshes or point files."),
+        url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
+        out: Path = typer.Option(Path("results.jsonl"), help="JSON Lines output, one line per file."),
+        concurrency: int = typer.Option(4, min=1, max=256, help="Requests in flight at once."),
+        k: int | None = typer.Option(None, "--k", "-k", help="Suggestions per file."),
+        category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
+        up_axis: str | None = typer.Option(None, help="The files' up axis: y or z."),
+        timeout: float = typer.Option(60.0, help="Seconds per request."),
+    ) -> None:
+        """Send every file of a folder to the service and write the answers as JSON Lines.
+
+        Exits with status 1 when any file failed (its line then holds the error).
+        """
+        from tqdm import tqdm
+
+        _quiet_libraries()
+        from service.client import ComplementMeClient, query_files, run_batch
+
+        files = query_files(folder)
+        if not files:
+            typer.echo(f"error: no mesh or point files in {folder}", err=True)
+            raise typer.Exit(1)
+        frame = {"up_axis": up_axis} if up_axis else None
+        with ComplementMeClient(url, timeout=timeout) as client, tqdm(total=len(files), unit="file") as bar:
+            ok, failed = run_batch(client, files, out, concurrency=concurrency, progress=bar,
+                                   **_options(k, category, None, frame))
+        typer.echo(f"{ok} answered, {failed} failed; wrote {out}")
+        if failed:
+            raise typer.Exit(1)
