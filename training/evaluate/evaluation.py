@@ -1,0 +1,248 @@
+"""Per-query evaluation of every metric, and aggregation into per-category tables.
+
+Each ``evaluate_*`` function walks a list of queries, asks one method for its ranking (always
+passed through ``protocol.finalize_ranking``) and returns one plain dict per query, so the JSON
+output can keep them and the tables are simple means over them.
+
+Aggregation: a category's value is the mean over its queries where the metric is defined (for
+example, style AP is undefined when the shape has no style annotation); the "mean" column is the
+mean of the category values, as in the paper's tables (each category weighs the same).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.catalog import Catalog
+from training.evaluate.baselines import Method, rank_by_scores
+from training.evaluate.contact import Mesh, contact
+from training.evaluate.metrics import (
+    average_precision_at_k,
+    bbox_centred,
+    first_hit_rank,
+    hausdorff_distance,
+    nanmean,
+    nanmedian,
+    percentile_rank,
+    placement_error,
+    recall_at_k,
+    styles_match,
+)
+from training.evaluate.ours import EngineMethod
+from training.evaluate.protocol import (
+    PlacementQuery,
+    Query,
+    ShapeIndex,
+    candidate_pool,
+    finalize_ranking,
+    relevant_in_pool,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RetrievalSettings:
+    """How rankings are cut and compared."""
+
+    top_k: int = 5                      # k of mAP@k and of the mean Hausdorff distance (paper: 5)
+    recall_ks: tuple[int, ...] = (1, 10)
+    pool_scope: str = "category"        # "category": other shapes of the query's category; "all"
+    collapse_duplicates: bool = True    # one part per near-duplicate group, as the service shows
+
+
+def removed_part_points(index: ShapeIndex, rows: np.ndarray) -> np.ndarray:
+    """The removed labelled part as one point set: its components in place, then centred.
+
+    Shapes:
+        rows (r,) -> (r * S, 3) float64, bounding-box centred.
+    """
+    cat = index.catalog
+    pts = np.concatenate([index.samples[r].astype(np.float64) + cat.translations[r] for r in rows])
+    return bbox_centred(pts)
+
+
+def _target_hit(catalog: Catalog, rows: np.ndarray, removed: np.ndarray, collapse: bool) -> np.ndarray:
+    """Whether each row is "the exact removed component": one of the removed components, or
+    (with duplicate collapse) a near-duplicate of one, which the service shows in its place."""
+    hit = np.isin(rows, removed)
+    if collapse:
+        hit |= np.isin(catalog.group[rows], catalog.group[removed])
+    return hit
+
+
+def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
+                       settings: RetrievalSettings, progress: bool = False) -> list[dict[str, Any]]:
+    """Functional AP, Hausdorff, style AP and exact-component recall of one method, per query."""
+    cat = index.catalog
+    group = cat.group if settings.collapse_duplicates else None
+    k = settings.top_k
+    out: list[dict[str, Any]] = []
+    desc = f"{method.name} {queries[0].setting if queries else ''}"
+    for q in tqdm(queries, desc=desc, disable=not progress, leave=False):
+        pool = candidate_pool(index, q.shape_id, q.category, settings.pool_scope)
+        top = finalize_ranking(method.rank(q, pool, k), pool, group, k)
+        own = cat.shape_code(q.shape_id)
+        if np.any(cat.shape_of[top] == own):  # finalize_ranking makes this impossible; say so loudly
+            raise AssertionError(f"{method.name} retrieved a part of the query's own shape for {q.qid}")
+        rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "shape_id": q.shape_id,
+                               "top": [cat.part_ids[r] for r in top.tolist()]}
+        # Style (both settings): a hit is a part from a shape of an overlapping fine-grained class.
+        same_style = np.array([styles_match(index.style[sid], q.style) for sid in cat.shape_ids], dtype=bool)
+        pool_style, top_style = same_style[cat.shape_of[pool]], same_style[cat.shape_of[top]]
+        rec["style_ap"] = (average_precision_at_k(top_style, relevant_in_pool(pool_style, pool, group), k)
+                           if pool_style.size else math.nan)
+        if q.setting == "all_but_one":
+            labels = index.labels
+            pool_func = np.array([labels[r] == q.label for r in pool.tolist()], dtype=bool)
+            top_func = np.array([labels[r] == q.label for r in top.tolist()], dtype=bool)
+            n_func = relevant_in_pool(pool_func, pool, group)
+            rec["functional_ap"] = average_precision_at_k(top_func, n_func, k)
+            removed_pts = removed_part_points(index, q.removed)
+            dists = [hausdorff_distance(removed_pts, index.samples[r]) for r in top.tolist()]
+            rec["hausdorff"] = float(np.mean(dists)) if dists else math.nan
+            rec.update(_exact_recall(method, q, pool, index, settings))
+        out.append(rec)
+    return out
+
+
+def _exact_recall(method: Method, q: Query, pool: np.ndarray, index: ShapeIndex,
+                  settings: RetrievalSettings) -> dict[str, Any]:
+    """Recall@k and percentile rank of the removed component(s), put back into the pool."""
+    cat = index.catalog
+    names = [f"recall@{k}" for k in settings.recall_ks]
+    if not method.per_part_scores:
+        return {**dict.fromkeys(names), "percentile": None}
+    group = cat.group if settings.collapse_duplicates else None
+    pool_plus = np.union1d(pool, q.removed)
+    kmax = max(settings.recall_ks)
+    ranked = finalize_ranking(method.rank(q, pool_plus, kmax), pool_plus, group, kmax)
+    rank = first_hit_rank(_target_hit(cat, ranked, q.removed, settings.collapse_duplicates).tolist())
+    rec: dict[str, Any] = {n: recall_at_k(rank, k) for n, k in zip(names, settings.recall_ks, strict=True)}
+    full = finalize_ranking(rank_by_scores(method.scores(q, pool_plus), pool_plus), pool_plus, group, None)
+    full_rank = first_hit_rank(_target_hit(cat, full, q.removed, settings.collapse_duplicates).tolist())
+    rec["percentile"] = percentile_rank(full_rank, len(full)) if full_rank is not None else math.nan
+    return rec
+
+
+def evaluate_placement(ours: EngineMethod, queries: list[PlacementQuery],
+                       progress: bool = False) -> list[dict[str, Any]]:
+    """Placement error of h for the true missing component, per query (Table 4)."""
+    out = []
+    for q in tqdm(queries, desc="placement", disable=not progress, leave=False):
+        pred = ours.place(q.points, [q.target])[0]
+        out.append({"qid": q.qid, "category": q.category, "shape_id": q.shape_id, "split": q.split,
+                    "part_id": ours.catalog.part_ids[q.target],
+                    "error": placement_error(pred, q.true_translation),
+                    "predicted": [round(float(v), 5) for v in pred]})
+    return out
+
+
+@dataclass
+class ContactSettings:
+    tolerance: float = 0.02   # fraction of the shape radius (the unit) beyond which a gap or depth counts
+    samples: int = 256        # surface samples per part used for the test (the catalog's first ones)
+    candidates: int = 32      # samples per side measured exactly (see contact.contact)
+
+
+def _placed_mesh(index: ShapeIndex, row: int, translation: np.ndarray, samples: int) -> Mesh:
+    v, f = index.catalog.mesh(row)
+    t = np.asarray(translation, dtype=np.float64).reshape(1, 3)
+    pts = index.samples[row][:samples].astype(np.float64)
+    return Mesh(v.astype(np.float64) + t, f.astype(np.int64), pts + t)
+
+
+def _union(meshes: list[Mesh]) -> Mesh:
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return Mesh(np.concatenate([m.vertices for m in meshes]),
+                np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]),
+                np.concatenate([m.samples for m in meshes]))
+
+
+def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Query],
+                          retrieval: list[dict[str, Any]],
+                          placement: list[dict[str, Any]], placement_queries: list[PlacementQuery],
+                          settings: ContactSettings,
+                          progress: bool = False) -> dict[str, list[dict[str, Any]]]:
+    """Gap and penetration of placed parts against the query's assembly (see ``contact``).
+
+    Three cases per query:
+      * ``top1``: Ours' top-1 suggestion (all-but-one queries), placed by h;
+      * ``true_h``: the true missing component placed by h (the test-split placement queries);
+      * ``true_gt``: the removed labelled part at its true place: the data's own rate, a floor.
+    """
+    cat = ours.catalog
+    by_qid = {r["qid"]: r for r in retrieval}
+    out: dict[str, list[dict[str, Any]]] = {"top1": [], "true_h": [], "true_gt": []}
+
+    def assembly(rows: np.ndarray) -> list[Mesh]:
+        return [_placed_mesh(index, int(r), cat.translations[r], settings.samples) for r in rows.tolist()]
+
+    def record(case: str, q: Any, part: Mesh, rows: np.ndarray) -> None:
+        c = contact(part, assembly(rows), settings.candidates)
+        out[case].append({"qid": q.qid, "category": q.category,
+                          "gap": round(c.gap, 6), "depth": round(c.depth, 6),
+                          "floating": c.floating(settings.tolerance),
+                          "interpenetrating": c.interpenetrating(settings.tolerance)})
+
+    for q in tqdm(queries, desc="plausibility", disable=not progress, leave=False):
+        top = by_qid[q.qid]["top"]
+        if top:
+            row = cat.lookup(top[0])
+            t = ours.place(q.points, [row])[0]
+            record("top1", q, _placed_mesh(index, row, t, settings.samples), q.present)
+        record("true_gt", q, _union(assembly(q.removed)), q.present)
+    pred = {r["qid"]: np.asarray(r["predicted"]) for r in placement}
+    for pq in placement_queries:
+        if pq.split == "test" and pq.qid in pred:
+            record("true_h", pq, _placed_mesh(index, pq.target, pred[pq.qid], settings.samples), pq.present)
+    return out
+
+
+def table(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, Any]:
+    """Per-category means of one per-query metric, their mean ("mean"), and the query counts ("n")."""
+    row: dict[str, Any] = {}
+    counts: dict[str, int] = {}
+    for c in categories:
+        vals = [r[key] for r in per_query if r["category"] == c and r.get(key) is not None]
+        vals = [v for v in vals if not (isinstance(v, float) and math.isnan(v))]
+        row[c] = nanmean(vals)
+        counts[c] = len(vals)
+    row["mean"] = nanmean(row[c] for c in categories)
+    row["n"] = counts
+    return row
+
+
+def median_table(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, Any]:
+    """Like ``table`` with medians per category (the "mean" column is still the mean of them)."""
+    row: dict[str, Any] = {}
+    counts: dict[str, int] = {}
+    for c in categories:
+        vals = [r[key] for r in per_query if r["category"] == c and r.get(key) is not None]
+        row[c] = nanmedian(vals)
+        counts[c] = len([v for v in vals if not math.isnan(v)])
+    row["mean"] = nanmean(row[c] for c in categories)
+    row["n"] = counts
+    return row
+
+
+def plausibility_table(records: list[dict[str, Any]], categories: list[str]) -> dict[str, Any]:
+    """Per category: share floating, share interpenetrating, median gap and depth, count."""
+    out: dict[str, Any] = {}
+    for c in [*categories, "all"]:
+        rs = [r for r in records if c == "all" or r["category"] == c]
+        n = len(rs)
+        out[c] = {
+            "n": n,
+            "floating": float(np.mean([r["floating"] for r in rs])) if n else math.nan,
+            "interpenetrating": float(np.mean([r["interpenetrating"] for r in rs])) if n else math.nan,
+            "median_gap": nanmedian(r["gap"] for r in rs),
+            "median_depth": nanmedian(r["depth"] for r in rs),
+        }
+    return out

@@ -1,0 +1,163 @@
+"""Pure metric functions of the benchmark (paper Section 6.2, Tables 1 to 4).
+
+Every function takes plain arrays or lists and returns floats, so each one can be checked on a
+hand-made ranking with a known answer. Nothing here knows about models, catalogs or files.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def average_precision_at_k(hits: Sequence[bool] | np.ndarray, n_relevant: int, k: int = 5) -> float:
+    """Average precision of the top ``k`` of one ranking (the usual ``apk`` of IR toolkits).
+
+    AP@k = (1 / min(k, R)) * sum over ranks i <= k where the item at i is relevant of P@i,
+    with P@i = (relevant items among the first i) / i and R = the number of relevant items in the
+    whole candidate pool. Dividing by min(k, R) (not by the number of hits found) means a ranking
+    that finds one relevant item at rank 1 when five exist scores 0.2, not 1.0: missing relevant
+    items costs. This is the definition of TREC-style AP truncated at k (e.g. Kaggle's ``apk``).
+
+    Example: hits at ranks 1 and 3, R >= 5: (1/1 + 2/3) / 5 = 0.3333.
+
+    Args:
+        hits: relevance of the ranked items, best first (only the first ``k`` are read).
+        n_relevant: R, relevant items in the pool the ranking was drawn from.
+        k: cut-off.
+
+    Returns:
+        AP@k in [0, 1], or NaN when the pool holds no relevant item (the query is undefined and
+        is left out of means by ``nanmean``).
+    """
+    if k <= 0:
+        raise ValueError(f"k must be positive, got {k}")
+    if n_relevant < 0:
+        raise ValueError(f"n_relevant must be >= 0, got {n_relevant}")
+    top = [bool(h) for h in list(hits)[:k]]
+    if sum(top) > n_relevant:
+        raise ValueError(f"ranking has {sum(top)} hits in its top {k} but the pool holds only {n_relevant}")
+    if n_relevant == 0:
+        return math.nan
+    found = 0
+    total = 0.0
+    for i, hit in enumerate(top, start=1):
+        if hit:
+            found += 1
+            total += found / i
+    return total / min(k, n_relevant)
+
+
+def first_hit_rank(hits: Sequence[bool] | np.ndarray) -> int | None:
+    """1-based rank of the first relevant item of a full ranking, or None when there is none."""
+    for i, hit in enumerate(hits, start=1):
+        if hit:
+            return i
+    return None
+
+
+def recall_at_k(rank: int | None, k: int) -> float:
+    """1.0 when the target's rank (1-based) is within the top ``k``, else 0.0 (None = never ranked)."""
+    if k <= 0:
+        raise ValueError(f"k must be positive, got {k}")
+    return 1.0 if rank is not None and rank <= k else 0.0
+
+
+def percentile_rank(rank: int, n_candidates: int) -> float:
+    """Position of the target in a full ranking as a percentage: 0 = ranked first, 100 = last.
+
+    percentile = 100 * (rank - 1) / (n_candidates - 1); a pool of one candidate gives 0.
+    """
+    if n_candidates <= 0:
+        raise ValueError(f"n_candidates must be positive, got {n_candidates}")
+    if not 1 <= rank <= n_candidates:
+        raise ValueError(f"rank {rank} outside 1..{n_candidates}")
+    if n_candidates == 1:
+        return 0.0
+    return 100.0 * (rank - 1) / (n_candidates - 1)
+
+
+def bbox_centred(points: np.ndarray) -> np.ndarray:
+    """Translate points so their axis-aligned bounding-box centre is the origin.
+
+    Shapes:
+        points (n, 3) -> (n, 3) float64.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ValueError(f"expected a non-empty (n, 3) point array, got shape {p.shape}")
+    return p - 0.5 * (p.min(axis=0) + p.max(axis=0))
+
+
+def directed_hausdorff(a: np.ndarray, b: np.ndarray) -> float:
+    """max over a of the distance to the nearest point of b.
+
+    Shapes:
+        a (n, 3), b (m, 3).
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if len(a) == 0 or len(b) == 0:
+        raise ValueError("Hausdorff distance of an empty point set is undefined")
+    d, _ = cKDTree(b).query(a, k=1)
+    return float(d.max())
+
+
+def hausdorff_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Symmetric Hausdorff distance: max(directed(a, b), directed(b, a)), in the points' units.
+
+    The benchmark passes both parts bounding-box centred (``bbox_centred``) in the unit-radius
+    frame of their shapes, so the value compares shapes, not positions (paper, Table 2).
+
+    Shapes:
+        a (n, 3), b (m, 3).
+    """
+    return max(directed_hausdorff(a, b), directed_hausdorff(b, a))
+
+
+def placement_error(predicted: np.ndarray, true: np.ndarray) -> float:
+    """Euclidean distance between a predicted and the true translation (bounding-box centres).
+
+    Shapes:
+        predicted (3,), true (3,).
+    """
+    p = np.asarray(predicted, dtype=np.float64).reshape(-1)
+    t = np.asarray(true, dtype=np.float64).reshape(-1)
+    if p.shape != (3,) or t.shape != (3,):
+        raise ValueError(f"translations must have 3 coordinates, got {p.shape} and {t.shape}")
+    return float(np.linalg.norm(p - t))
+
+
+def nanmean(values: Iterable[float]) -> float:
+    """Mean over the defined (non-NaN) values; NaN when there is none."""
+    arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    arr = arr[~np.isnan(arr)]
+    return float(arr.mean()) if arr.size else math.nan
+
+
+def nanmedian(values: Iterable[float]) -> float:
+    """Median over the defined (non-NaN) values; NaN when there is none."""
+    arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    arr = arr[~np.isnan(arr)]
+    return float(np.median(arr)) if arr.size else math.nan
+
+
+def styles_match(a: str | Sequence[str] | None, b: str | Sequence[str] | None) -> bool:
+    """Whether two fine-grained style annotations overlap (paper: any shared sub-class counts).
+
+    A style is a string, a list of strings (a shape in several fine-grained classes) or None
+    (unknown: never a match). A string holding commas is read as a list ("club,armchair").
+    """
+    sa, sb = style_set(a), style_set(b)
+    return bool(sa & sb)
+
+
+def style_set(style: str | Sequence[str] | None) -> frozenset[str]:
+    """Normalise a style annotation to a set of class names (empty when unknown)."""
+    if style is None:
+        return frozenset()
+    items = style.split(",") if isinstance(style, str) else list(style)
+    return frozenset(s.strip() for s in items if s and s.strip())

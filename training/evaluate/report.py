@@ -1,0 +1,252 @@
+"""The benchmark report: ``docs/benchmark.md`` (Markdown tables) and PNG bar charts.
+
+Everything here is a pure function of the results dict that ``run.run_benchmark`` writes to
+``results.json``, so the report can be re-rendered from a results file
+(``write_report(json.load(...), ...)``) and always matches it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+# (key in results["tables"], title, higher is better)
+RETRIEVAL_TABLES = (
+    ("functional_map", "Table 1: functional compatibility (mAP@5 by part label; higher is better)", True),
+    ("hausdorff", "Table 2: geometric compatibility (mean Hausdorff distance of the top 5 to the "
+                  "removed part, unit radius; lower is better)", False),
+    ("style_map_all_but_one", "Table 3a: style compatibility, all parts but one present (mAP@5 by "
+                              "fine-grained style; higher is better)", True),
+    ("style_map_single", "Table 3b: style compatibility, a single part present (mAP@5 by fine-grained "
+                         "style; higher is better)", True),
+)
+
+
+PROTOCOL = """
+- Queries come from the held-out shapes of the catalog (`split` = test: the trainer's seeded
+  80/20 split per category). *All but one*: one labelled part is removed (all components of the
+  shape that share one semantic label) and the rest is the query. *Single*: one labelled part
+  alone is the query.
+- Query points: {n_points} area-weighted surface samples of the present components, in the
+  shape's frame (unit radius, y up), drawn from {dense} samples per part taken from the
+  catalog's shipped meshes.
+- Candidates: catalog parts of other shapes only (scope: `{scope}`); the query's own shape is
+  never a candidate. Near-duplicate parts (catalog `duplicate_of`) collapsed to their best-ranked
+  member: {collapse}.
+- mAP@5: AP@k = (1 / min(k, R)) * (sum of precision@i over the ranks i <= k that hold a relevant
+  part), R = relevant parts in the pool (a duplicate group counts once); mean over queries.
+  Functional: relevant = same label as the removed part. Style: relevant = from a shape whose
+  fine-grained style overlaps the query shape's (queries of unstyled shapes are skipped).
+- Hausdorff: symmetric Hausdorff distance between the removed labelled part and each of the top
+  5, both centred at their bounding-box centres, in units of the shape radius; mean over the top
+  5, then over queries.
+- Exact-component recall: the removed component(s) are put back into the pool (the query's
+  other parts stay out). A hit is *any* component of the removed labelled part, or a
+  near-duplicate of one. Recall@k: a hit within the top k of the method's own ranking (for Ours,
+  the engine's FAISS shortlist). Percentile rank: 100 * (rank - 1) / (pool size - 1) of the first
+  hit in the method's full ranking (for Ours, every pool part scored by the exact mixture
+  likelihood); median over queries. CK10 scores a part through its source shape, which for the
+  removed part is the query's own shape, so it has no exact-component numbers.
+- Placement error (Table 4): one component is removed from a shape of the split and h places it
+  next to the rest; the error is the distance between the predicted and the true bounding-box
+  centre (unit radius).
+- Means: a category's value is the mean over its queries; the Mean column is the mean of the
+  category values (each category weighs the same, as in the paper).
+"""
+
+PLAUSIBILITY = """
+Share of placed parts that float (gap to the assembly > {tol} of the radius) or interpenetrate
+(penetration depth > {tol}). Definitions (`training/evaluate/contact.py`): `d(x, M)` is the exact
+distance from a point to a triangle mesh; a point is inside a mesh when the mesh's generalised
+winding number there exceeds 0.5 in absolute value. Depth = the largest `d(x, M_c)` over surface
+samples x of the part inside some assembly component c, and over samples of the assembly inside
+the part. Gap = 0 when any sample of one side is inside the other; otherwise the smallest distance
+from the samples of one side to the mesh of the other. {samples} surface samples per part.
+"""
+
+CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
+              "true_h": "True missing component, placed by h",
+              "true_gt": "True missing part at its true place (the data's own rate)"}
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "n/a"
+    return f"{v:.{digits}f}"
+
+
+def _best(row_values: dict[str, Any], higher: bool) -> set[str]:
+    """The rows holding the best value (all of them on a tie; none when every row is equal)."""
+    vals = {k: v for k, v in row_values.items() if v is not None and not math.isnan(v)}
+    if len(vals) < 2 or len(set(vals.values())) == 1:
+        return set()
+    target = max(vals.values()) if higher else min(vals.values())
+    return {k for k, v in vals.items() if v == target}
+
+
+def method_table(rows: dict[str, dict[str, Any]], categories: list[str], higher: bool | None,
+                 digits: int = 3, first: str = "Method") -> list[str]:
+    """Markdown rows: one per method, one column per category plus the mean; best values in bold."""
+    lines = [f"| {first} | " + " | ".join(categories) + " | Mean |", "|---" * (len(categories) + 2) + "|"]
+    best: dict[str, set[str]] = {}
+    if higher is not None:
+        for col in [*categories, "mean"]:
+            best[col] = _best({m: r.get(col) for m, r in rows.items()}, higher)
+    for method, r in rows.items():
+        cells = []
+        for col in [*categories, "mean"]:
+            text = _fmt(r.get(col), digits)
+            cells.append(f"**{text}**" if method in best.get(col, set()) else text)
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _counts_line(rows: dict[str, dict[str, Any]], categories: list[str]) -> str:
+    counts = next(iter(rows.values())).get("n", {}) if rows else {}
+    return "Queries per category: " + ", ".join(f"{c} {counts.get(c, 0)}" for c in categories) + "."
+
+
+def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str, ylabel: str,
+              path: Path) -> None:
+    """Grouped bars: categories (and the mean) on x, one bar per method."""
+    cols = [*categories, "mean"]
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(cols) + 2), 3.6), dpi=110)
+    n = max(1, len(rows))
+    width = 0.8 / n
+    for i, (method, r) in enumerate(rows.items()):
+        vals = [r.get(c) for c in cols]
+        ys = [0.0 if v is None or (isinstance(v, float) and math.isnan(v)) else float(v) for v in vals]
+        xs = [j + (i - (n - 1) / 2) * width for j in range(len(cols))]
+        ax.bar(xs, ys, width=width, label=method)
+    ax.set_xticks(range(len(cols)))
+    ax.set_xticklabels(cols)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8, ncol=min(4, n))
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, metadata={"Software": None})  # no version stamp: re-rendering gives the same file
+    plt.close(fig)
+
+
+def _rel(path: Path, start: Path) -> str:
+    return Path(os.path.relpath(path, start)).as_posix()
+
+
+def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) -> None:
+    """Write the Markdown report and the charts (PNG) for one results dict."""
+    cats: list[str] = results["categories"]
+    tables: dict[str, Any] = results["tables"]
+    s = results["settings"]
+    art = results["artifact"]
+    report_path = Path(report_path)
+    chart_dir = Path(chart_dir)
+    base = report_path.parent
+    L: list[str] = []
+    L += ["# Benchmark", "",
+          "<!-- Generated by `complementme evaluate`; do not edit by hand. -->", "",
+          "Quantitative evaluation of the shipped model against the baselines of the paper's Section 6.2 "
+          "(Tables 1 to 4), plus exact-component recall and a placement plausibility check.", "",
+          f"- Command: `{results['command'] or 'complementme evaluate'}`",
+          f"- Artifact: `{art['model_version']}` (format {art['format_version']}, exported "
+          f"{art.get('created')}, {art['part_count']} catalog parts, dataset "
+          f"`{str(art.get('dataset_hash'))[:12]}`)",
+          f"- Date: {results['date']}",
+          f"- Seed {s['seed']}; {s['queries_per_category']} queries per category and setting (fewer when a "
+          f"category has fewer held-out (shape, labelled part) pairs); {s['placement_queries_per_category']} "
+          "placement queries per category and split.",
+          f"- Run time: {results['timing_seconds'].get('total', 0):.0f} s "
+          f"({', '.join(f'{k} {v:.0f} s' for k, v in results['timing_seconds'].items() if k != 'total')}).",
+          ""]
+    L += ["## Protocol", "", PROTOCOL.format(
+        n_points=art["n_points"], dense=s["dense_points"], scope=s["retrieval"]["pool_scope"],
+        collapse="on" if s["retrieval"]["collapse_duplicates"] else "off").strip(), ""]
+    L += ["## Methods", ""]
+    for name, desc in results["methods"].items():
+        L.append(f"- **{name}**: {desc}")
+    fixed = results.get("fixed_embedding")
+    if fixed:
+        origin = "loaded from the cache in the run folder" if fixed.get("cached") else "trained in this run"
+        L.append(f"  - Fixed-embedding training: {fixed.get('steps')} steps of g in "
+                 f"{fixed.get('train_seconds')} s, final triplet loss {_fmt(fixed.get('final_loss'))}, PCA "
+                 f"keeps {100 * float(fixed.get('pca_explained_variance', 0)):.0f}% of the descriptor "
+                 f"variance; {origin}.")
+    L.append("")
+
+    charts: list[tuple[str, Path]] = []
+    for key, title, higher in RETRIEVAL_TABLES:
+        rows = tables.get(key, {})
+        if not rows:
+            continue
+        L += [f"## {title}", "", *method_table(rows, cats, higher), "", _counts_line(rows, cats), ""]
+        path = chart_dir / f"{key}.png"
+        bar_chart(rows, cats, title.split(" (")[0], "mAP@5" if higher else "Hausdorff", path)
+        L += [f"![{key}]({_rel(path, base)})", ""]
+        charts.append((key, path))
+
+    if "placement_error" in tables:
+        pe = tables["placement_error"]
+        rows = {"Train error": pe["train"], "Test error": pe["test"]}
+        L += ["## Table 4: placement error of h (distance to the true position, unit radius; lower is "
+              "better)",
+              "",
+              *method_table(rows, cats, None, first="Split"), "",
+              "Queries per category: train " + ", ".join(f"{c} {pe['train']['n'].get(c, 0)}" for c in cats)
+              + "; test " + ", ".join(f"{c} {pe['test']['n'].get(c, 0)}" for c in cats) + ".", ""]
+        path = chart_dir / "placement_error.png"
+        bar_chart(rows, cats, "Table 4: placement error", "distance (unit radius)", path)
+        L += [f"![placement_error]({_rel(path, base)})", ""]
+
+    recall_keys = [k for k in tables if k.startswith("recall@")]
+    if recall_keys:
+        L += ["## Exact-component recall (higher is better) and median percentile rank (lower is better)", ""]
+        for key in recall_keys:
+            L += [f"### {key.replace('recall@', 'Recall@')}", "", *method_table(tables[key], cats, True), ""]
+        L += ["### Median percentile rank of the removed component", "",
+              *method_table(tables["median_percentile_rank"], cats, False, digits=1), ""]
+        rows = {m: r for m, r in tables[recall_keys[-1]].items() if not math.isnan(r.get("mean", math.nan))}
+        if rows:
+            path = chart_dir / "recall.png"
+            bar_chart(rows, cats, recall_keys[-1].replace("recall@", "Recall@"), "recall", path)
+            L += [f"![recall]({_rel(path, base)})", ""]
+
+    if "plausibility" in tables:
+        tol = s["contact"]["tolerance"]
+        L += ["## Placement plausibility (a known failure of the paper)", "",
+              PLAUSIBILITY.format(tol=tol, samples=s["contact"]["samples"]).strip(), "",
+              "| Case | Category | n | Floating | Interpenetrating | Median gap | Median depth |",
+              "|---|---|---|---|---|---|---|"]
+        for case, per_cat in tables["plausibility"].items():
+            for c in [*cats, "all"]:
+                r = per_cat[c]
+                L.append(f"| {CASE_NAMES.get(case, case)} | {c} | {r['n']} | {_fmt(r['floating'], 2)} | "
+                         f"{_fmt(r['interpenetrating'], 2)} | {_fmt(r['median_gap'])} | "
+                         f"{_fmt(r['median_depth'])} |")
+        L.append("")
+        rows = {}
+        for case, per_cat in tables["plausibility"].items():
+            shares: dict[str, Any] = {c: per_cat[c]["floating"] + per_cat[c]["interpenetrating"]
+                                      for c in [*cats, "all"]}
+            shares["mean"] = shares.pop("all")
+            rows[CASE_NAMES.get(case, case).split(",")[0]] = shares
+        path = chart_dir / "plausibility.png"
+        bar_chart(rows, cats, "Implausible placements (floating + interpenetrating share)", "share", path)
+        L += [f"![plausibility]({_rel(path, base)})", ""]
+
+    q = results["queries"]
+    L += ["## Query counts", "", "| Setting | " + " | ".join(cats) + " |", "|---" * (len(cats) + 1) + "|"]
+    for setting, counts in q.items():
+        L.append(f"| {setting} | " + " | ".join(str(counts.get(c, 0)) for c in cats) + " |")
+    L += ["", "Candidate parts per category (whole catalog, before excluding the query's shape): "
+          + ", ".join(f"{c} {n}" for c, n in results["pool"].items()) + ".", "",
+          f"Raw numbers: `{_rel(chart_dir / 'results.json', base)}`.", ""]
+    report_path.parent.mkdir(parents=True, exist_ok=True)
+    report_path.write_text("\n".join(L))

@@ -1,0 +1,290 @@
+"""The benchmark driver: load what ships, build the methods, run every table, write the results.
+
+``run_benchmark`` is what ``complementme evaluate`` calls. It
+
+1. loads the artifact folder with the service's own loader and builds the service's suggestion
+   engine on it ("Ours" is evaluated through that engine);
+2. draws the seeded queries of ``protocol`` from the catalog's held-out shapes;
+3. builds the baselines (Random, CK10, and the fixed-embedding g, trained briefly on the
+   training split of the processed dataset or loaded from its cache in the run folder);
+4. evaluates Tables 1-4, the exact-component recall and the placement plausibility;
+5. writes ``results.json``, the Markdown report and the PNG charts (``report``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.artifacts import write_json_atomic
+from service.engine import SuggestionEngine
+from service.loading import load_artifacts
+from service.settings import Settings
+from training.evaluate.baselines import CK10Method, Method, RandomMethod
+from training.evaluate.evaluation import (
+    ContactSettings,
+    RetrievalSettings,
+    evaluate_placement,
+    evaluate_plausibility,
+    evaluate_retrieval,
+    median_table,
+    plausibility_table,
+    table,
+)
+from training.evaluate.fixed_embedding import FixedSettings
+from training.evaluate.ours import EngineMethod
+from training.evaluate.protocol import ShapeIndex, make_placement_queries, make_queries
+
+log = logging.getLogger(__name__)
+
+RESULTS_FILE = "results.json"
+QUERIES_FILE = "queries.json"
+BENCHMARK_VERSION = 1
+METHOD_KEYS = ("random", "ck10", "fixed", "ours")
+# Table order, as in the paper: baselines first.
+METHOD_NAMES = {"random": "Random", "ck10": "CK10", "fixed": "Ours (fixed embedding)", "ours": "Ours"}
+
+
+@dataclass
+class BenchmarkSettings:
+    """Everything one benchmark run depends on (stored in results.json)."""
+
+    artifacts: Path = Path("exported")
+    run: Path | None = Path("runs/shipped")   # run folder: the fixed-embedding cache lives here
+    data: Path | None = None                  # processed dataset (default: the manifest's path)
+    out: Path = Path("docs/benchmark")        # results.json and the PNG charts
+    report: Path = Path("docs/benchmark.md")
+    seed: int = 0
+    queries_per_category: int = 100           # per setting (all-but-one, single); paper: 100
+    placement_queries_per_category: int = 100  # per split (train, test)
+    plausibility_queries_per_category: int = 100  # all-but-one queries whose top-1 is placed and tested
+    n_points: int | None = None               # query points (default: the manifest's n_points)
+    dense_points: int = 1024                  # surface samples per part (queries, Hausdorff, contact)
+    methods: tuple[str, ...] = METHOD_KEYS
+    ck10_shapes: int = 5                      # CK10: most similar shapes whose parts come first
+    descriptor_pairs: int = 4096              # random pairs/triples per D2/A3 descriptor
+    threads: int = 0                          # torch threads (0 = torch's default)
+    details: bool = False                     # also write every query's record (queries.json)
+    progress: bool = True
+    command: str = ""                         # the command line, for the report
+    retrieval: RetrievalSettings = field(default_factory=RetrievalSettings)
+    contact: ContactSettings = field(default_factory=ContactSettings)
+    fixed: FixedSettings = field(default_factory=FixedSettings)
+
+    def validate(self) -> None:
+        unknown = [m for m in self.methods if m not in METHOD_KEYS]
+        if unknown or not self.methods:
+            raise ValueError(f"unknown method(s) {unknown}; choose among {', '.join(METHOD_KEYS)}")
+        for name in ("queries_per_category", "placement_queries_per_category", "dense_points",
+                     "ck10_shapes", "descriptor_pairs"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"benchmark setting {name} must be positive, got {getattr(self, name)}")
+        if self.plausibility_queries_per_category < 0:
+            raise ValueError("plausibility_queries_per_category must be >= 0")
+        if self.retrieval.top_k <= 0 or any(k <= 0 for k in self.retrieval.recall_ks):
+            raise ValueError("top_k and recall ks must be positive")
+        if self.contact.tolerance <= 0 or self.contact.samples <= 0:
+            raise ValueError("contact tolerance and samples must be positive")
+        self.fixed.validate()
+
+
+def quick_settings(base: BenchmarkSettings) -> BenchmarkSettings:
+    """The CI variant: a few queries per category and a token fixed-embedding training."""
+    return dataclasses.replace(
+        base, queries_per_category=min(base.queries_per_category, 5),
+        placement_queries_per_category=min(base.placement_queries_per_category, 5),
+        plausibility_queries_per_category=min(base.plausibility_queries_per_category, 3),
+        dense_points=min(base.dense_points, 512),
+        fixed=dataclasses.replace(base.fixed, steps=min(base.fixed.steps, 50),
+                                  minutes=min(base.fixed.minutes, 1.0)))
+
+
+def settings_to_dict(s: BenchmarkSettings) -> dict[str, Any]:
+    return json.loads(json.dumps(dataclasses.asdict(s), default=str))
+
+
+def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tuple[Method, dict[str, Any]]:
+    """Load the processed dataset, take the catalog's training shapes, load or train g."""
+    import torch
+
+    from training.config import model_config_from_dict
+    from training.data.processed import ProcessedDataset
+    from training.evaluate.fixed_embedding import FixedEmbeddingMethod, load_or_train_fixed, rms_spread
+
+    manifest = artifacts.manifest
+    data = s.data or Path(str(manifest.get("dataset", {}).get("path", "")))
+    if not str(data):
+        raise ValueError("the fixed-embedding baseline needs the processed dataset: pass --data")
+    if s.run is None:
+        raise ValueError("the fixed-embedding baseline caches its weights in a run folder: pass --run")
+    ds = ProcessedDataset.load(Path(data))
+    want = manifest.get("dataset", {}).get("hash")
+    have = ds.info.get("hash") or ds.content_hash()
+    if want and want != have:
+        raise ValueError(f"{data}: dataset hash {have[:12]} differs from the one the artifacts were exported "
+                         f"from ({want[:12]}, {s.artifacts / 'manifest.json'})")
+    train_ids = sorted(sid for sid in index.rows if index.split[sid] == "train")
+    pos = {m["shape_id"]: i for i, m in enumerate(ds.shapes)}
+    missing = [sid for sid in train_ids if sid not in pos]
+    if missing:
+        raise ValueError(f"{data}: {len(missing)} training shapes of the catalog are missing, "
+                         f"e.g. {missing[0]!r}")
+    train_ds = ds.subset([pos[sid] for sid in train_ids])
+    if "model_config" not in manifest:
+        raise ValueError(f"{s.artifacts / 'manifest.json'}: no model_config to rebuild g from")
+    model_cfg = model_config_from_dict(manifest["model_config"])
+    if s.threads:
+        torch.set_num_threads(s.threads)
+    fixed_settings = dataclasses.replace(s.fixed, seed=s.seed, descriptor_pairs=s.descriptor_pairs)
+    model = load_or_train_fixed(s.run, train_ds, train_ids, have, model_cfg, fixed_settings,
+                                rms_spread(artifacts.catalog.embeddings))
+    return FixedEmbeddingMethod(model, index.samples, s.descriptor_pairs), model.info
+
+
+def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
+    """Run the whole benchmark; write results.json, the report and the charts; return the results."""
+    from training.evaluate.report import write_report
+
+    s.validate()
+    t_all = time.monotonic()
+    timing: dict[str, float] = {}
+
+    def lap(name: str, t0: float) -> None:
+        timing[name] = round(time.monotonic() - t0, 2)
+
+    t = time.monotonic()
+    artifacts = load_artifacts(Path(s.artifacts))
+    # The service's defaults, as shipped (only the artifact folder differs).
+    engine = SuggestionEngine(artifacts, Settings().model_copy(update={"artifacts": Path(s.artifacts)}))
+    catalog = artifacts.catalog
+    index = ShapeIndex(catalog, dense_points=s.dense_points, seed=s.seed)
+    n_points = s.n_points or artifacts.n_points
+    lap("load", t)
+
+    t = time.monotonic()
+    cats = index.categories()
+    queries = {setting: make_queries(index, setting, s.queries_per_category, n_points, s.seed)
+               for setting in ("all_but_one", "single")}
+    placement_queries = {split: make_placement_queries(index, split, s.placement_queries_per_category,
+                                                       n_points, s.seed) for split in ("train", "test")}
+    lap("queries", t)
+    if not queries["all_but_one"]:
+        raise ValueError(f"{s.artifacts}: no held-out shape with two or more labelled parts: "
+                         "nothing to evaluate")
+
+    methods: dict[str, Method] = {}
+    descriptions: dict[str, str] = {}
+    fixed_info: dict[str, Any] | None = None
+    ours = EngineMethod(engine)
+    for key in s.methods:
+        t = time.monotonic()
+        m: Method
+        if key == "random":
+            m = RandomMethod(len(catalog), s.seed)
+        elif key == "ck10":
+            m = CK10Method(index, n_shapes=s.ck10_shapes, n_points=n_points, seed=s.seed,
+                           n_pairs=s.descriptor_pairs)
+        elif key == "fixed":
+            m, fixed_info = _build_fixed(s, artifacts, index)
+        else:
+            m = ours
+        methods[METHOD_NAMES[key]] = m
+        descriptions[METHOD_NAMES[key]] = str(getattr(m, "description", ""))
+        lap(f"build {key}", t)
+
+    per_query: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for name, m in methods.items():
+        t = time.monotonic()
+        per_query[name] = {setting: evaluate_retrieval(m, qs, index, s.retrieval, s.progress)
+                           for setting, qs in queries.items()}
+        lap(f"retrieval {name}", t)
+
+    tables: dict[str, Any] = {"functional_map": {}, "hausdorff": {}, "style_map_all_but_one": {},
+                              "style_map_single": {}, "median_percentile_rank": {}}
+    for k in s.retrieval.recall_ks:
+        tables[f"recall@{k}"] = {}
+    for name in methods:
+        abo, single = per_query[name]["all_but_one"], per_query[name]["single"]
+        tables["functional_map"][name] = table(abo, "functional_ap", cats)
+        tables["hausdorff"][name] = table(abo, "hausdorff", cats)
+        tables["style_map_all_but_one"][name] = table(abo, "style_ap", cats)
+        tables["style_map_single"][name] = table(single, "style_ap", cats)
+        for k in s.retrieval.recall_ks:
+            tables[f"recall@{k}"][name] = table(abo, f"recall@{k}", cats)
+        tables["median_percentile_rank"][name] = median_table(abo, "percentile", cats)
+
+    placement: list[dict[str, Any]] = []
+    plaus: dict[str, list[dict[str, Any]]] = {}
+    if "ours" in s.methods:
+        t = time.monotonic()
+        for split in ("train", "test"):
+            placement += evaluate_placement(ours, placement_queries[split], s.progress)
+        tables["placement_error"] = {sp: table([r for r in placement if r["split"] == sp], "error", cats)
+                                     for sp in ("train", "test")}
+        lap("placement", t)
+        t = time.monotonic()
+        chosen = _first_per_category(queries["all_but_one"], s.plausibility_queries_per_category)
+        chosen_ids = {q.qid for q in chosen}
+        test_pq = _first_per_category(placement_queries["test"], s.plausibility_queries_per_category)
+        plaus = evaluate_plausibility(ours, index, chosen, per_query["Ours"]["all_but_one"],
+                                      [r for r in placement if r["qid"] in {q.qid for q in test_pq}], test_pq,
+                                      s.contact, s.progress)
+        tables["plausibility"] = {case: plausibility_table(recs, cats) for case, recs in plaus.items()}
+        log.debug("plausibility on %d queries", len(chosen_ids))
+        lap("plausibility", t)
+
+    manifest = artifacts.manifest
+    results: dict[str, Any] = {
+        "benchmark_version": BENCHMARK_VERSION,
+        "command": s.command,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "artifact": {"folder": str(s.artifacts), "model_version": manifest["model_version"],
+                     "format_version": manifest["format_version"], "created": manifest.get("created"),
+                     "part_count": manifest["part_count"], "n_points": manifest["n_points"],
+                     "dataset_hash": manifest.get("dataset", {}).get("hash"),
+                     "training": manifest.get("training", {})},
+        "settings": settings_to_dict(s),
+        "categories": cats,
+        "methods": descriptions,
+        "queries": {
+            **{setting: _count(qs, cats) for setting, qs in queries.items()},
+            **{f"placement_{split}": _count(qs, cats) for split, qs in placement_queries.items()},
+        },
+        "pool": {c: int(np.sum(catalog.category_of == catalog.categories.index(c))) for c in cats},
+        "tables": tables,
+        "fixed_embedding": fixed_info,
+    }
+    timing["total"] = round(time.monotonic() - t_all, 2)
+    results["timing_seconds"] = timing
+    out = Path(s.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / RESULTS_FILE, results)
+    if s.details:
+        write_json_atomic(out / QUERIES_FILE, {"retrieval": per_query, "placement": placement,
+                                               "plausibility": plaus})
+    write_report(results, Path(s.report), out)
+    log.info("benchmark done in %.1f s: %s, %s", timing["total"], out / RESULTS_FILE, s.report)
+    return results
+
+
+def _count(queries: list[Any], categories: list[str]) -> dict[str, int]:
+    return {c: sum(q.category == c for q in queries) for c in categories}
+
+
+def _first_per_category(queries: list[Any], n: int) -> list[Any]:
+    """The first ``n`` queries of each category (queries are already in seeded random order)."""
+    seen: dict[str, int] = {}
+    out = []
+    for q in queries:
+        if seen.get(q.category, 0) < n:
+            out.append(q)
+            seen[q.category] = seen.get(q.category, 0) + 1
+    return out
