@@ -19,6 +19,7 @@ from dockerfile_model import (
     DOCKERFILE,
     REPO,
     DockerIgnore,
+    Stage,
     env_pairs,
     exec_form,
     parse_dockerfile,
@@ -71,9 +72,9 @@ def test_stages_are_slim_python_and_named() -> None:
     assert all(s.base == "python:3.11-slim" for s in found), [s.base for s in found]
 
 
-def copy_sources(stage) -> list[tuple[str, str]]:
+def copy_sources(stage: Stage) -> list[tuple[str, str]]:
     """(source, destination) of every COPY that reads the build context."""
-    out = []
+    out: list[tuple[str, str]] = []
     for ins in stage.of("COPY"):
         if "from" in ins.flags:
             continue

@@ -69,6 +69,7 @@ def test_dashboard_query_uses_exported_metrics_and_labels(title: str, expr: str)
 
     def visit(node) -> None:
         if isinstance(node, promql_parser.VectorSelector):
+            assert node.name, f"panel {title!r}: select metrics by name: {expr}"
             names.append(node.name)
             matcher_labels.extend(m.name for m in node.matchers.matchers)
         if isinstance(node, promql_parser.AggregateExpr) and node.modifier is not None:
