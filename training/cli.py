@@ -29,3 +29,7 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug 
 from training.commands import register_training_commands  # noqa: E402
 
 register_training_commands(app)
+
+from training.evaluate.cli import register_evaluate_command  # noqa: E402
+
+register_evaluate_command(app)

@@ -1,0 +1,88 @@
+"""`complementme evaluate`: the benchmark of the paper's Section 6.2 on the shipped artifacts.
+
+A thin wrapper: parse options into ``BenchmarkSettings`` and call ``run.run_benchmark``. Torch
+and the evaluation modules are imported inside the command, so the CLI starts fast.
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+QUICK_OUT = Path("runs/benchmark-quick")
+
+
+def evaluate_command(
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder (Ours)."),
+    run: Path = typer.Option(Path("runs/shipped"), "--run",
+                             help="Run folder; the fixed-embedding baseline caches its weights here."),
+    data: Optional[Path] = typer.Option(None, "--data",  # noqa: UP045 (typer needs Optional on 3.10)
+                                        help="Processed dataset (default: the path in the manifest)."),
+    out: Optional[Path] = typer.Option(None, "--out",  # noqa: UP045
+                                       help="Folder for results.json and the PNG charts "
+                                            "(default: docs/benchmark; runs/benchmark-quick with --quick)."),
+    report: Optional[Path] = typer.Option(None, "--report",  # noqa: UP045
+                                          help="Markdown report (default: docs/benchmark.md; "
+                                               "<out>/benchmark.md with --quick)."),
+    quick: bool = typer.Option(False, "--quick", help="CI mode: a few queries per category, a token "
+                                                      "fixed-embedding training (minutes -> seconds)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the queries, samples and baselines."),
+    queries: int = typer.Option(100, "--queries", help="Queries per category and setting (paper: 100)."),
+    placement_queries: int = typer.Option(100, "--placement-queries",
+                                          help="Placement queries per category and split."),
+    plausibility_queries: int = typer.Option(100, "--plausibility-queries",
+                                             help="All-but-one queries per category whose top-1 is "
+                                                  "placed and checked for contact."),
+    methods: str = typer.Option("random,ck10,fixed,ours", "--methods",
+                                help="Comma-separated subset of random, ck10, fixed, ours."),
+    pool: str = typer.Option("category", "--pool", help="Candidate pool: 'category' (other shapes of the "
+                                                         "query's category) or 'all' (other shapes)."),
+    collapse_duplicates: bool = typer.Option(True, "--collapse-duplicates/--keep-duplicates",
+                                             help="Show one part per near-duplicate group, as the service."),
+    dense_points: int = typer.Option(1024, "--dense-points", help="Surface samples per part from its mesh."),
+    ck10_shapes: int = typer.Option(5, "--ck10-shapes", help="CK10: similar shapes whose parts come first."),
+    fixed_steps: int = typer.Option(3000, "--fixed-steps", help="Fixed-embedding baseline: steps of g."),
+    fixed_minutes: float = typer.Option(10.0, "--fixed-minutes",
+                                        help="Fixed-embedding baseline: wall-clock cap of its training."),
+    fixed_dim: int = typer.Option(50, "--fixed-dim", help="Fixed-embedding baseline: PCA dimensions."),
+    contact_tolerance: float = typer.Option(0.02, "--contact-tolerance",
+                                            help="Gap or depth (unit radius) of an implausible placement."),
+    contact_samples: int = typer.Option(256, "--contact-samples",
+                                        help="Surface samples per part in contact tests."),
+    threads: int = typer.Option(0, "--threads", help="Torch threads (0 = torch's default)."),
+    details: bool = typer.Option(False, "--details", help="Also write every query's record (queries.json)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+) -> None:
+    """Benchmark the shipped model against Random, CK10 and a fixed embedding (paper Tables 1-4)."""
+    from training.evaluate.evaluation import ContactSettings, RetrievalSettings
+    from training.evaluate.fixed_embedding import FixedSettings
+    from training.evaluate.run import BenchmarkSettings, quick_settings, run_benchmark
+
+    out_dir = out or (QUICK_OUT if quick else Path("docs/benchmark"))
+    report_path = report or (out_dir / "benchmark.md" if quick else Path("docs/benchmark.md"))
+    settings = BenchmarkSettings(
+        artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
+        queries_per_category=queries, placement_queries_per_category=placement_queries,
+        plausibility_queries_per_category=plausibility_queries, dense_points=dense_points,
+        methods=tuple(m.strip() for m in methods.split(",") if m.strip()), ck10_shapes=ck10_shapes,
+        threads=threads, details=details, progress=progress,
+        command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]),
+        retrieval=RetrievalSettings(pool_scope=pool, collapse_duplicates=collapse_duplicates),
+        contact=ContactSettings(tolerance=contact_tolerance, samples=contact_samples),
+        fixed=FixedSettings(dim=fixed_dim, steps=fixed_steps, minutes=fixed_minutes))
+    if quick:
+        settings = quick_settings(settings)
+    try:
+        run_benchmark(settings)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+
+
+def register_evaluate_command(app: typer.Typer) -> None:
+    """Add `evaluate` to the root CLI."""
+    app.command("evaluate")(evaluate_command)
