@@ -12,6 +12,7 @@ from service.geometry import points_to_mesh_distance, sample_surface
 from training.data.preprocess import PreprocessConfig, preprocess_folder, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.shapes import RawPiece, RawShape
+from training.data.stats import HISTOGRAM_PNG, TABLE_TXT, write_stats
 
 CONFIG = PreprocessConfig(points_per_component=256)
 # Cached points are float16: coordinates below 1 round by at most 2.4e-4 each.
@@ -209,6 +210,7 @@ def test_folder_output_is_byte_identical_across_runs_and_workers(raw_folder: Pat
     assert loaded.info["counts"] == {"shapes_in": 6, "kept": 4, "rejected": 2, "pieces_in": 21,
                                      "components": 11}
     assert loaded.info["components_histogram"] == {"chair": {"3": 3}, "table": {"1": 1, "2": 1}}
+    assert loaded.info["components_histogram_kept"] == {"chair": {"3": 3}, "table": {"2": 1}}
 
 
 def test_seed_changes_samples_but_not_structure(raw_folder: Path, tmp_path: Path) -> None:
@@ -217,3 +219,14 @@ def test_seed_changes_samples_but_not_structure(raw_folder: Path, tmp_path: Path
                           workers=1)
     assert np.array_equal(a.edges, b.edges) and np.array_equal(a.first_comp, b.first_comp)
     assert not np.array_equal(a.points, b.points)
+
+
+def test_stats_of_a_processed_folder(raw_folder: Path, tmp_path: Path) -> None:
+    preprocess_folder(raw_folder, tmp_path / "processed", CONFIG, workers=1)
+    summary = write_stats(tmp_path / "processed", tmp_path / "stats")
+    assert (tmp_path / "stats" / HISTOGRAM_PNG).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = {r["category"]: r for r in summary["categories"]}
+    assert rows["table"]["shapes"] == 3 and rows["table"]["kept"] == 1
+    assert rows["table"]["discarded_by_reason"] == {"too_few_components": 1, "unreadable": 1}
+    table = (tmp_path / "stats" / TABLE_TXT).read_text()
+    assert "chair" in table and "too_few_components 1" in table and "identical 9" in table

@@ -485,12 +485,16 @@ def assemble(results: list[dict[str, Any]], config: PreprocessConfig) -> Process
     edges = [r["edges"] + first[s] for s, r in enumerate(kept)]
 
     merges = {k: int(sum(r["merges"][k] for r in results)) for k in ("size", "overlap", "identical")}
+    # Components per shape, over every shape that reached merging, and over the kept ones.
     histogram: dict[str, dict[str, int]] = {}
+    histogram_kept: dict[str, dict[str, int]] = {}
     per_category: dict[str, dict[str, Any]] = {}
     for r in results:
-        if r.get("code") not in ("unreadable", "invalid"):  # counted only when merging ran
-            h = histogram.setdefault(r["category"], {})
-            h[str(r["n_components"])] = h.get(str(r["n_components"]), 0) + 1
+        if r.get("code") not in ("unreadable", "invalid"):
+            for hist, counted in ((histogram, True), (histogram_kept, "reason" not in r)):
+                h = hist.setdefault(r["category"], {})
+                if counted:
+                    h[str(r["n_components"])] = h.get(str(r["n_components"]), 0) + 1
         c = per_category.setdefault(r["category"], {"kept": 0, "rejected": {}})
         if "reason" in r:
             c["rejected"][r["code"]] = c["rejected"].get(r["code"], 0) + 1
@@ -504,6 +508,7 @@ def assemble(results: list[dict[str, Any]], config: PreprocessConfig) -> Process
         "merge_counts": merges,
         "per_category": per_category,
         "components_histogram": histogram,
+        "components_histogram_kept": histogram_kept,
         "rejected": [{"shape_id": r["shape_id"], "category": r["category"], "source": r["source"],
                       "code": r["code"], "reason": r["reason"]} for r in results if "reason" in r],
     }

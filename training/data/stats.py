@@ -36,10 +36,11 @@ def summarize(info: dict[str, Any]) -> dict[str, Any]:
     for cat in cats:
         per = info["per_category"].get(cat, {"kept": 0, "rejected": {}})
         hist = {int(k): v for k, v in info["components_histogram"].get(cat, {}).items()}
+        kept = {int(k): v for k, v in info.get("components_histogram_kept", {}).get(cat, {}).items()}
         rows.append({"category": cat, "shapes": per["kept"] + sum(per["rejected"].values()),
                      "kept": per["kept"], "discarded": sum(per["rejected"].values()),
                      "discarded_by_reason": dict(sorted(per["rejected"].items())),
-                     "histogram": dict(sorted(hist.items()))})
+                     "histogram": dict(sorted(hist.items())), "histogram_kept": dict(sorted(kept.items()))})
     reasons: dict[str, int] = {}
     for r in info["rejected"]:
         reasons[r["code"]] = reasons.get(r["code"], 0) + 1
@@ -76,29 +77,32 @@ def format_table(summary: dict[str, Any]) -> str:
 
 
 def plot_histograms(summary: dict[str, Any], path: Path) -> None:
-    """One bar chart per category; bars outside the kept range are drawn as discarded."""
+    """One bar chart per category: kept shapes in blue, discarded ones stacked in grey."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     rows = summary["categories"]
-    lo, hi = summary["min_components"], summary["max_components"]
+    lo, hi = summary["min_components"], summary["max_components"]  # the kept range, shaded
     top = max([max(r["histogram"], default=0) for r in rows] + [hi])
     cols = min(4, max(1, len(rows)))
     nrows = (len(rows) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(3.2 * cols, 2.6 * nrows), squeeze=False)
     xs = list(range(1, top + 1))
     for ax, r in zip(axes.flat, rows, strict=False):
-        heights = [r["histogram"].get(n, 0) for n in xs]
-        colours = ["#4c72b0" if lo <= n <= hi else "#c0c0c0" for n in xs]
-        ax.bar(xs, heights, color=colours)
+        kept = [r["histogram_kept"].get(n, 0) for n in xs]
+        dropped = [r["histogram"].get(n, 0) - k for n, k in zip(xs, kept, strict=True)]
+        ax.bar(xs, kept, color="#4c72b0")
+        ax.bar(xs, dropped, bottom=kept, color="#c0c0c0")
+        ax.axvspan(lo - 0.5, hi + 0.5, color="#4c72b0", alpha=0.06, lw=0)
         ax.set_title(f"{r['category']} ({r['shapes']})\n{r['discarded']} discarded", fontsize=9)
         ax.set_xticks(xs)
+        ax.margins(y=0.1)
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(rows):]:
         ax.axis("off")
-    fig.supxlabel("components per shape (grey: discarded)", fontsize=9)
+    fig.supxlabel("components per shape (blue: kept, grey: discarded)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
