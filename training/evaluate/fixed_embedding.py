@@ -13,7 +13,7 @@ equals the shipped embeddings': the mixture's sigmas are bounded (``sigma_max``)
 embedding 100 times wider than the learned one would put every target far outside any mode.
 
 Training is short (a step and a time budget) and its result is cached in the run folder
-(``eval_fixed_embedding.pt``) under a key of everything it depends on, so re-running the
+(``eval_fixed_embedding-<key>.pt``) under a key of everything it depends on, so re-running the
 benchmark reuses it and reproduces its numbers.
 """
 
@@ -43,7 +43,8 @@ from training.models import RetrievalNet
 
 log = logging.getLogger(__name__)
 
-FIXED_WEIGHTS_FILE = "eval_fixed_embedding.pt"
+# One file per cache key, so a quick run never evicts the weights of a full one.
+FIXED_WEIGHTS_PATTERN = "eval_fixed_embedding-{key}.pt"
 CACHE_FORMAT = 1
 
 
@@ -216,8 +217,8 @@ def load_or_train_fixed(run_dir: Path, train_ds: ProcessedDataset, train_ids: li
                         model_cfg: ModelConfig, settings: FixedSettings,
                         reference_rms: float) -> FixedEmbedding:
     """The fixed-embedding model of a run: from the cache when it matches, else trained and cached."""
-    path = Path(run_dir) / FIXED_WEIGHTS_FILE
     key = cache_key(settings, model_cfg, dataset_hash, train_ids, reference_rms)
+    path = Path(run_dir) / FIXED_WEIGHTS_PATTERN.format(key=key[:16])
     cached = load_fixed(path, key, model_cfg, settings.dim)
     if cached is not None:
         log.info("fixed embedding: reusing %s (%s steps)", path, cached.info.get("steps"))

@@ -71,6 +71,7 @@ the part. Gap = 0 when any sample of one side is inside the other; otherwise the
 from the samples of one side to the mesh of the other. {samples} surface samples per part.
 """
 
+CASE_SHORT = {"top1": "Ours top-1 (h)", "true_h": "true part (h)", "true_gt": "true part at its true place"}
 CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
               "true_h": "True missing component, placed by h",
               "true_gt": "True missing part at its true place (the data's own rate)"}
@@ -117,7 +118,7 @@ def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str
               path: Path) -> None:
     """Grouped bars: categories (and the mean) on x, one bar per method."""
     cols = [*categories, "mean"]
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(cols) + 2), 3.6), dpi=110)
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(cols) + 2), 4.0), dpi=110)
     n = max(1, len(rows))
     width = 0.8 / n
     for i, (method, r) in enumerate(rows.items()):
@@ -129,7 +130,8 @@ def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str
     ax.set_xticklabels(cols)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=8, ncol=min(4, n))
+    # Below the axes, so a long method name never hides a bar.
+    ax.legend(fontsize=8, ncol=min(4, n), loc="upper center", bbox_to_anchor=(0.5, -0.12), frameon=False)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,6 +151,12 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
     art = results["artifact"]
     report_path = Path(report_path)
     chart_dir = Path(chart_dir)
+    # JSON files sort their keys: the row order of every table comes from "method_order".
+    order: list[str] = results.get("method_order") or sorted(results["methods"])
+
+    def ordered(rows: dict[str, Any]) -> dict[str, Any]:
+        return {m: rows[m] for m in [*order, *sorted(set(rows) - set(order))] if m in rows}
+
     base = report_path.parent
     L: list[str] = []
     L += ["# Benchmark", "",
@@ -170,7 +178,8 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
         n_points=art["n_points"], dense=s["dense_points"], scope=s["retrieval"]["pool_scope"],
         collapse="on" if s["retrieval"]["collapse_duplicates"] else "off").strip(), ""]
     L += ["## Methods", ""]
-    for name, desc in results["methods"].items():
+    for name in order:
+        desc = results["methods"][name]
         L.append(f"- **{name}**: {desc}")
     fixed = results.get("fixed_embedding")
     if fixed:
@@ -183,7 +192,7 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
 
     charts: list[tuple[str, Path]] = []
     for key, title, higher in RETRIEVAL_TABLES:
-        rows = tables.get(key, {})
+        rows = ordered(tables.get(key, {}))
         if not rows:
             continue
         L += [f"## {title}", "", *method_table(rows, cats, higher), "", _counts_line(rows, cats), ""]
@@ -209,10 +218,12 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
     if recall_keys:
         L += ["## Exact-component recall (higher is better) and median percentile rank (lower is better)", ""]
         for key in recall_keys:
-            L += [f"### {key.replace('recall@', 'Recall@')}", "", *method_table(tables[key], cats, True), ""]
+            title = key.replace("recall@", "Recall@")
+            L += [f"### {title}", "", *method_table(ordered(tables[key]), cats, True), ""]
         L += ["### Median percentile rank of the removed component", "",
-              *method_table(tables["median_percentile_rank"], cats, False, digits=1), ""]
-        rows = {m: r for m, r in tables[recall_keys[-1]].items() if not math.isnan(r.get("mean", math.nan))}
+              *method_table(ordered(tables["median_percentile_rank"]), cats, False, digits=1), ""]
+        rows = {m: r for m, r in ordered(tables[recall_keys[-1]]).items()
+                if not math.isnan(r.get("mean", math.nan))}
         if rows:
             path = chart_dir / "recall.png"
             bar_chart(rows, cats, recall_keys[-1].replace("recall@", "Recall@"), "recall", path)
@@ -220,11 +231,13 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
 
     if "plausibility" in tables:
         tol = s["contact"]["tolerance"]
+        plaus = tables["plausibility"]
+        cases = {c: plaus[c] for c in [*CASE_NAMES, *sorted(set(plaus) - set(CASE_NAMES))] if c in plaus}
         L += ["## Placement plausibility (a known failure of the paper)", "",
               PLAUSIBILITY.format(tol=tol, samples=s["contact"]["samples"]).strip(), "",
               "| Case | Category | n | Floating | Interpenetrating | Median gap | Median depth |",
               "|---|---|---|---|---|---|---|"]
-        for case, per_cat in tables["plausibility"].items():
+        for case, per_cat in cases.items():
             for c in [*cats, "all"]:
                 r = per_cat[c]
                 L.append(f"| {CASE_NAMES.get(case, case)} | {c} | {r['n']} | {_fmt(r['floating'], 2)} | "
@@ -232,11 +245,11 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
                          f"{_fmt(r['median_depth'])} |")
         L.append("")
         rows = {}
-        for case, per_cat in tables["plausibility"].items():
+        for case, per_cat in cases.items():
             shares: dict[str, Any] = {c: per_cat[c]["floating"] + per_cat[c]["interpenetrating"]
                                       for c in [*cats, "all"]}
             shares["mean"] = shares.pop("all")
-            rows[CASE_NAMES.get(case, case).split(",")[0]] = shares
+            rows[CASE_SHORT.get(case, case)] = shares
         path = chart_dir / "plausibility.png"
         bar_chart(rows, cats, "Implausible placements (floating + interpenetrating share)", "share", path)
         L += [f"![plausibility]({_rel(path, base)})", ""]

@@ -254,6 +254,7 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
         "settings": settings_to_dict(s),
         "categories": cats,
         "methods": descriptions,
+        "method_order": list(methods),
         "queries": {
             **{setting: _count(qs, cats) for setting, qs in queries.items()},
             **{f"placement_{split}": _count(qs, cats) for split, qs in placement_queries.items()},
