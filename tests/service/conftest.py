@@ -1,0 +1,70 @@
+"""Fixtures that run the real app on a real artifact folder.
+
+The folder is ``COMPLEMENTME_TEST_ARTIFACTS`` if set, else the repository's ``exported/``; tests
+that need it skip (saying why) only when that folder does not exist. Queries are built from the
+catalog (see ``service_testkit.assembly_query``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+# Starlette asks for httpx2 for its TestClient; httpx still works and is what we ship.
+warnings.filterwarnings("ignore", message=".*httpx.*starlette.testclient.*")
+
+from fastapi.testclient import TestClient  # noqa: E402
+from service_testkit import (  # noqa: E402
+    ARTIFACTS_ENV,
+    AssemblyQuery,
+    artifacts_folder,
+    assembly_query,
+    make_settings,
+    multi_part_shapes,
+)
+
+from service.api import create_app  # noqa: E402
+from service.catalog import Catalog  # noqa: E402
+from service.engine import SuggestionEngine  # noqa: E402
+from service.settings import Settings  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def artifacts() -> Path:
+    folder = artifacts_folder()
+    if not (folder / "manifest.json").is_file():
+        pytest.skip(f"no artifact folder at {folder} (set {ARTIFACTS_ENV} or export to exported/)")
+    return folder
+
+
+@pytest.fixture(scope="session")
+def settings(artifacts: Path) -> Settings:
+    return make_settings(artifacts)
+
+
+@pytest.fixture(scope="session")
+def client(settings: Settings) -> Iterator[TestClient]:
+    """The real app with its lifespan run: artifacts loaded, checked, warmed up."""
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+@pytest.fixture(scope="session")
+def engine(client: TestClient) -> SuggestionEngine:
+    return client.app.state.engine  # type: ignore[attr-defined]
+
+
+@pytest.fixture(scope="session")
+def catalog(engine: SuggestionEngine) -> Catalog:
+    return engine.catalog
+
+
+@pytest.fixture(scope="session")
+def query(catalog: Catalog, engine: SuggestionEngine) -> AssemblyQuery:
+    """One assembly query: the first multi-part shape without its last part."""
+    shape = multi_part_shapes(catalog, 1)[0]
+    last = [r["part_id"] for r in catalog.records if r["shape_id"] == shape][-1]
+    return assembly_query(catalog, shape, last, engine.artifacts.n_points)

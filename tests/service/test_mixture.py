@@ -1,0 +1,58 @@
+"""The mixture log-likelihood against a direct evaluation with scipy."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import multivariate_normal
+
+from service.mixture import component_log_densities, logsumexp_rows, mixture_log_likelihood
+
+
+def _mixture(rng: np.random.Generator, K: int, D: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    w = rng.random(K)
+    return w / w.sum(), rng.normal(size=(K, D)), rng.uniform(0.2, 1.5, size=(K, D))
+
+
+def test_matches_scipy_on_random_mixtures() -> None:
+    rng = np.random.default_rng(0)
+    w, mu, sigma = _mixture(rng, K=4, D=6)
+    y = rng.normal(size=(30, 6))
+    ll, mode = mixture_log_likelihood(y, w, mu, sigma)
+    dens = np.stack([w[k] * multivariate_normal(mu[k], np.diag(sigma[k] ** 2)).pdf(y) for k in range(4)],
+                    axis=1)
+    np.testing.assert_allclose(ll, np.log(dens.sum(axis=1)), rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(mode, dens.argmax(axis=1))
+
+
+def test_sharp_modes_do_not_underflow() -> None:
+    # sigma = 0.05 in 50 dimensions (the paper's cap): densities far below float64's range.
+    rng = np.random.default_rng(1)
+    w, mu, _ = _mixture(rng, K=3, D=50)
+    sigma = np.full((3, 50), 0.05)
+    y = mu[1] + rng.normal(scale=2.0, size=(5, 50))
+    ll, mode = mixture_log_likelihood(y, w, mu, sigma)
+    assert np.all(np.isfinite(ll)) and np.all(ll < -1000)
+    comp = component_log_densities(y, w, mu, sigma)
+    # The log-sum-exp equals the largest component up to log(K).
+    assert np.all(ll >= comp.max(axis=1)) and np.all(ll <= comp.max(axis=1) + np.log(3))
+    np.testing.assert_array_equal(mode, comp.argmax(axis=1))
+
+
+def test_a_mean_scores_higher_than_points_away_from_it() -> None:
+    rng = np.random.default_rng(2)
+    _, mu, sigma = _mixture(rng, K=2, D=8)
+    y = np.stack([mu[0], mu[0] + 3 * sigma[0]])
+    ll, mode = mixture_log_likelihood(y, np.array([0.9, 0.1]), mu, sigma)
+    assert ll[0] > ll[1] and mode[0] == 0
+
+
+def test_switched_off_modes_stay_finite() -> None:
+    rng = np.random.default_rng(3)
+    _, mu, sigma = _mixture(rng, K=3, D=4)
+    ll, mode = mixture_log_likelihood(mu, np.array([1.0, 0.0, 0.0]), mu, sigma)
+    assert np.all(np.isfinite(ll)) and np.all(mode == 0)
+
+
+def test_logsumexp_rows() -> None:
+    a = np.array([[0.0, 0.0], [-1000.0, -1000.0], [5.0, -np.inf]])
+    np.testing.assert_allclose(logsumexp_rows(a), [np.log(2), -1000 + np.log(2), 5.0])
