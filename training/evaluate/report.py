@@ -77,15 +77,20 @@ CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
               "true_gt": "True missing part at its true place (the data's own rate)"}
 
 
+def _number(v: Any) -> bool:
+    """A value to show (results store undefined values as null; NaN is accepted too)."""
+    return v is not None and not (isinstance(v, float) and math.isnan(v))
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
+    if not _number(v):
         return "n/a"
     return f"{v:.{digits}f}"
 
 
 def _best(row_values: dict[str, Any], higher: bool) -> set[str]:
     """The rows holding the best value (all of them on a tie; none when every row is equal)."""
-    vals = {k: v for k, v in row_values.items() if v is not None and not math.isnan(v)}
+    vals = {k: v for k, v in row_values.items() if _number(v)}
     if len(vals) < 2 or len(set(vals.values())) == 1:
         return set()
     target = max(vals.values()) if higher else min(vals.values())
@@ -123,7 +128,7 @@ def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str
     width = 0.8 / n
     for i, (method, r) in enumerate(rows.items()):
         vals = [r.get(c) for c in cols]
-        ys = [0.0 if v is None or (isinstance(v, float) and math.isnan(v)) else float(v) for v in vals]
+        ys = [float(v) if v is not None and _number(v) else 0.0 for v in vals]
         xs = [j + (i - (n - 1) / 2) * width for j in range(len(cols))]
         ax.bar(xs, ys, width=width, label=method)
     ax.set_xticks(range(len(cols)))
@@ -223,7 +228,7 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
         L += ["### Median percentile rank of the removed component", "",
               *method_table(ordered(tables["median_percentile_rank"]), cats, False, digits=1), ""]
         rows = {m: r for m, r in ordered(tables[recall_keys[-1]]).items()
-                if not math.isnan(r.get("mean", math.nan))}
+                if _number(r.get("mean"))}
         if rows:
             path = chart_dir / "recall.png"
             bar_chart(rows, cats, recall_keys[-1].replace("recall@", "Recall@"), "recall", path)
@@ -246,8 +251,9 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
         L.append("")
         rows = {}
         for case, per_cat in cases.items():
-            shares: dict[str, Any] = {c: per_cat[c]["floating"] + per_cat[c]["interpenetrating"]
-                                      for c in [*cats, "all"]}
+            shares: dict[str, Any] = {
+                c: per_cat[c]["floating"] + per_cat[c]["interpenetrating"] if per_cat[c]["n"] else None
+                for c in [*cats, "all"]}
             shares["mean"] = shares.pop("all")
             rows[CASE_SHORT.get(case, case)] = shares
         path = chart_dir / "plausibility.png"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -265,15 +266,27 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     }
     timing["total"] = round(time.monotonic() - t_all, 2)
     results["timing_seconds"] = timing
+    results = json_clean(results)
     out = Path(s.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / RESULTS_FILE, results)
     if s.details:
-        write_json_atomic(out / QUERIES_FILE, {"retrieval": per_query, "placement": placement,
-                                               "plausibility": plaus})
+        write_json_atomic(out / QUERIES_FILE, json_clean({"retrieval": per_query, "placement": placement,
+                                                          "plausibility": plaus}))
     write_report(results, Path(s.report), out)
     log.info("benchmark done in %.1f s: %s, %s", timing["total"], out / RESULTS_FILE, s.report)
     return results
+
+
+def json_clean(obj: Any) -> Any:
+    """The results with NaN (an undefined mean) as None, so results.json is strict JSON."""
+    if isinstance(obj, dict):
+        return {k: json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_clean(v) for v in obj]
+    if isinstance(obj, float) and math.isnan(obj):
+        return None
+    return obj
 
 
 def _count(queries: list[Any], categories: list[str]) -> dict[str, int]:

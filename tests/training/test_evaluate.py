@@ -1,0 +1,436 @@
+"""Tests of the benchmark (training/evaluate): metrics on hand-made answers, geometry with known
+distances, the query protocol and its own-shape filter, the baselines, the fixed-embedding cache,
+and one quick end-to-end run through the real engine on a tiny trained and exported model."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import make_toy_dataset
+
+from service.catalog import Catalog
+from training.catalog import concat_meshes, part_records, sample_parts
+from training.data.processed import ProcessedDataset
+from training.evaluate.baselines import CK10Method, RandomMethod, rank_by_scores
+from training.evaluate.contact import Mesh, contact, distance_to_mesh, winding_number
+from training.evaluate.descriptors import DESCRIPTOR_DIM, PCAProjection, point_descriptor
+from training.evaluate.evaluation import RetrievalSettings, evaluate_retrieval, table
+from training.evaluate.metrics import (
+    average_precision_at_k,
+    bbox_centred,
+    directed_hausdorff,
+    first_hit_rank,
+    hausdorff_distance,
+    percentile_rank,
+    placement_error,
+    recall_at_k,
+    styles_match,
+)
+from training.evaluate.protocol import (
+    Query,
+    ShapeIndex,
+    candidate_pool,
+    finalize_ranking,
+    make_placement_queries,
+    make_queries,
+    relevant_in_pool,
+)
+
+# ---------------------------------------------------------------------------------- metrics
+
+
+def test_ap_at_5_hits_at_1_and_3() -> None:
+    # Precision at the hits: 1/1 and 2/3; five or more relevant parts exist, so divide by 5.
+    hits = [True, False, True, False, False]
+    assert average_precision_at_k(hits, n_relevant=10) == pytest.approx((1 + 2 / 3) / 5)
+    assert average_precision_at_k(hits, n_relevant=5) == pytest.approx(1 / 3)
+
+
+def test_ap_at_5_divides_by_the_relevant_count_when_fewer_than_k() -> None:
+    assert average_precision_at_k([True, False, True, False, False], n_relevant=2) == pytest.approx(5 / 6)
+    assert average_precision_at_k([False, True, False, False, False], n_relevant=1) == pytest.approx(0.5)
+
+
+def test_ap_at_5_extremes_and_cut_off() -> None:
+    assert average_precision_at_k([True] * 5, n_relevant=7) == 1.0
+    assert average_precision_at_k([False] * 5, n_relevant=3) == 0.0
+    # Only the first k items count.
+    assert average_precision_at_k([False] * 5 + [True], n_relevant=3) == 0.0
+    assert average_precision_at_k([True, True], n_relevant=2, k=1) == 1.0
+    assert math.isnan(average_precision_at_k([False] * 5, n_relevant=0))
+
+
+def test_ap_refuses_inconsistent_input() -> None:
+    with pytest.raises(ValueError, match="hits"):
+        average_precision_at_k([True, True, False], n_relevant=1)
+    with pytest.raises(ValueError, match="k must be positive"):
+        average_precision_at_k([True], n_relevant=1, k=0)
+
+
+def test_recall_and_percentile_rank() -> None:
+    assert first_hit_rank([False, False, True, True]) == 3
+    assert first_hit_rank([False, False]) is None
+    assert recall_at_k(3, 1) == 0.0 and recall_at_k(3, 3) == 1.0 and recall_at_k(None, 10) == 0.0
+    assert percentile_rank(1, 11) == 0.0
+    assert percentile_rank(11, 11) == 100.0
+    assert percentile_rank(6, 11) == 50.0
+    assert percentile_rank(1, 1) == 0.0
+    with pytest.raises(ValueError):
+        percentile_rank(12, 11)
+
+
+def test_hausdorff_on_point_sets_with_known_distance() -> None:
+    a = np.array([[0.0, 0, 0], [1, 0, 0]])
+    b = np.array([[0.0, 0, 0], [1, 0, 0], [4, 4, 0]])   # (4, 4) is 5 from (1, 0)
+    assert directed_hausdorff(a, b) == 0.0
+    assert directed_hausdorff(b, a) == pytest.approx(5.0)
+    assert hausdorff_distance(a, b) == pytest.approx(5.0)
+    # A line of points against itself shifted by a quarter of the spacing.
+    line = np.stack([np.arange(11.0), np.zeros(11), np.zeros(11)], axis=1)
+    assert hausdorff_distance(line, line + np.array([0.25, 0, 0])) == pytest.approx(0.25)
+    assert hausdorff_distance(line, line) == 0.0
+
+
+def test_bbox_centring_makes_hausdorff_ignore_position() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.2, 0.3, size=(200, 3))
+    centred = bbox_centred(pts + np.array([5.0, -2.0, 1.0]))
+    assert np.allclose(centred.min(axis=0), -centred.max(axis=0))
+    assert hausdorff_distance(bbox_centred(pts), centred) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_placement_error_and_styles() -> None:
+    assert placement_error(np.array([3.0, 4.0, 0.0]), np.zeros(3)) == pytest.approx(5.0)
+    assert styles_match("club,armchair", ["armchair"])
+    assert not styles_match("plain", "armchair")
+    assert not styles_match(None, "plain")
+
+
+# ---------------------------------------------------------------------------------- geometry
+
+
+def _box(extents: list[float], centre: list[float], samples: int = 1500, seed: int = 0) -> Mesh:
+    m = trimesh.creation.box(extents=extents)
+    m.apply_translation(centre)
+    pts, _ = trimesh.sample.sample_surface(m, samples, seed=seed)
+    return Mesh(np.asarray(m.vertices, float), np.asarray(m.faces, np.int64), np.asarray(pts, float))
+
+
+def test_winding_number_inside_outside_and_flipped() -> None:
+    box = _box([1, 1, 1], [0, 0, 0])
+    w = winding_number(np.array([[0.0, 0, 0], [2.0, 0, 0]]), box.triangles)
+    assert w == pytest.approx([1.0, 0.0], abs=1e-9)
+    flipped = box.triangles[:, ::-1]
+    assert winding_number(np.zeros((1, 3)), flipped)[0] == pytest.approx(-1.0)
+
+
+def test_distance_to_mesh_is_exact() -> None:
+    box = _box([1, 1, 1], [0, 0, 0])
+    d = distance_to_mesh(np.array([[0.0, 1.5, 0], [0.0, 0.2, 0], [1.5, 1.5, 0]]), box)
+    assert d == pytest.approx([1.0, 0.3, math.sqrt(2)], abs=1e-9)
+
+
+def test_contact_gap_and_penetration_of_boxes() -> None:
+    base = _box([1, 0.2, 1], [0, 0, 0])               # top face at y = 0.1
+    floating = contact(_box([0.2, 0.1, 0.2], [0, 0.25, 0], seed=1), [base])   # bottom at 0.2
+    assert floating.gap == pytest.approx(0.1, abs=1e-9) and floating.depth == 0.0
+    assert floating.floating(0.02) and not floating.interpenetrating(0.02)
+    near = contact(_box([0.2, 0.1, 0.2], [0, 0.16, 0], seed=1), [base])       # 0.01 above
+    assert near.gap == pytest.approx(0.01, abs=1e-9) and not near.floating(0.02)
+    sunk = contact(_box([0.2, 0.1, 0.2], [0, 0.1, 0], seed=1), [base])        # half of it inside
+    assert sunk.gap == 0.0
+    assert sunk.depth == pytest.approx(0.05, abs=0.01)
+    assert sunk.interpenetrating(0.02) and not sunk.floating(0.02)
+
+
+# ---------------------------------------------------------------------------------- protocol
+
+
+def toy_catalog(ds: ProcessedDataset, test_every: int = 4, duplicates: dict[int, int] | None = None,
+                seed: int = 0) -> Catalog:
+    """A real service Catalog over a toy dataset: every component, every 4th shape held out."""
+    split = ["test" if s % test_every == 0 else "train" for s in range(ds.n_shapes)]
+    records = part_records(ds, split)
+    for j, i in (duplicates or {}).items():
+        records[j]["duplicate_of"] = i
+    rng = np.random.default_rng(seed)
+    return Catalog(records=records, embeddings=rng.normal(size=(ds.n_components, 8)).astype(np.float32),
+                   part_features=rng.normal(size=(ds.n_components, 4)).astype(np.float32),
+                   points=sample_parts(ds, 64, seed).astype(np.float16), **concat_meshes(ds))
+
+
+@pytest.fixture(scope="module")
+def toy_index() -> ShapeIndex:
+    ds = make_toy_dataset(n_per_category=8, seed=3, cached_points=128)
+    return ShapeIndex(toy_catalog(ds), dense_points=256, seed=0)
+
+
+def test_queries_remove_whole_labelled_parts_of_test_shapes(toy_index: ShapeIndex) -> None:
+    queries = make_queries(toy_index, "all_but_one", n_per_category=100, n_points=200, seed=1)
+    cat = toy_index.catalog
+    assert queries and all(toy_index.split[q.shape_id] == "test" for q in queries)
+    for q in queries:
+        rows = toy_index.rows[q.shape_id]
+        assert sorted(np.concatenate([q.present, q.removed]).tolist()) == rows.tolist()
+        assert {toy_index.labels[r] for r in q.removed} == {q.label}
+        assert all(toy_index.labels[r] != q.label for r in q.present)
+        assert q.points.shape == (200, 3)
+        # The points come from the present parts only, in the shape's frame.
+        lo = np.min([cat.translations[r] + cat.bbox_min[r] for r in q.present], axis=0) - 1e-3
+        hi = np.max([cat.translations[r] + cat.bbox_max[r] for r in q.present], axis=0) + 1e-3
+        assert np.all((q.points >= lo) & (q.points <= hi))
+    pairs = {(q.shape_id, q.label) for q in queries}
+    assert len(pairs) == len(queries)  # drawn without replacement
+    singles = make_queries(toy_index, "single", n_per_category=3, n_points=50, seed=1)
+    assert all(len({toy_index.labels[r] for r in q.present}) == 1 for q in singles)
+    assert max(sum(q.category == c for q in singles) for c in toy_index.categories()) == 3
+
+
+def test_queries_are_seeded(toy_index: ShapeIndex) -> None:
+    a = make_queries(toy_index, "all_but_one", 4, 100, seed=7)
+    b = make_queries(toy_index, "all_but_one", 4, 100, seed=7)
+    c = make_queries(toy_index, "all_but_one", 4, 100, seed=8)
+    assert [q.qid for q in a] == [q.qid for q in b]
+    assert all(np.array_equal(x.points, y.points) for x, y in zip(a, b, strict=True))
+    assert any(not np.array_equal(x.points, y.points) for x, y in zip(a, c, strict=True))
+
+
+def test_placement_queries_hold_out_one_component(toy_index: ShapeIndex) -> None:
+    for split in ("train", "test"):
+        pqs = make_placement_queries(toy_index, split, 5, 64, seed=0)
+        assert pqs
+        for q in pqs:
+            assert toy_index.split[q.shape_id] == split
+            assert q.target not in q.present.tolist()
+            assert len(q.present) == len(toy_index.rows[q.shape_id]) - 1
+            assert np.allclose(q.true_translation, toy_index.catalog.translations[q.target])
+
+
+def test_pool_never_holds_the_query_shape(toy_index: ShapeIndex) -> None:
+    cat = toy_index.catalog
+    for q in make_queries(toy_index, "all_but_one", 100, 32, seed=0):
+        pool = candidate_pool(toy_index, q.shape_id, q.category)
+        assert cat.shape_code(q.shape_id) not in cat.shape_of[pool]
+        assert set(cat.category_of[pool].tolist()) == {cat.categories.index(q.category)}
+        wide = candidate_pool(toy_index, q.shape_id, q.category, scope="all")
+        assert len(wide) == len(cat) - len(toy_index.rows[q.shape_id])
+
+
+def test_finalize_ranking_filters_and_collapses() -> None:
+    group = np.array([0, 1, 1, 3, 4, 4, 6])   # parts 1-2 and 4-5 are near-duplicates
+    pool = np.array([1, 2, 3, 4, 5, 6])        # part 0 belongs to the query's shape
+    ranked = np.array([0, 2, 1, 5, 0, 3, 4, 6, 6])
+    assert finalize_ranking(ranked, pool, group, None).tolist() == [2, 5, 3, 6]
+    assert finalize_ranking(ranked, pool, group, 2).tolist() == [2, 5]
+    assert finalize_ranking(ranked, pool, None, None).tolist() == [2, 1, 5, 3, 4, 6]
+    relevant = np.array([True, True, False, False, True, False])   # over the pool rows 1, 2, 3, 4, 5, 6
+    assert relevant_in_pool(relevant, pool, group) == 2              # groups 1 and 4
+    assert relevant_in_pool(relevant, pool, None) == 3
+
+
+class OwnShapeFirst:
+    """A faulty method (a stand-in that injects the fault): it ranks the query's own parts first."""
+
+    name = "own-shape-first"
+    per_part_scores = True
+
+    def __init__(self, index: ShapeIndex):
+        self.index = index
+
+    def scores(self, query: Query, rows: np.ndarray) -> np.ndarray:
+        cat = self.index.catalog
+        return (cat.shape_of[rows] == cat.shape_code(query.shape_id)).astype(float)
+
+    def rank(self, query: Query, pool: np.ndarray, k: int) -> np.ndarray:
+        own = self.index.rows[query.shape_id]
+        return np.concatenate([own, pool])
+
+
+def test_no_method_retrieves_its_own_shape(toy_index: ShapeIndex) -> None:
+    queries = make_queries(toy_index, "all_but_one", 100, 64, seed=0)
+    settings = RetrievalSettings()
+    methods = [RandomMethod(len(toy_index.catalog), 0), CK10Method(toy_index, n_shapes=2, n_points=256),
+               OwnShapeFirst(toy_index)]
+    for method in methods:
+        records = evaluate_retrieval(method, queries, toy_index, settings)
+        for q, rec in zip(queries, records, strict=True):
+            assert rec["top"], f"{method.name} returned nothing for {q.qid}"
+            own = [pid for pid in rec["top"] if pid.split("/")[0] == q.shape_id]
+            assert not own, (method.name, q.qid, own)
+
+
+def test_exact_recall_finds_the_removed_part_when_the_method_ranks_it_first(toy_index: ShapeIndex) -> None:
+    queries = make_queries(toy_index, "all_but_one", 100, 64, seed=0)
+    # The own-shape-first method ranks the removed parts (its own shape's) above all others.
+    recs = evaluate_retrieval(OwnShapeFirst(toy_index), queries, toy_index, RetrievalSettings())
+    assert all(r["recall@1"] == 1.0 and r["percentile"] == 0.0 for r in recs)
+    # CK10 has no per-part score: no exact-component numbers.
+    ck = evaluate_retrieval(CK10Method(toy_index, n_shapes=2, n_points=256), queries[:3], toy_index,
+                            RetrievalSettings())
+    assert all(r["recall@1"] is None and r["percentile"] is None for r in ck)
+
+
+def test_functional_ap_of_a_perfect_and_a_random_method(toy_index: ShapeIndex) -> None:
+    class SameLabelFirst(RandomMethod):
+        name = "oracle"
+
+        def scores(self, query: Query, rows: np.ndarray) -> np.ndarray:
+            return (toy_index.labels[rows] == query.label).astype(float) + 0.1 * super().scores(query, rows)
+
+    queries = make_queries(toy_index, "all_but_one", 100, 64, seed=0)
+    cats = toy_index.categories()
+    oracle = table(evaluate_retrieval(SameLabelFirst(len(toy_index.catalog), 0), queries, toy_index,
+                                      RetrievalSettings()), "functional_ap", cats)
+    rand = table(evaluate_retrieval(RandomMethod(len(toy_index.catalog), 0), queries, toy_index,
+                                    RetrievalSettings()), "functional_ap", cats)
+    assert oracle["mean"] == pytest.approx(1.0)
+    assert rand["mean"] < 0.8
+    assert sum(oracle["n"].values()) == len(queries)
+
+
+def test_rank_by_scores_breaks_ties_by_row() -> None:
+    assert rank_by_scores(np.array([1.0, 2.0, 1.0, 2.0]), np.array([7, 5, 3, 9])).tolist() == [5, 9, 3, 7]
+
+
+# ---------------------------------------------------------------------------------- descriptors
+
+
+def test_descriptor_is_deterministic_and_translation_invariant() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-0.3, 0.3, size=(500, 3))
+    d = point_descriptor(pts, seed=4)
+    assert d.shape == (DESCRIPTOR_DIM,)
+    assert np.array_equal(d, point_descriptor(pts, seed=4))
+    assert np.allclose(d, point_descriptor(pts + np.array([0.4, -0.1, 0.2]), seed=4))
+    assert not np.allclose(d, point_descriptor(pts * 0.5, seed=4))   # size matters
+
+
+def test_pca_projection_pads_to_the_requested_dimension() -> None:
+    x = np.random.default_rng(0).normal(size=(30, 6))
+    p = PCAProjection.fit(x, dim=10, scale=2.0)
+    y = p.transform(x)
+    assert y.shape == (30, 10) and y.dtype == np.float32
+    assert np.allclose(y[:, 6:], 0.0)
+    assert p.explained_variance_ratio == pytest.approx(1.0)
+
+
+# ---------------------------------------------------------------------------------- fixed embedding
+
+
+def test_fixed_embedding_trains_caches_and_reloads(tmp_path: Path) -> None:
+    from training.config import resolve_config
+    from training.evaluate.fixed_embedding import FixedSettings, load_or_train_fixed
+
+    ds = make_toy_dataset(n_per_category=4, seed=5, cached_points=64)
+    model_cfg = resolve_config("tiny").model
+    settings = FixedSettings(dim=6, steps=3, batch_size=4, n_points=32, descriptor_pairs=256)
+    ids = [s["shape_id"] for s in ds.shapes]
+    a = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, settings, reference_rms=1.0)
+    assert a.info["steps"] == 3 and not a.info["cached"]
+    assert len(list(tmp_path.glob("eval_fixed_embedding-*.pt"))) == 1
+    b = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, settings, reference_rms=1.0)
+    assert b.info["cached"]
+    pts = ds.points[:5].astype(np.float64)
+    assert np.array_equal(a.embed(pts, 256), b.embed(pts, 256))
+    query = ds.points[0].astype(np.float32)
+    for x, y in zip(a.mixture(query), b.mixture(query), strict=True):
+        assert np.array_equal(x, y)
+    # The fixed coordinates are scaled to the requested spread.
+    from training.evaluate.fixed_embedding import rms_spread
+    assert rms_spread(a.embed(ds.points.astype(np.float64), 256)) == pytest.approx(1.0, rel=0.05)
+    # Other settings: another cache entry, trained anew.
+    other = FixedSettings(dim=6, steps=2, batch_size=4, n_points=32, descriptor_pairs=256)
+    c = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, other, 1.0)
+    assert not c.info["cached"] and c.info["steps"] == 2
+    assert len(list(tmp_path.glob("eval_fixed_embedding-*.pt"))) == 2
+
+
+# ---------------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def tiny_artifacts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A toy dataset, a tiny model trained for a few steps, exported: the real artifact layout."""
+    from training.config import resolve_config
+    from training.export import ExportOptions, export_run
+    from training.train import train
+
+    root = tmp_path_factory.mktemp("bench")
+    ds = make_toy_dataset(n_per_category=10, seed=11, cached_points=128)
+    ds.save(root / "data")
+    cfg = resolve_config("tiny", overrides={"data": str(root / "data"), "run": str(root / "run"), "steps": 20,
+                                            "threads": 1})
+    train(cfg, show_progress=False)
+    export_run(root / "run", root / "exported", options=ExportOptions(catalog_points=64))
+    return {"data": root / "data", "run": root / "run", "artifacts": root / "exported", "root": root}
+
+
+def test_engine_method_respects_the_pool(tiny_artifacts: dict[str, Path]) -> None:
+    from service.engine import SuggestionEngine
+    from service.loading import load_artifacts
+    from service.settings import Settings
+    from training.evaluate.ours import EngineMethod
+
+    art = load_artifacts(tiny_artifacts["artifacts"])
+    settings = Settings().model_copy(update={"artifacts": tiny_artifacts["artifacts"]})
+    ours = EngineMethod(SuggestionEngine(art, settings))
+    index = ShapeIndex(art.catalog, dense_points=128)
+    cat = art.catalog
+    queries = make_queries(index, "all_but_one", 100, art.n_points, seed=0)
+    assert queries
+    for q in queries:
+        pool = candidate_pool(index, q.shape_id, q.category)
+        # The engine's own filter (exclude_shapes, categories) already keeps the shape out.
+        ranked = ours.rank(q, pool, 5)
+        assert len(ranked) and np.all(np.isin(ranked, pool))
+        # With the removed parts put back, the engine is asked without the shape filter and the
+        # protocol filter keeps the query's remaining parts out.
+        plus = np.union1d(pool, q.removed)
+        kept = finalize_ranking(ours.rank(q, plus, 10), plus, cat.group, 10)
+        assert not np.any(np.isin(kept, q.present))
+        # Full scores agree with the engine's own ranking on its top part.
+        scores = ours.scores(q, pool)
+        assert scores.shape == pool.shape and np.all(np.isfinite(scores))
+        assert pool[int(np.argmax(scores))] == ranked[0] or scores.max() == pytest.approx(
+            scores[np.searchsorted(pool, ranked[0])], rel=1e-5)
+
+
+def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, Path]) -> None:
+    from typer.testing import CliRunner
+
+    from training.cli import app
+
+    root = tiny_artifacts["root"]
+    args = ["evaluate", "--artifacts", str(tiny_artifacts["artifacts"]), "--run", str(tiny_artifacts["run"]),
+            "--data", str(tiny_artifacts["data"]), "--quick", "--no-progress", "--fixed-steps", "5"]
+    runner = CliRunner()
+    first = runner.invoke(app, [*args, "--out", str(root / "a"), "--report", str(root / "a.md")])
+    assert first.exit_code == 0, first.output
+    second = runner.invoke(app, [*args, "--out", str(root / "b"), "--report", str(root / "b.md")])
+    assert second.exit_code == 0, second.output
+    a = json.loads((root / "a" / "results.json").read_text())
+    b = json.loads((root / "b" / "results.json").read_text())
+    assert a["tables"] == b["tables"]          # seeded: the same numbers again
+    assert b["fixed_embedding"]["cached"] and not a["fixed_embedding"]["cached"]
+    assert set(a["method_order"]) == {"Random", "CK10", "Ours (fixed embedding)", "Ours"}
+    for key in ("functional_map", "hausdorff", "style_map_all_but_one", "style_map_single", "recall@1",
+                "recall@10", "median_percentile_rank", "placement_error", "plausibility"):
+        assert key in a["tables"], key
+    cats = a["categories"]
+    for method in a["method_order"]:
+        row = a["tables"]["functional_map"][method]
+        assert all(0.0 <= row[c] <= 1.0 for c in cats)
+        assert row["mean"] == pytest.approx(np.mean([row[c] for c in cats]))
+    assert a["tables"]["recall@1"]["CK10"]["mean"] is None  # n/a: CK10 has no per-part score
+    assert a["artifact"]["model_version"] in (root / "a.md").read_text()
+    report = (root / "a.md").read_text()
+    assert "Table 1" in report and "Table 4" in report and "Placement plausibility" in report
+    assert (root / "a" / "functional_map.png").stat().st_size > 1000
+    # Bad input is named.
+    bad = runner.invoke(app, [*args, "--methods", "ours,magic", "--out", str(root / "c")])
+    assert bad.exit_code == 2 and "magic" in bad.output
