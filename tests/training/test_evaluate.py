@@ -16,7 +16,7 @@ from conftest import make_toy_dataset
 from service.catalog import Catalog
 from training.catalog import concat_meshes, part_records, sample_parts
 from training.data.processed import ProcessedDataset
-from training.evaluate.baselines import CK10Method, RandomMethod, rank_by_scores
+from training.evaluate.baselines import CK10Method, Method, RandomMethod, rank_by_scores
 from training.evaluate.contact import Mesh, contact, distance_to_mesh, winding_number
 from training.evaluate.descriptors import DESCRIPTOR_DIM, PCAProjection, point_descriptor
 from training.evaluate.evaluation import RetrievalSettings, evaluate_retrieval, table
@@ -254,8 +254,8 @@ class OwnShapeFirst:
 def test_no_method_retrieves_its_own_shape(toy_index: ShapeIndex) -> None:
     queries = make_queries(toy_index, "all_but_one", 100, 64, seed=0)
     settings = RetrievalSettings()
-    methods = [RandomMethod(len(toy_index.catalog), 0), CK10Method(toy_index, n_shapes=2, n_points=256),
-               OwnShapeFirst(toy_index)]
+    methods: list[Method] = [RandomMethod(len(toy_index.catalog), 0),
+                             CK10Method(toy_index, n_shapes=2, n_points=256), OwnShapeFirst(toy_index)]
     for method in methods:
         records = evaluate_retrieval(method, queries, toy_index, settings)
         for q, rec in zip(queries, records, strict=True):
