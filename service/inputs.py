@@ -25,7 +25,7 @@ _MESH_CODE_ERRORS: dict[str, type[InputError] | type[UnsupportedMediaError] | ty
 
 
 def points_from_list(values: Sequence[Sequence[float]]) -> np.ndarray:
-    """A JSON list of [x, y, z] triples as ``(N, 3) float32``; ``bad_shape`` if not triples."""
+    """A JSON list of [x, y, z] triples as ``(N, 3) float64``; ``bad_shape`` if not triples."""
     if len(values) == 0:
         raise InputError("empty_points", "points is empty; send at least one [x, y, z] triple")
     try:
@@ -34,7 +34,8 @@ def points_from_list(values: Sequence[Sequence[float]]) -> np.ndarray:
         raise InputError("bad_shape", "points must be a list of [x, y, z] triples of equal length") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError("bad_shape", f"points must have shape (N, 3), found {arr.shape}")
-    return arr.astype(np.float32)
+    # Kept in float64 until the frame is applied: callers' frames may be far from the origin.
+    return arr
 
 
 def points_from_base64(text: str, max_points: int) -> np.ndarray:
@@ -62,7 +63,7 @@ def points_to_base64(points: np.ndarray) -> str:
 
 
 def check_points(points: np.ndarray, min_points: int, max_points: int) -> np.ndarray:
-    """Enforce the point-count limits and finite values; returns ``(N, 3) float32``."""
+    """Enforce the point-count limits and finite values; returns the points unchanged."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError("bad_shape", f"points must have shape (N, 3), found {points.shape}")
     n = len(points)
@@ -77,7 +78,7 @@ def check_points(points: np.ndarray, min_points: int, max_points: int) -> np.nda
         bad = int(np.flatnonzero(~finite)[0])
         raise InputError("non_finite_points", f"point {bad} has a NaN or infinite coordinate "
                          f"({int((~finite).sum())} such points)")
-    return np.asarray(points, dtype=np.float32)
+    return points
 
 
 def mesh_format(filename: str | None, declared: str | None) -> str:

@@ -304,6 +304,8 @@ class PartPointsOut(BaseModel):
 
 
 class CategoryOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"name": "chair", "parts": 2210}]})
+
     name: str
     parts: int
 
@@ -325,5 +327,8 @@ class ModelInfo(BaseModel):
 
 
 class Health(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"status": "ok"}, {"status": "ready", "model_version": "2025.01-chairs"}]})
+
     status: str
     model_version: str | None = None

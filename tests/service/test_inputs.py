@@ -35,7 +35,7 @@ def test_bad_base64() -> None:
 
 
 def test_lists() -> None:
-    assert points_from_list([[1, 2, 3]]).dtype == np.float32
+    assert points_from_list([[1, 2, 3]]).dtype == np.float64  # float32 only after the frame
     assert _code(points_from_list, []) == "empty_points"
     assert _code(points_from_list, [[1, 2]]) == "bad_shape"
     assert _code(points_from_list, [[1, 2, 3], [1, 2]]) == "bad_shape"

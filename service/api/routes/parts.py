@@ -8,11 +8,11 @@ before the record route so that their suffixes are not swallowed into the id.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import trimesh
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Path, Query
 from starlette.responses import Response
 
 from service.api.deps import EngineDep, SettingsDep
@@ -23,6 +23,9 @@ from service.errors import InputError
 from service.inputs import points_to_base64
 
 router = APIRouter(tags=["parts"])
+
+PartId = Annotated[str, Path(description="Catalog part id; its slash is kept (or sent as %2F).",
+                             examples=["chair-0007/2"])]
 
 MESH_MEDIA_TYPES = {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/x-ply"}
 _NOT_FOUND: dict[int | str, dict[str, Any]] = {
@@ -36,8 +39,9 @@ def list_parts(
     category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
     shape_id: str | None = Query(None, description="Only parts of this source shape.",
                                  examples=["chair-0007"]),
-    offset: int = Query(0, ge=0, description="Parts to skip."),
-    limit: int = Query(50, ge=1, description="Parts per page (at most COMPLEMENTME_MAX_PAGE_SIZE)."),
+    offset: int = Query(0, ge=0, description="Parts to skip.", examples=[0]),
+    limit: int = Query(50, ge=1, description="Parts per page (at most COMPLEMENTME_MAX_PAGE_SIZE).",
+                       examples=[50]),
 ) -> OrjsonResponse:
     if limit > settings.max_page_size:
         raise InputError("limit_out_of_range",
@@ -61,14 +65,17 @@ def list_categories(engine: EngineDep) -> OrjsonResponse:
     return OrjsonResponse([{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)])
 
 
-@router.get("/parts/{part_id:path}/mesh", summary="A part's mesh (GLB, OBJ or PLY), centred", responses={
+@router.get("/parts/{part_id:path}/mesh", summary="A part's mesh (GLB, OBJ or PLY), centred",
+            response_class=Response, responses={
     **_NOT_FOUND,
-    200: {"content": {t: {} for t in MESH_MEDIA_TYPES.values()},
+    200: {"content": {"model/gltf-binary": {"example": "(binary glTF 2.0)"},
+                      "model/obj": {"example": "v 0.04 -0.46 0.0\nv -0.04 -0.46 0.0\n...\nf 1 2 3\n"},
+                      "application/x-ply": {"example": "(binary little-endian PLY)"}},
           "description": "The mesh, centred at its bounding-box centre, in canonical units. "
                          "Place it at a suggestion's translation (times the frame's scale and rotation)."}})
 def get_part_mesh(
-    part_id: str, engine: EngineDep,
-    format: Literal["glb", "obj", "ply"] = Query("glb", description="Mesh file format."),
+    part_id: PartId, engine: EngineDep,
+    format: Literal["glb", "obj", "ply"] = Query("glb", description="Mesh file format.", examples=["obj"]),
 ) -> Response:
     i = engine.catalog.lookup(part_id)
     vertices, faces = engine.catalog.mesh(i)
@@ -83,9 +90,9 @@ def get_part_mesh(
 @router.get("/parts/{part_id:path}/points", response_model=PartPointsOut, responses=_NOT_FOUND,
             summary="A part's point samples, centred")
 def get_part_points(
-    part_id: str, engine: EngineDep,
+    part_id: PartId, engine: EngineDep,
     encoding: Literal["json", "base64"] = Query("json", description=(
-        "Points as a JSON list or base64 float32.")),
+        "Points as a JSON list or base64 float32."), examples=["base64"]),
 ) -> OrjsonResponse:
     i = engine.catalog.lookup(part_id)
     pts = engine.catalog.part_points(i)
@@ -99,5 +106,5 @@ def get_part_points(
 
 @router.get("/parts/{part_id:path}", response_model=PartOut, responses=_NOT_FOUND,
             summary="One catalog part's record")
-def get_part(part_id: str, engine: EngineDep) -> OrjsonResponse:
+def get_part(part_id: PartId, engine: EngineDep) -> OrjsonResponse:
     return OrjsonResponse(render_part(engine.catalog, engine.catalog.lookup(part_id)))

@@ -16,6 +16,13 @@ from service.metrics import CONTENT_TYPE
 
 router = APIRouter(tags=["probes"])
 
+_METRICS_EXAMPLE = """\
+# HELP complementme_http_requests_total HTTP requests by method, route and status.
+# TYPE complementme_http_requests_total counter
+complementme_http_requests_total{method="POST",route="/suggest",status="200"} 1520.0
+complementme_catalog_parts 4210.0
+"""
+
 LIMIT_SETTINGS = ("min_points", "max_points", "default_k", "max_k", "max_place_parts", "max_exclude",
                   "max_batch_items", "max_body_bytes", "max_upload_bytes", "max_mesh_vertices",
                   "max_mesh_faces", "max_page_size")
@@ -36,7 +43,8 @@ async def get_readyz(request: Request) -> OrjsonResponse:
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,
-            responses={200: {"content": {CONTENT_TYPE: {}}, "description": "Prometheus text format."}})
+            responses={200: {"content": {CONTENT_TYPE: {"example": _METRICS_EXAMPLE}},
+                             "description": "Prometheus text format."}})
 async def get_metrics(metrics: MetricsDep) -> Response:
     return Response(metrics.render(), media_type=CONTENT_TYPE)
 

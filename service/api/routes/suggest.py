@@ -40,6 +40,14 @@ _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
         "non-numeric values, bad base64, k out of range, unknown category.")},
 }
 
+_MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-data": {"examples": {
+    "obj": {"summary": "An OBJ file, five suggestions for chairs",
+            "value": {"file": "(chair_without_legs.obj)", "options": '{"k": 5, "category": "chair"}'}},
+    "z-up": {"summary": "A z-up mesh in millimetres, answered in its own frame",
+             "value": {"file": "(scan.ply)", "options": '{"frame": {"center": [0, 0, 450], '
+                       '"radius": 600, "up_axis": "z"}}'}},
+}}}}}
+
 
 @router.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
              summary="Suggest complementary parts for a partial assembly given as points")
@@ -52,7 +60,8 @@ def post_suggest(body: SuggestRequest, engine: EngineDep, settings: SettingsDep,
 
 
 @router.post("/suggest/mesh", response_model=SuggestResponse, summary=(
-    "Suggest complementary parts for a partial assembly uploaded as a mesh"), responses={
+    "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
+    responses={
     413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
           "with more vertices or faces than the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},

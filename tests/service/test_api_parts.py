@@ -1,0 +1,88 @@
+"""Catalog reads: ``GET /parts``, ``/parts/{id}``, ``/parts/{id}/mesh``, ``/parts/{id}/points``."""
+
+from __future__ import annotations
+
+import io
+from urllib.parse import quote
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+
+from service.api.schemas import CategoryOut, PartOut, PartPointsOut, PartsPage
+from service.catalog import Catalog
+from service.inputs import points_from_base64
+
+
+def test_pages_cover_the_catalog_once(client: TestClient, catalog: Catalog) -> None:
+    seen: list[str] = []
+    offset = 0
+    while True:
+        page = PartsPage.model_validate(client.get("/parts", params={"offset": offset, "limit": 37}).json())
+        assert page.total == len(catalog) and page.offset == offset and page.limit == 37
+        seen += [p.part_id for p in page.items]
+        if len(page.items) < 37:
+            break
+        offset += 37
+    assert seen == catalog.part_ids
+
+
+def test_category_and_shape_filters(client: TestClient, catalog: Catalog) -> None:
+    for category in catalog.categories:
+        response = client.get("/parts", params={"category": category, "limit": 100})
+        page = PartsPage.model_validate(response.json())
+        assert page.total == int(np.sum(catalog.category_of == catalog.categories.index(category)))
+        assert {p.category for p in page.items} == {category}
+    shape = catalog.records[0]["shape_id"]
+    page = PartsPage.model_validate(client.get("/parts", params={"shape_id": shape}).json())
+    expected = [r["part_id"] for r in catalog.records if r["shape_id"] == shape]
+    assert [p.part_id for p in page.items] == expected
+
+
+def test_categories(client: TestClient, catalog: Catalog) -> None:
+    cats = [CategoryOut.model_validate(c) for c in client.get("/categories").json()]
+    assert [c.name for c in cats] == catalog.categories
+    assert sum(c.parts for c in cats) == len(catalog)
+
+
+def test_part_record(client: TestClient, catalog: Catalog) -> None:
+    dup = next((i for i, r in enumerate(catalog.records) if r["duplicate_of"] is not None), 0)
+    rec = catalog.records[dup]
+    part = PartOut.model_validate(client.get(f"/parts/{rec['part_id']}").json())
+    assert part.part_id == rec["part_id"] and part.shape_id == rec["shape_id"]
+    np.testing.assert_allclose(part.translation, rec["translation"])
+    if rec["duplicate_of"] is not None:
+        assert part.duplicate_of == catalog.part_ids[rec["duplicate_of"]] and part.duplicates >= 2
+    # The slash may also come percent-encoded.
+    encoded = client.get("/parts/" + quote(rec["part_id"], safe=""))
+    assert encoded.status_code == 200 and encoded.json()["part_id"] == rec["part_id"]
+
+
+@pytest.mark.parametrize("fmt", ["glb", "obj", "ply"])
+def test_part_mesh_formats(client: TestClient, catalog: Catalog, fmt: str) -> None:
+    pid = catalog.part_ids[len(catalog) // 2]
+    v, f = catalog.mesh(catalog.lookup(pid))
+    response = client.get(f"/parts/{pid}/mesh", params={"format": fmt})
+    assert response.status_code == 200
+    media = response.headers["content-type"].split(";")[0]
+    assert media == {"glb": "model/gltf-binary", "obj": "model/obj", "ply": "application/x-ply"}[fmt]
+    mesh = trimesh.load(io.BytesIO(response.content), file_type=fmt, force="mesh", process=False)
+    assert len(mesh.faces) == len(f)
+    np.testing.assert_allclose(mesh.bounds, [v.min(axis=0), v.max(axis=0)], atol=1e-5)
+
+
+def test_default_mesh_is_glb(client: TestClient, catalog: Catalog) -> None:
+    response = client.get(f"/parts/{catalog.part_ids[0]}/mesh")
+    assert response.headers["content-type"] == "model/gltf-binary" and response.content[:4] == b"glTF"
+
+
+def test_part_points(client: TestClient, catalog: Catalog) -> None:
+    pid = catalog.part_ids[-1]
+    expected = catalog.part_points(catalog.lookup(pid))
+    as_json = PartPointsOut.model_validate(client.get(f"/parts/{pid}/points").json())
+    np.testing.assert_array_equal(np.array(as_json.points, np.float32), expected)
+    response = client.get(f"/parts/{pid}/points", params={"encoding": "base64"})
+    as_b64 = PartPointsOut.model_validate(response.json())
+    assert as_b64.points is None and as_b64.n_points == len(expected)
+    np.testing.assert_array_equal(points_from_base64(as_b64.points_base64 or "", 10**6), expected)
