@@ -151,7 +151,8 @@ def test_pods_match_the_image() -> None:
     assert set(mounts.values()) <= volumes
     with open(REPO / "pyproject.toml", "rb") as fh:
         version = tomllib.load(fh)["project"]["version"]
-    assert container()["image"] == f"complementme:{version}", "tag the image with the project version"
+    image = container()["image"]
+    assert image.rsplit("/", 1)[-1] == f"complementme:{version}", f"{image}: tag it with the project version"
 
 
 def test_rollout_waits_for_readiness() -> None:
