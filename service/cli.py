@@ -92,6 +92,7 @@ def register_service_commands(app: typer.Typer) -> None:
     ) -> None:
         """Serve the suggestion API with uvicorn on the exported artifacts."""
         import uvicorn
+        from pydantic import ValidationError
 
         _quiet_libraries()
         from service.settings import ENV_PREFIX, get_settings
@@ -103,7 +104,11 @@ def register_service_commands(app: typer.Typer) -> None:
             if value is not None:
                 os.environ[ENV_PREFIX + name] = str(value)
         get_settings.cache_clear()
-        s = get_settings()
+        try:
+            s = get_settings()
+        except ValidationError as exc:
+            typer.echo(f"error: invalid {ENV_PREFIX}* setting:\n{exc}", err=True)
+            raise typer.Exit(2) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
         uvicorn.run("service.api.app:create_app", factory=True, host=s.host, port=s.port, workers=s.workers,
                     log_level=s.log_level, timeout_graceful_shutdown=10)

@@ -32,7 +32,8 @@ class Settings(BaseSettings):
         "Folder of exported artifacts (manifest.json, ONNX graphs, FAISS index, catalog). "
         "Defaults to `exported/` at the repository root."))
     host: str = Field(default="127.0.0.1", description="Address `complementme serve` binds to.")
-    port: int = Field(default=8000, ge=1, le=65535, description="Port `complementme serve` listens on.")
+    port: int = Field(default=8000, ge=0, le=65535, description=(
+        "Port `complementme serve` listens on (0: any free port)."))
     workers: int = Field(default=1, ge=1, le=64, description=(
         "Uvicorn worker processes; each loads its own copy of the artifacts."))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
