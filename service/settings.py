@@ -29,8 +29,7 @@ class Settings(BaseSettings):
 
     # --- where and how to serve -------------------------------------------------------------
     artifacts: Path = Field(default=DEFAULT_ARTIFACTS, description=(
-        "Folder of exported artifacts (manifest.json, ONNX graphs, FAISS index, catalog). "
-        "Defaults to `exported/` at the repository root."))
+        "Folder of exported artifacts (manifest.json, ONNX graphs, FAISS index, catalog)."))
     host: str = Field(default="127.0.0.1", description="Address `complementme serve` binds to.")
     port: int = Field(default=8000, ge=0, le=65535, description=(
         "Port `complementme serve` listens on (0: any free port)."))
