@@ -324,30 +324,33 @@ def test_pca_projection_pads_to_the_requested_dimension() -> None:
 
 def test_fixed_embedding_trains_caches_and_reloads(tmp_path: Path) -> None:
     from training.config import resolve_config
-    from training.evaluate.fixed_embedding import FixedSettings, load_or_train_fixed
+    from training.evaluate.descriptors import descriptors
+    from training.evaluate.fixed_embedding import FixedSettings, load_or_train_fixed, rms_spread
 
     ds = make_toy_dataset(n_per_category=4, seed=5, cached_points=64)
+    desc = descriptors(ds.points.astype(np.float64), n_pairs=256)
     model_cfg = resolve_config("tiny").model
     settings = FixedSettings(dim=6, steps=3, batch_size=4, n_points=32, descriptor_pairs=256)
-    ids = [s["shape_id"] for s in ds.shapes]
-    a = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, settings, reference_rms=1.0)
+    a = load_or_train_fixed(tmp_path, ds, desc, "hash", model_cfg, settings, reference_rms=1.0)
     assert a.info["steps"] == 3 and not a.info["cached"]
     assert len(list(tmp_path.glob("eval_fixed_embedding-*.pt"))) == 1
-    b = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, settings, reference_rms=1.0)
+    b = load_or_train_fixed(tmp_path, ds, desc, "hash", model_cfg, settings, reference_rms=1.0)
     assert b.info["cached"]
-    pts = ds.points[:5].astype(np.float64)
-    assert np.array_equal(a.embed(pts, 256), b.embed(pts, 256))
+    assert np.array_equal(a.projection.transform(desc), b.projection.transform(desc))
     query = ds.points[0].astype(np.float32)
     for x, y in zip(a.mixture(query), b.mixture(query), strict=True):
         assert np.array_equal(x, y)
     # The fixed coordinates are scaled to the requested spread.
-    from training.evaluate.fixed_embedding import rms_spread
-    assert rms_spread(a.embed(ds.points.astype(np.float64), 256)) == pytest.approx(1.0, rel=0.05)
-    # Other settings: another cache entry, trained anew.
+    assert rms_spread(a.projection.transform(desc)) == pytest.approx(1.0, rel=1e-4)
+    # Other settings or other targets: another cache entry, trained anew.
     other = FixedSettings(dim=6, steps=2, batch_size=4, n_points=32, descriptor_pairs=256)
-    c = load_or_train_fixed(tmp_path, ds, ids, "hash", model_cfg, other, 1.0)
+    c = load_or_train_fixed(tmp_path, ds, desc, "hash", model_cfg, other, 1.0)
     assert not c.info["cached"] and c.info["steps"] == 2
-    assert len(list(tmp_path.glob("eval_fixed_embedding-*.pt"))) == 2
+    d = load_or_train_fixed(tmp_path, ds, desc * 1.01, "hash", model_cfg, settings, 1.0)
+    assert not d.info["cached"]
+    assert len(list(tmp_path.glob("eval_fixed_embedding-*.pt"))) == 3
+    with pytest.raises(ValueError, match="descriptors for"):
+        load_or_train_fixed(tmp_path, ds, desc[:-1], "hash", model_cfg, settings, 1.0)
 
 
 # ---------------------------------------------------------------------------------- end to end

@@ -119,19 +119,19 @@ class CK10Method:
         self.description = (f"global descriptor of the complete shape, then the {n_shapes} most similar "
                             "shapes' parts ranked by distance to the nearest query part; descriptor: "
                             f"{DESCRIPTOR_NAME}, standardised per feature")
-        part_desc = descriptors(index.samples, n_pairs=n_pairs, seed=seed)
+        part_desc = index.part_descriptors(n_pairs)
         self.part_std = Standardizer.fit(part_desc)
         self.part_desc = self.part_std.transform(part_desc)
         shape_points = [sample_rows(index, index.rows[sid], n_points,
                                     np.random.default_rng([seed, stable_code(sid)])) for sid in cat.shape_ids]
-        shape_desc = descriptors(shape_points, n_pairs=n_pairs, seed=seed)
+        shape_desc = descriptors(shape_points, n_pairs=n_pairs)
         self.shape_std = Standardizer.fit(shape_desc)
         self.shape_desc = self.shape_std.transform(shape_desc)      # row = shape code
 
     def _keys(self, query: Query, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Shape distance and part dissimilarity of each row (for rows of other shapes)."""
         cat = self.index.catalog
-        qdesc = self.shape_std.transform(descriptors([query.points], n_pairs=self.n_pairs, seed=self.seed))[0]
+        qdesc = self.shape_std.transform(descriptors([query.points], n_pairs=self.n_pairs))[0]
         shape_dist = np.linalg.norm(self.shape_desc - qdesc, axis=1)        # (n_shapes,)
         present = self.part_desc[query.present]                              # (r, F)
         diff = self.part_desc[rows][:, None, :] - present[None]

@@ -67,7 +67,7 @@ def winding_number(points: np.ndarray, triangles: np.ndarray, chunk: int = 256) 
     for start in range(0, len(pts), chunk):
         p = pts[start:start + chunk, None, :]                     # (c, 1, 3)
         a, b, c = tris[None, :, 0] - p, tris[None, :, 1] - p, tris[None, :, 2] - p  # (c, m, 3)
-        la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+        la, lb, lc = (np.sqrt(np.einsum("ijk,ijk->ij", v, v)) for v in (a, b, c))
         det = np.einsum("ijk,ijk->ij", a, np.cross(b, c))
         den = (la * lb * lc + np.einsum("ijk,ijk->ij", a, b) * lc
                + np.einsum("ijk,ijk->ij", b, c) * la + np.einsum("ijk,ijk->ij", c, a) * lb)

@@ -3,10 +3,12 @@
 The paper replaces the learned embedding f by the PCA projection (50 dimensions) of MVCNN
 features and trains the retrieval network g alone against those fixed target coordinates. We
 have no MVCNN, so the fixed descriptor is the classic shape-distribution descriptor of
-``descriptors.py`` (D2 + A3 + radial + angular histograms + extents), standardised and projected
-by PCA fitted on the training split's components. Everything else is the shipped model's: the
-same ``RetrievalNet`` architecture, the same triplet loss and margin (``training.losses``), the
-same triplet sampler on the same training split.
+``descriptors.py`` (D2 + A3 + radial + angular histograms + extents) of each catalog part's
+samples, standardised and projected by PCA fitted on the training split's components (the
+targets g trains against are the very coordinates the evaluation ranks). Everything else is the
+shipped model's: the same ``RetrievalNet`` architecture, the same triplet loss and margin
+(``training.losses``), the same triplet sampler on the same training split, the same query size
+and batch.
 
 PCA coordinates are scaled by one factor so their root-mean-square distance to their mean
 equals the shipped embeddings': the mixture's sigmas are bounded (``sigma_max``), so an
@@ -55,18 +57,20 @@ class FixedSettings:
     dim: int = 50               # D of the fixed embedding (paper: PCA to 50)
     steps: int = 3000           # optimisation steps (the run stops earlier if ``minutes`` runs out)
     minutes: float = 10.0       # wall-clock cap of the training (0 = none)
-    batch_size: int = 32        # triplets per step (paper: 32)
-    n_points: int = 512         # points per query during training
+    batch_size: int = 0         # triplets per step; 0 = the shipped model's (manifest), paper: 32
+    n_points: int = 0           # points per query during training; 0 = the shipped model's
     lr: float = 1e-3            # Adam learning rate (paper: 1e-3), constant over this short run
     margin: float = 10.0        # triplet margin m (paper: 10)
     seed: int = 0               # seed of the initial weights and of the triplet draws
     descriptor_pairs: int = 4096  # random pairs/triples drawn per descriptor
 
     def validate(self) -> None:
-        for name in ("dim", "steps", "batch_size", "n_points", "descriptor_pairs"):
+        for name in ("dim", "steps", "descriptor_pairs"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"fixed-embedding setting {name} must be positive, "
                                  f"got {getattr(self, name)}")
+        if self.batch_size < 0 or self.n_points < 0:
+            raise ValueError("fixed-embedding batch_size and n_points must be >= 0 (0 = the shipped model's)")
         if self.minutes < 0 or self.lr <= 0 or self.margin < 0:
             raise ValueError("fixed-embedding settings: minutes >= 0, lr > 0 and margin >= 0 are required")
 
@@ -96,12 +100,13 @@ class FixedEmbedding:
         return w[0].numpy(), mu[0].numpy(), sd[0].numpy()
 
 
-def cache_key(settings: FixedSettings, model_cfg: ModelConfig, dataset_hash: str, train_ids: list[str],
-              reference_rms: float) -> str:
+def cache_key(settings: FixedSettings, model_cfg: ModelConfig, dataset_hash: str,
+              train_descriptors: np.ndarray, reference_rms: float) -> str:
     """Hash of everything the trained weights depend on."""
+    targets = hashlib.sha256(np.ascontiguousarray(train_descriptors, np.float64).tobytes()).hexdigest()
     payload = {"format": CACHE_FORMAT, "settings": dataclasses.asdict(settings),
                "model": config_to_dict(model_cfg), "dataset": dataset_hash,
-               "train_ids": hashlib.sha256("\n".join(train_ids).encode()).hexdigest(),
+               "targets": targets,
                "reference_rms": round(float(reference_rms), 6), "descriptor": DESCRIPTOR_NAME}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
@@ -112,8 +117,8 @@ def rms_spread(x: np.ndarray) -> float:
     return float(np.sqrt(((x - x.mean(axis=0)) ** 2).sum(axis=1).mean()))
 
 
-def train_fixed_g(train_ds: ProcessedDataset, model_cfg: ModelConfig, settings: FixedSettings,
-                  reference_rms: float) -> FixedEmbedding:
+def train_fixed_g(train_ds: ProcessedDataset, train_descriptors: np.ndarray, model_cfg: ModelConfig,
+                  settings: FixedSettings, reference_rms: float) -> FixedEmbedding:
     """Fit the PCA on the training components, then train g alone against the fixed targets.
 
     Args:
@@ -123,8 +128,12 @@ def train_fixed_g(train_ds: ProcessedDataset, model_cfg: ModelConfig, settings: 
         reference_rms: RMS spread the fixed coordinates are scaled to (the shipped embeddings').
     """
     settings.validate()
+    if settings.batch_size <= 0 or settings.n_points <= 0:
+        raise ValueError("train_fixed_g needs explicit batch_size and n_points (resolve the 0 defaults)")
     t0 = time.monotonic()
-    desc = descriptors(train_ds.points.astype(np.float64), n_pairs=settings.descriptor_pairs)
+    desc = np.asarray(train_descriptors, np.float64)
+    if len(desc) != train_ds.n_components:
+        raise ValueError(f"{len(desc)} descriptors for {train_ds.n_components} training components")
     unscaled = PCAProjection.fit(desc, settings.dim)
     spread = rms_spread(unscaled.transform(desc))
     scale = reference_rms / spread if spread > 0 and reference_rms > 0 else 1.0
@@ -213,18 +222,18 @@ def load_fixed(path: Path, key: str, model_cfg: ModelConfig, dim: int) -> FixedE
     return FixedEmbedding(projection=projection, g=g, info=info)
 
 
-def load_or_train_fixed(run_dir: Path, train_ds: ProcessedDataset, train_ids: list[str], dataset_hash: str,
-                        model_cfg: ModelConfig, settings: FixedSettings,
+def load_or_train_fixed(run_dir: Path, train_ds: ProcessedDataset, train_descriptors: np.ndarray,
+                        dataset_hash: str, model_cfg: ModelConfig, settings: FixedSettings,
                         reference_rms: float) -> FixedEmbedding:
     """The fixed-embedding model of a run: from the cache when it matches, else trained and cached."""
-    key = cache_key(settings, model_cfg, dataset_hash, train_ids, reference_rms)
+    key = cache_key(settings, model_cfg, dataset_hash, train_descriptors, reference_rms)
     path = Path(run_dir) / FIXED_WEIGHTS_PATTERN.format(key=key[:16])
     cached = load_fixed(path, key, model_cfg, settings.dim)
     if cached is not None:
         log.info("fixed embedding: reusing %s (%s steps)", path, cached.info.get("steps"))
         return cached
     log.info("fixed embedding: training g for up to %d steps / %.1f min", settings.steps, settings.minutes)
-    model = train_fixed_g(train_ds, model_cfg, settings, reference_rms)
+    model = train_fixed_g(train_ds, train_descriptors, model_cfg, settings, reference_rms)
     model.info["cached"] = False
     Path(run_dir).mkdir(parents=True, exist_ok=True)
     save_fixed(path, model, key)
@@ -236,9 +245,10 @@ class FixedEmbeddingMethod(ScoredMethod):
 
     name = "Ours (fixed embedding)"
 
-    def __init__(self, model: FixedEmbedding, catalog_points: np.ndarray, n_pairs: int):
+    def __init__(self, model: FixedEmbedding, part_descriptors: np.ndarray):
+        """``part_descriptors``: (P, DESCRIPTOR_DIM) descriptors of every catalog part."""
         self.model = model
-        self.embeddings = model.embed(catalog_points, n_pairs)      # (P, dim)
+        self.embeddings = model.projection.transform(part_descriptors)      # (P, dim)
         model.catalog_embeddings = self.embeddings
         p = model.projection
         self.description = (f"g alone trained {model.info.get('steps')} steps against PCA-{p.dim} "

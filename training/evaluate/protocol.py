@@ -32,6 +32,7 @@ import numpy as np
 
 from service.catalog import Catalog
 from service.geometry import MeshError, resample_points, sample_surface
+from training.evaluate.descriptors import descriptors
 
 SETTINGS = ("all_but_one", "single")
 POOL_SCOPES = ("category", "all")
@@ -129,6 +130,14 @@ class ShapeIndex:
             self.style[sid] = first["style"]
         self.labels = np.array([r["label"] for r in recs], dtype=object)
         self.areas = np.array([float(r["area"]) for r in recs], dtype=np.float64)
+        self._descriptors: dict[int, np.ndarray] = {}
+
+    def part_descriptors(self, n_pairs: int) -> np.ndarray:
+        """Fixed descriptors of every part's dense samples (computed once; CK10 and the fixed
+        embedding share them). Shapes: returns (P, DESCRIPTOR_DIM) float64."""
+        if n_pairs not in self._descriptors:
+            self._descriptors[n_pairs] = descriptors(self.samples, n_pairs=n_pairs)
+        return self._descriptors[n_pairs]
 
     def shapes(self, category: str, split: str) -> list[str]:
         return sorted(s for s in self.rows if self.category[s] == category and self.split[s] == split)

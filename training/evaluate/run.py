@@ -9,6 +9,27 @@
    training split of the processed dataset or loaded from its cache in the run folder);
 4. evaluates Tables 1-4, the exact-component recall and the placement plausibility;
 5. writes ``results.json``, the Markdown report and the PNG charts (``report``).
+
+Layout of ``results.json`` (undefined values are null)::
+
+    benchmark_version, command, date (UTC, YYYY-MM-DD)
+    artifact:  folder, model_version, format_version, created, part_count, n_points,
+               dataset_hash, training (the manifest's training block)
+    settings:  every BenchmarkSettings field (nested: retrieval, contact, fixed)
+    categories: [category, ...]          methods: {name: description}   method_order: [name, ...]
+    queries:   {all_but_one | single | placement_train | placement_test: {category: count}}
+    pool:      {category: catalog parts of that category}
+    tables:
+      functional_map, hausdorff, style_map_all_but_one, style_map_single,
+      recall@1, recall@10, median_percentile_rank:
+                 {method: {category: value, ..., "mean": mean of categories, "n": {category: count}}}
+      placement_error:  {"train" | "test": {category: value, ..., "mean": ..., "n": {...}}}
+      plausibility:     {"top1" | "true_h" | "true_gt": {category | "all": {n, floating,
+                         interpenetrating, median_gap, median_depth}}}
+    fixed_embedding: steps, train_seconds, final_loss, pca_explained_variance, scale, cached, ...
+    timing_seconds:  {stage: seconds, "total": seconds}
+
+With ``details``, ``queries.json`` holds every query's record (top-5 part ids and metrics).
 """
 
 from __future__ import annotations
@@ -138,16 +159,34 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
     if missing:
         raise ValueError(f"{data}: {len(missing)} training shapes of the catalog are missing, "
                          f"e.g. {missing[0]!r}")
-    train_ds = ds.subset([pos[sid] for sid in train_ids])
+    train_shapes = [pos[sid] for sid in train_ids]
+    train_ds = ds.subset(train_shapes)
+    # Target descriptors of the training components: the very descriptors of their catalog parts
+    # (part ids are "<shape_id>/<component index in the shape>"), so g trains on the same
+    # coordinates it is evaluated with.
+    rows = []
+    for s_idx in train_shapes:
+        sid = ds.shapes[s_idx]["shape_id"]
+        n = int(ds.first_comp[s_idx + 1] - ds.first_comp[s_idx])
+        if len(index.rows[sid]) != n:
+            raise ValueError(f"{data}: shape {sid!r} has {n} components but {len(index.rows[sid])} "
+                             "catalog parts")
+        rows += [artifacts.catalog.lookup(f"{sid}/{j}") for j in range(n)]
+    train_desc = index.part_descriptors(s.descriptor_pairs)[np.asarray(rows, np.int64)]
     if "model_config" not in manifest:
         raise ValueError(f"{s.artifacts / 'manifest.json'}: no model_config to rebuild g from")
     model_cfg = model_config_from_dict(manifest["model_config"])
     if s.threads:
         torch.set_num_threads(s.threads)
-    fixed_settings = dataclasses.replace(s.fixed, seed=s.seed, descriptor_pairs=s.descriptor_pairs)
-    model = load_or_train_fixed(s.run, train_ds, train_ids, have, model_cfg, fixed_settings,
+    # g trains as the shipped model did: its query size and batch, unless the caller set them.
+    shipped = manifest.get("training", {})
+    fixed_settings = dataclasses.replace(
+        s.fixed, seed=s.seed, descriptor_pairs=s.descriptor_pairs,
+        n_points=s.fixed.n_points or int(shipped.get("n_points") or artifacts.n_points),
+        batch_size=s.fixed.batch_size or int(shipped.get("batch_size") or 32))
+    model = load_or_train_fixed(s.run, train_ds, train_desc, have, model_cfg, fixed_settings,
                                 rms_spread(artifacts.catalog.embeddings))
-    return FixedEmbeddingMethod(model, index.samples, s.descriptor_pairs), model.info
+    return FixedEmbeddingMethod(model, index.part_descriptors(s.descriptor_pairs)), model.info
 
 
 def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
