@@ -33,8 +33,8 @@ def _option_type(annotation: Any) -> Any:
     return annotation | None
 
 
-def _config_fields() -> list[tuple[str, Any, str]]:
-    """(name, annotation, help) of every TrainConfig field and, flattened, every ModelConfig field."""
+def _config_fields() -> list[tuple[str, Any, str, tuple[str, ...]]]:
+    """(name, annotation, help, aliases) of every TrainConfig and (flattened) ModelConfig field."""
     out = []
     for cls in (TrainConfig, ModelConfig):
         types_ = field_types(cls)
@@ -44,7 +44,7 @@ def _config_fields() -> list[tuple[str, Any, str]]:
             default = f.default if f.default is not dataclasses.MISSING else None
             shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
             help_text = f"{f.metadata.get('help', '')} (default: {shown})"
-            out.append((f.name, types_[f.name], help_text))
+            out.append((f.name, types_[f.name], help_text, tuple(f.metadata.get("aliases", ()))))
     return out
 
 
@@ -67,15 +67,16 @@ def train_command(**kwargs: Any) -> None:
                 raise ValueError("--resume reads the run's stored config; drop --preset and --config")
             run = overrides.get("run")
             if run is None:
-                raise ValueError("--resume needs --run RUN_DIR")
+                raise ValueError("--resume needs --run RUN_DIR (or --run-dir)")
             cfg = config_for_resume(Path(run), overrides)
         else:
             cfg = resolve_config(preset, config_file, overrides)
         result = train(cfg, resume=resume, show_progress=progress)
     except (ValueError, FileExistsError, FileNotFoundError) as exc:
         raise _fail(exc) from exc
-    log.info("run %s: %d steps, %.1f min, validation %s", result.run_dir, result.step,
-             result.elapsed_seconds / 60, result.validation)
+    if result.validation:  # rank 0 of a distributed run, or a single process
+        log.info("run %s: %d steps, %.1f min, validation %s", result.run_dir, result.step,
+                 result.elapsed_seconds / 60, result.validation)
 
 
 def _build_train_signature() -> inspect.Signature:
@@ -92,9 +93,9 @@ def _build_train_signature() -> inspect.Signature:
                           default=typer.Option(True, "--progress/--no-progress",
                                                help="Show a progress bar.")),
     ]
-    for name, annotation, help_text in _config_fields():
+    for name, annotation, help_text, aliases in _config_fields():
         flag = "--" + name.replace("_", "-")
-        decls = [f"{flag}/--no-{name.replace('_', '-')}"] if annotation is bool else [flag]
+        decls = [f"{flag}/--no-{name.replace('_', '-')}"] if annotation is bool else [flag, *aliases]
         option = typer.Option(None, *decls, help=help_text, show_default=False)
         params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
                                         annotation=_option_type(annotation), default=option))
@@ -102,7 +103,8 @@ def _build_train_signature() -> inspect.Signature:
 
 
 def export_command(
-    run: Path = typer.Option(..., "--run", help="Run folder holding checkpoint.pt and split.json."),
+    run: Path = typer.Option(..., "--run", "--run-dir",
+                             help="Run folder holding checkpoint.pt and split.json."),
     out: Path = typer.Option(Path("exported"), "--out", help="Artifact folder to write."),
     data: Path | None = typer.Option(None, "--data", help="Processed dataset (default: the run's)."),
     n_points: int | None = typer.Option(None, "--n-points",

@@ -82,7 +82,10 @@ class TrainConfig:
     """One training run: data, budget, optimiser, validation and logging."""
 
     data: str = field(default="data/processed", metadata=_help("Processed dataset folder."))
-    run: str = field(default="runs/default", metadata=_help("Run folder: checkpoints, split, logs, plots."))
+    # Also --run-dir: torchrun's own argument parser takes --run as an abbreviation of its --run-path.
+    run: str = field(default="runs/default",
+                     metadata={**_help("Run folder: checkpoints, split, logs, plots (alias --run-dir)."),
+                               "aliases": ("--run-dir",)})
     seed: int = field(default=0, metadata=_help("Seed of the split, the initial weights and the sampling."))
     test_fraction: float = field(default=0.2, metadata=_help("Fraction of each category's shapes held out."))
     # Budget: training stops at whichever comes first. `minutes` counts this invocation only,

@@ -1,0 +1,167 @@
+"""Training end to end (tiny config): losses fall, resume continues, the CLI and torchrun work."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import faiss
+import numpy as np
+import onnxruntime as ort
+import pytest
+from typer.testing import CliRunner
+
+from service.artifacts import GRAPH_FILES, INDEX_FILE, read_manifest
+from training.checkpoint import load_checkpoint, load_trained
+from training.cli import app
+from training.config import resolve_config
+from training.export import export_run
+from training.plots import LOSSES_CSV, VALIDATION_CSV, read_csv
+from training.split import load_split, make_split, save_split
+from training.train import lr_factor, train
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _tiny(data: Path, run: Path, **overrides):
+    return resolve_config("tiny", overrides={"data": str(data), "run": str(run), **overrides})
+
+
+@pytest.mark.slow
+def test_train_then_export_end_to_end(toy_dataset_dir: Path, tmp_path: Path):
+    run = tmp_path / "run"
+    steps = 150
+    result = train(_tiny(toy_dataset_dir, run, steps=steps, val_every=75, seed=3), show_progress=False)
+    assert result.step == steps
+
+    log = read_csv(run / LOSSES_CSV)
+    assert log["step"] == [float(s) for s in range(1, steps + 1)]
+    for key in ("triplet_loss", "placement_loss"):
+        first, last = np.mean(log[key][:15]), np.mean(log[key][-15:])
+        assert last < 0.7 * first, f"{key} did not fall: first 15 steps {first:.3g}, last 15 {last:.3g}"
+    val = read_csv(run / VALIDATION_CSV)
+    assert val["step"] == [75.0, 150.0]
+    for name in ("losses.png", "validation.png", "split.json", "config.json", "summary.json"):
+        assert (run / name).is_file(), name
+
+    out = tmp_path / "exported"
+    manifest = export_run(run, out)
+    assert read_manifest(out)["model_version"] == manifest["model_version"]
+    for graph, name in GRAPH_FILES.items():
+        sess = ort.InferenceSession(str(out / name), providers=["CPUExecutionProvider"])
+        assert sess.get_inputs()[0].shape[0] == "batch", graph
+    index = faiss.read_index(str(out / INDEX_FILE))
+    assert index.ntotal == manifest["part_count"]
+    assert manifest["training"]["steps"] == steps
+    shipped_accuracy = manifest["training"]["validation"]["triplet_accuracy"]
+    assert shipped_accuracy == pytest.approx(val["triplet_accuracy"][-1], abs=1e-5)
+
+
+def test_resume_continues_where_the_checkpoint_stopped(toy_dataset_dir: Path, tmp_path: Path):
+    run = tmp_path / "run"
+    train(_tiny(toy_dataset_dir, run, steps=8), show_progress=False)
+    first = load_checkpoint(run / "checkpoint.pt")
+    assert first["step"] == 8
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(_tiny(toy_dataset_dir, run, steps=12), show_progress=False)
+    result = train(_tiny(toy_dataset_dir, run, steps=12), resume=True, show_progress=False)
+    assert result.step == 12
+    state = load_checkpoint(run / "checkpoint.pt")
+    assert state["step"] == 12 and state["elapsed_seconds"] > first["elapsed_seconds"]
+    assert read_csv(run / LOSSES_CSV)["step"] == [float(s) for s in range(1, 13)]
+    # The optimiser state came back: Adam's step count continues from 8.
+    adam_steps = [int(s["step"]) for s in state["optimizers"]["retrieval"]["state"].values()]
+    assert set(adam_steps) == {12}
+    trained = load_trained(run)
+    assert trained.config.steps == 12
+
+
+def test_cli_train_and_export(toy_dataset_dir: Path, tmp_path: Path):
+    run, out = tmp_path / "run", tmp_path / "exported"
+    runner = CliRunner()
+    res = runner.invoke(app, ["train", "--preset", "tiny", "--data", str(toy_dataset_dir), "--run", str(run),
+                              "--steps", "5", "--point-layers", "8,16", "--no-progress",
+                              "--embedding-dim", "4"])
+    assert res.exit_code == 0, res.output
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["steps"] == 5
+    assert cfg["model"]["point_layers"] == [8, 16] and cfg["model"]["embedding_dim"] == 4
+    res = runner.invoke(app, ["train", "--resume", "--run", str(run), "--steps", "7", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 7
+    res = runner.invoke(app, ["train", "--resume", "--run", str(run), "--embedding-dim", "9"])
+    assert res.exit_code == 2 and "cannot change ['embedding_dim']" in res.output
+    res = runner.invoke(app, ["export", "--run", str(run), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert read_manifest(out)["embedding_dim"] == 4
+
+
+def test_cli_rejects_bad_values(toy_dataset_dir: Path, tmp_path: Path):
+    runner = CliRunner()
+    res = runner.invoke(app, ["train", "--preset", "tiny", "--data", str(toy_dataset_dir),
+                              "--run", str(tmp_path / "r"), "--point-layers", "8,x"])
+    assert res.exit_code == 2 and "point_layers" in res.output
+    res = runner.invoke(app, ["train", "--preset", "nope"])
+    assert res.exit_code == 2 and "unknown preset 'nope'" in res.output
+    res = runner.invoke(app, ["train", "--data", str(tmp_path / "missing"), "--run", str(tmp_path / "r2")])
+    assert res.exit_code == 2 and "missing" in res.output
+
+
+def test_time_budget_stops_the_run(toy_dataset_dir: Path, tmp_path: Path):
+    result = train(_tiny(toy_dataset_dir, tmp_path / "run", steps=100000, minutes=0.02), show_progress=False)
+    assert 0 < result.step < 100000
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == result.step
+
+
+def test_split_is_per_category_seeded_and_checked(toy_dataset, tmp_path: Path):
+    split = make_split(toy_dataset, 0.2, seed=1)
+    assert sorted(np.concatenate([split.train, split.test]).tolist()) == list(range(toy_dataset.n_shapes))
+    cats = [s["category"] for s in toy_dataset.shapes]
+    for cat in set(cats):
+        n = cats.count(cat)
+        held = sum(cats[s] == cat for s in split.test.tolist())
+        assert held == max(1, round(0.2 * n))
+    again = make_split(toy_dataset, 0.2, seed=1)
+    assert (again.test == split.test).all()
+    assert any((make_split(toy_dataset, 0.2, seed=s).test != split.test).any() for s in range(2, 6))
+    save_split(split, toy_dataset, tmp_path)
+    assert (load_split(tmp_path, toy_dataset).test == split.test).all()
+    other = toy_dataset.subset(list(range(1, toy_dataset.n_shapes)))
+    with pytest.raises(ValueError, match=r"split\.json"):
+        load_split(tmp_path, other)
+
+
+def test_lr_decay():
+    assert lr_factor(0, 0.8, 100, False) == 1.0
+    assert lr_factor(100, 0.8, 100, False) == pytest.approx(0.8)
+    assert lr_factor(150, 0.8, 100, False) == pytest.approx(0.8 ** 1.5)
+    assert lr_factor(150, 0.8, 100, True) == pytest.approx(0.8)
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes(toy_dataset_dir: Path, tmp_path: Path):
+    """Data-parallel on two CPU processes (gloo): rank 0 writes, both ranks train."""
+    run = tmp_path / "run"
+    torchrun = Path(sys.executable).parent / "torchrun"
+    cmd = [str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "training", "train",
+           "--preset", "tiny", "--data", str(toy_dataset_dir), "--run-dir", str(run), "--steps", "6",
+           "--no-progress", "--threads", "1"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    # Own session, so a hang kills torchrun and both workers, not only torchrun.
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+    try:
+        output, _ = proc.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        output, _ = proc.communicate()
+        pytest.fail(f"torchrun did not finish in 240 s:\n{output}")
+    assert proc.returncode == 0, output
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["processes"] == 2 and summary["step"] == 6
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 6
+    assert read_csv(run / LOSSES_CSV)["step"] == [float(s) for s in range(1, 7)]
