@@ -174,7 +174,10 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
 
     Three cases per query:
       * ``top1``: Ours' top-1 suggestion (all-but-one queries), placed by h;
-      * ``true_h``: the true missing component placed by h (the test-split placement queries);
+      * ``true_h``: the true missing component placed by h (the test-split placement queries),
+        also compared with the same component at its true place: ``worse_than_truth`` when h's
+        gap or depth exceeds the true placement's by more than the tolerance (the data's own
+        overlaps, e.g. legs sunk into a seat, do not count against h);
       * ``true_gt``: the removed labelled part at its true place: the data's own rate, a floor.
     """
     cat = ours.catalog
@@ -184,12 +187,18 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
     def assembly(rows: np.ndarray) -> list[Mesh]:
         return [_placed_mesh(index, int(r), cat.translations[r], settings.samples) for r in rows.tolist()]
 
-    def record(case: str, q: Any, part: Mesh, rows: np.ndarray) -> None:
-        c = contact(part, assembly(rows), settings.candidates)
-        out[case].append({"qid": q.qid, "category": q.category,
-                          "gap": round(c.gap, 6), "depth": round(c.depth, 6),
-                          "floating": c.floating(settings.tolerance),
-                          "interpenetrating": c.interpenetrating(settings.tolerance)})
+    def record(case: str, q: Any, part: Mesh, rows: np.ndarray, truth: Mesh | None = None) -> None:
+        asm = assembly(rows)
+        c = contact(part, asm, settings.candidates)
+        rec = {"qid": q.qid, "category": q.category, "gap": round(c.gap, 6), "depth": round(c.depth, 6),
+               "floating": c.floating(settings.tolerance),
+               "interpenetrating": c.interpenetrating(settings.tolerance)}
+        if truth is not None:
+            t = contact(truth, asm, settings.candidates)
+            tol = settings.tolerance
+            rec.update({"true_gap": round(t.gap, 6), "true_depth": round(t.depth, 6),
+                        "worse_than_truth": c.gap > t.gap + tol or c.depth > t.depth + tol})
+        out[case].append(rec)
 
     for q in tqdm(queries, desc="plausibility", disable=not progress, leave=False):
         top = by_qid[q.qid]["top"]
@@ -201,7 +210,9 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
     pred = {r["qid"]: np.asarray(r["predicted"]) for r in placement}
     for pq in placement_queries:
         if pq.split == "test" and pq.qid in pred:
-            record("true_h", pq, _placed_mesh(index, pq.target, pred[pq.qid], settings.samples), pq.present)
+            placed = _placed_mesh(index, pq.target, pred[pq.qid], settings.samples)
+            truth = _placed_mesh(index, pq.target, pq.true_translation, settings.samples)
+            record("true_h", pq, placed, pq.present, truth)
     return out
 
 
@@ -233,7 +244,8 @@ def median_table(per_query: list[dict[str, Any]], key: str, categories: list[str
 
 
 def plausibility_table(records: list[dict[str, Any]], categories: list[str]) -> dict[str, Any]:
-    """Per category: share floating, share interpenetrating, median gap and depth, count."""
+    """Per category: share floating, share interpenetrating, median gap and depth, count, and
+    (when the records compare with the truth) the share placed worse than the truth."""
     out: dict[str, Any] = {}
     for c in [*categories, "all"]:
         rs = [r for r in records if c == "all" or r["category"] == c]
@@ -244,5 +256,7 @@ def plausibility_table(records: list[dict[str, Any]], categories: list[str]) -> 
             "interpenetrating": float(np.mean([r["interpenetrating"] for r in rs])) if n else math.nan,
             "median_gap": nanmedian(r["gap"] for r in rs),
             "median_depth": nanmedian(r["depth"] for r in rs),
+            "worse_than_truth": (float(np.mean([r["worse_than_truth"] for r in rs]))
+                                 if n and all("worse_than_truth" in r for r in rs) else None),
         }
     return out
