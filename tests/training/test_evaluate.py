@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -291,6 +292,26 @@ def test_functional_ap_of_a_perfect_and_a_random_method(toy_index: ShapeIndex) -
     assert oracle["mean"] == pytest.approx(1.0)
     assert rand["mean"] < 0.8
     assert sum(oracle["n"].values()) == len(queries)
+
+
+def test_tables_average_categories_equally_and_skip_undefined_values() -> None:
+    from training.evaluate.evaluation import median_table, plausibility_table
+
+    recs: list[dict[str, Any]] = [
+        {"category": "a", "x": 1.0}, {"category": "a", "x": 0.0}, {"category": "a", "x": math.nan},
+        {"category": "b", "x": 1.0}, {"category": "b", "x": None}]
+    t = table(recs, "x", ["a", "b", "c"])
+    assert t["a"] == 0.5 and t["b"] == 1.0 and math.isnan(t["c"])
+    assert t["mean"] == 0.75                     # mean of the categories, not of the queries
+    assert t["n"] == {"a": 2, "b": 1, "c": 0}
+    m = median_table([{"category": "a", "p": v} for v in (10.0, 30.0, 90.0)], "p", ["a"])
+    assert m["a"] == 30.0
+    contact_recs = [{"category": "a", "gap": 0.1, "depth": 0.0, "floating": True, "interpenetrating": False},
+                    {"category": "a", "gap": 0.0, "depth": 0.05, "floating": False, "interpenetrating": True},
+                    {"category": "b", "gap": 0.0, "depth": 0.0, "floating": False, "interpenetrating": False}]
+    p = plausibility_table(contact_recs, ["a", "b"])
+    assert p["a"]["floating"] == 0.5 and p["a"]["interpenetrating"] == 0.5 and p["b"]["floating"] == 0.0
+    assert p["all"]["n"] == 3 and p["all"]["median_gap"] == 0.0 and p["a"]["worse_than_truth"] is None
 
 
 def test_rank_by_scores_breaks_ties_by_row() -> None:
