@@ -15,6 +15,29 @@ data_app = typer.Typer(help="Shape data: generate, ingest, preprocess (paper Sec
 # Commands are added below, one function each: generate (generator), ingest, preprocess, stats.
 
 
+# ---- generate ----------------------------------------------------------------------------------
+
+@data_app.command("generate")
+def generate_cmd(
+    out: Path = typer.Option(Path("data/raw"), "--out", help="Writes <out>/<category>/<shape_id>.glb + .json."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed (same seed: byte-identical files)."),
+    shapes_per_category: int = typer.Option(180, "--shapes-per-category", min=1, help="Shapes per category."),
+    category: list[str] | None = typer.Option(
+        None, "--category", help="Only this category (repeat for several; default: all)."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Worker processes (the output does not change)."),
+) -> None:
+    """Generate the procedural part-structured shape dataset (categories, styles, labelled parts)."""
+    from training.data.generator import CATEGORIES, generate_dataset
+
+    unknown = [c for c in category or [] if c not in CATEGORIES]
+    if unknown:
+        raise typer.BadParameter(f"unknown category {', '.join(unknown)}; known: {', '.join(CATEGORIES)}",
+                                 param_hint="--category")
+    paths = generate_dataset(out, seed=seed, shapes_per_category=shapes_per_category, categories=category,
+                             workers=workers)
+    typer.echo(f"{out}: {len(paths)} shapes written")
+
+
 # ---- ingest, preprocess, stats ---------------------------------------------------------------
 
 @data_app.command("ingest")

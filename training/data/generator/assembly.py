@@ -31,15 +31,20 @@ class ShapeBuilder:
     def __init__(self, rng: np.random.Generator) -> None:
         self.rng = rng
         self._pieces: list[_Piece] = []
-        self._next_key = 0
+        self._geometry: list[tuple[Mesh, str]] = []  # key -> (local mesh, label)
 
     def add(self, mesh: Mesh, label: str, transforms: list[np.ndarray] | None = None) -> int:
         """Add one geometry placed once per transform (default: as is); returns its key."""
-        key = self._next_key
-        self._next_key += 1
-        for m in transforms if transforms is not None else [np.eye(4)]:
-            self._pieces.append(_Piece(key, label, mesh.transformed(m)))
+        key = len(self._geometry)
+        self._geometry.append((mesh, label))
+        self.place(key, transforms if transforms is not None else [np.eye(4)])
         return key
+
+    def place(self, key: int, transforms: list[np.ndarray]) -> None:
+        """Place more instances of a geometry added before (e.g. a spare wheel)."""
+        mesh, label = self._geometry[key]
+        for m in transforms:
+            self._pieces.append(_Piece(key, label, mesh.transformed(m)))
 
     def bolts(
         self,

@@ -8,7 +8,7 @@ from types import ModuleType
 
 import numpy as np
 
-from training.data.generator import chairs
+from training.data.generator import airplanes, cars, chairs, guitars, lamps, sofas, tables, watercraft
 from training.data.generator.assembly import ShapeBuilder
 
 StyleBuilder = Callable[[np.random.Generator, ShapeBuilder], None]
@@ -27,4 +27,16 @@ def _category(name: str, module: ModuleType) -> Category:
     return Category(name=name, labels=tuple(module.LABELS), styles=dict(module.STYLES))
 
 
-CATEGORIES: dict[str, Category] = {c.name: c for c in (_category("chair", chairs),)}
+# Category name -> module; the order is the dataset's category order.
+_MODULES: dict[str, ModuleType] = {
+    "chair": chairs,
+    "table": tables,
+    "sofa": sofas,
+    "lamp": lamps,
+    "airplane": airplanes,
+    "car": cars,
+    "guitar": guitars,
+    "watercraft": watercraft,
+}
+
+CATEGORIES: dict[str, Category] = {name: _category(name, module) for name, module in _MODULES.items()}

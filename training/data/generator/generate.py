@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from training.data.generator.assembly import ShapeBuilder
-from training.data.generator.catalog import CATEGORIES
+from training.data.generator.catalog import CATEGORIES, Category
 from training.data.shape_io import save_shape
 from training.data.shapes import RawShape
 

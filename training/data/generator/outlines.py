@@ -97,14 +97,13 @@ def naca_airfoil(thickness: float, n: int = 8) -> np.ndarray:
     return np.concatenate([upper, lower])
 
 
-def _in_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    def cross(o: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return (u[0] - o[..., 0]) * (v[1] - o[..., 1]) - (u[1] - o[..., 1]) * (v[0] - o[..., 0])
+def _in_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, eps: float) -> np.ndarray:
+    """Which points p (n, 2) lie inside or on the counter-clockwise triangle abc."""
 
-    d1 = -cross(p, a, b)
-    d2 = -cross(p, b, c)
-    d3 = -cross(p, c, a)
-    return (d1 >= -1e-12) & (d2 >= -1e-12) & (d3 >= -1e-12)
+    def side(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return (u[0] - p[:, 0]) * (v[1] - p[:, 1]) - (u[1] - p[:, 1]) * (v[0] - p[:, 0])
+
+    return (side(a, b) >= -eps) & (side(b, c) >= -eps) & (side(c, a) >= -eps)
 
 
 def triangulate(poly: np.ndarray) -> np.ndarray:
@@ -118,6 +117,7 @@ def triangulate(poly: np.ndarray) -> np.ndarray:
         raise ValueError("triangulate expects a counter-clockwise polygon with positive area")
     idx = list(range(len(poly)))
     tris: list[tuple[int, int, int]] = []
+    eps = 1e-12 * float(np.ptp(poly, axis=0).max()) ** 2
     while len(idx) > 3:
         n = len(idx)
         best = None
@@ -125,11 +125,15 @@ def triangulate(poly: np.ndarray) -> np.ndarray:
             i0, i1, i2 = idx[k - 1], idx[k], idx[(k + 1) % n]
             a, b, c = poly[i0], poly[i1], poly[i2]
             turn = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-            if turn <= 1e-14:
+            if turn <= eps:
                 continue
-            others = [j for j in idx if j not in (i0, i1, i2)]
-            if others and np.any(_in_triangle(poly[others], a, b, c)):
-                continue
+            # Another remaining vertex inside (or on) the ear forbids it; copies of a, b or c don't.
+            others = np.array([j for j in idx if j not in (i0, i1, i2)], dtype=np.int64)
+            if len(others):
+                pts = poly[others]
+                same = np.all(pts == a, axis=1) | np.all(pts == b, axis=1) | np.all(pts == c, axis=1)
+                if np.any(_in_triangle(pts, a, b, c, eps) & ~same):
+                    continue
             best = k
             break
         if best is None:

@@ -8,7 +8,10 @@ counts stay low (8-24) so that a whole shape stays within a few thousand faces.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from training.data.generator.mesh import Mesh, align_y_to, compose, rotation, translation
 from training.data.generator.outlines import ccw, rounded_rect, signed_area, triangulate
@@ -28,7 +31,18 @@ def _fan_faces(ring: np.ndarray, pole: int, pole_after: bool) -> np.ndarray:
     return np.stack([ring, r2, p], 1) if pole_after else np.stack([ring, p, r2], 1)
 
 
-def rings_mesh(rings: np.ndarray, section: np.ndarray | None = None, closed: bool = False) -> Mesh:
+def _positive(section: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """The triangles (indices into ``section``) each turned counter-clockwise in the plane."""
+    p = section[tris]
+    area = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 1, 1] - p[:, 0, 1]) * (
+        p[:, 2, 0] - p[:, 0, 0]
+    )
+    return np.where(area[:, None] < 0, tris[:, ::-1], tris)
+
+
+def rings_mesh(
+    rings: np.ndarray, section: np.ndarray | None = None, closed: bool = False, cap: np.ndarray | None = None
+) -> Mesh:
     """Skin consecutive rings of points; cap both ends with the triangulated section.
 
     Args:
@@ -36,6 +50,8 @@ def rings_mesh(rings: np.ndarray, section: np.ndarray | None = None, closed: boo
         section: (k, 2) the 2D section all rings are images of (to triangulate the caps);
             ignored when ``closed``.
         closed: join the last ring back to the first (a loop such as a torus), no caps.
+        cap: (k - 2, 3) optional triangulation of the section (indices), instead of ear
+            clipping (e.g. a strip for band-like sections).
     """
     m, k, _ = rings.shape
     idx = np.arange(m * k).reshape(m, k)
@@ -44,9 +60,15 @@ def rings_mesh(rings: np.ndarray, section: np.ndarray | None = None, closed: boo
         faces.append(_ring_faces(idx[-1], idx[0]))
     else:
         assert section is not None, "open rings need the 2D section to cap their ends"
-        tris = triangulate(ccw(section))
-        if signed_area(section) < 0:  # triangulate() saw the reversed polygon
-            tris = (k - 1) - tris
+        if cap is not None:
+            tris = _positive(np.asarray(section, float), np.asarray(cap, np.int64))
+        else:
+            tris = triangulate(ccw(section))
+            if signed_area(section) < 0:  # triangulate() saw the reversed polygon
+                tris = (k - 1) - tris
+        if signed_area(section) < 0:
+            # A clockwise section turns the side faces the other way: turn the caps with them.
+            tris = tris[:, ::-1]
         faces.append(idx[0][tris][:, ::-1])
         faces.append(idx[-1][tris])
     return Mesh(rings.reshape(-1, 3).astype(float), np.concatenate(faces).astype(np.int64)).oriented_outward()
@@ -80,7 +102,7 @@ def lathe(profile: np.ndarray, segments: int = 16, closed: bool = False) -> Mesh
             verts.append(np.stack([r * np.cos(theta), np.full(segments, y), r * np.sin(theta)], 1))
             rings.append(np.arange(count, count + segments))
             count += segments
-    pairs = list(zip(rings[:-1], rings[1:], strict=True))
+    pairs = list(itertools.pairwise(rings))
     if closed:
         pairs.append((rings[-1], rings[0]))
     faces = []
@@ -121,7 +143,7 @@ def frustum(r_bottom: float, r_top: float, height: float, segments: int = 16) ->
     return lathe(np.array([[r_bottom, 0.0], [r_top, height]]), segments)
 
 
-def rod(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float | None = None, segments: int = 12) -> Mesh:
+def rod(p0: ArrayLike, p1: ArrayLike, r0: float, r1: float | None = None, segments: int = 12) -> Mesh:
     """A (tapered) cylinder from point p0 (radius r0) to point p1 (radius r1, default r0)."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     length = float(np.linalg.norm(p1 - p0))
@@ -181,7 +203,12 @@ def extrude(outline: np.ndarray, depth: float, bevel: float = 0.0) -> Mesh:
 
 
 def loft(
-    section: np.ndarray, stations: np.ndarray, centers: np.ndarray, scales: np.ndarray, axis: str = "x"
+    section: np.ndarray,
+    stations: np.ndarray,
+    centers: np.ndarray,
+    scales: np.ndarray,
+    axis: str = "x",
+    cap: np.ndarray | None = None,
 ) -> Mesh:
     """Skin a 2D section placed at several stations along a coordinate axis, capped at both ends.
 
@@ -191,6 +218,7 @@ def loft(
         stations: (m,) coordinates along the axis.
         centers: (m, 2) offset of the section at each station, in (u, v).
         scales: (m, 2) scale of the section at each station, in (u, v) (keep them > 0).
+        cap: optional triangulation of the section for the end caps (see ``rings_mesh``).
     """
     sec = np.asarray(section, float)
     m = len(stations)
@@ -201,7 +229,7 @@ def loft(
         "y": (uv[..., 1], s, uv[..., 0]),
         "z": (uv[..., 0], uv[..., 1], s),
     }[axis]
-    return rings_mesh(np.stack(order, axis=-1), sec)
+    return rings_mesh(np.stack(order, axis=-1), sec, cap=cap)
 
 
 def _frames(path: np.ndarray, closed: bool, up: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
