@@ -177,7 +177,8 @@ def _check_run(folder: Path, nets: Networks, catalog: Catalog, manifest: dict[st
 
 
 def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 1,
-                   faiss_blas_threshold: int = 20, verify_checksums: bool = True) -> Artifacts:
+                   faiss_blas_threshold: int = 20, verify_checksums: bool = True,
+                   max_points_per_run: int = 4096) -> Artifacts:
     """Load and check an artifact folder; ``ArtifactError`` names the first bad file."""
     folder = Path(folder)
     if not folder.is_dir():
@@ -198,7 +199,7 @@ def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 
                                 f"{axis}, but manifest.json says {expected}")
     index = load_index(folder / INDEX_FILE, D, P, faiss_threads, faiss_blas_threshold)
     catalog = load_catalog(folder / CATALOG_JSON, folder / CATALOG_ARRAYS, P, D)
-    nets = Networks(**sessions)
+    nets = Networks(**sessions, max_points_per_run=max_points_per_run)
     _check_run(folder, nets, catalog, manifest)
     log.info("loaded artifacts %s: model %s, %d parts in %d categories", folder,
              manifest["model_version"], P, len(catalog.categories))

@@ -29,30 +29,46 @@ class Mixture:
 
 @dataclass
 class Networks:
-    """ONNX sessions of the embedding f, retrieval g and the three parts of the placement h."""
+    """ONNX sessions of the embedding f, retrieval g and the three parts of the placement h.
+
+    Point-cloud graphs run on at most ``max_points_per_run`` points (batch x points per cloud)
+    at a time: per-point activations of a larger run fall out of the CPU caches, and a run
+    then costs more per cloud than several smaller ones.
+    """
 
     f: ort.InferenceSession
     g: ort.InferenceSession
     h_query: ort.InferenceSession
     h_part: ort.InferenceSession
     h_head: ort.InferenceSession
+    max_points_per_run: int = 4096
+
+    def _run_points(self, session: ort.InferenceSession, outputs: list[str], points: np.ndarray
+                    ) -> list[np.ndarray]:
+        """Run a graph on (B, N, 3) points in chunks of rows; outputs concatenated on axis 0."""
+        points = _f32(points)
+        rows = max(1, self.max_points_per_run // max(1, points.shape[1]))
+        if len(points) <= rows:
+            return session.run(outputs, {"points": points})
+        parts = [session.run(outputs, {"points": points[i:i + rows]}) for i in range(0, len(points), rows)]
+        return [np.concatenate([p[j] for p in parts]) for j in range(len(outputs))]
 
     def embed(self, points: np.ndarray) -> np.ndarray:
         """Embed centred part point clouds: (B, S, 3) float32 -> (B, D) float32."""
-        return self.f.run(["embedding"], {"points": _f32(points)})[0]
+        return self._run_points(self.f, ["embedding"], points)[0]
 
     def mixture(self, points: np.ndarray) -> Mixture:
         """Predict the complement distribution of partial assemblies: (B, N, 3) -> Mixture."""
-        w, mu, sigma = self.g.run(["weights", "means", "sigmas"], {"points": _f32(points)})
+        w, mu, sigma = self._run_points(self.g, ["weights", "means", "sigmas"], points)
         return Mixture(weights=w, means=mu, sigmas=sigma)
 
     def query_features(self, points: np.ndarray) -> np.ndarray:
         """Placement features of partial assemblies: (B, N, 3) -> (B, Fq) float32."""
-        return self.h_query.run(["query_feature"], {"points": _f32(points)})[0]
+        return self._run_points(self.h_query, ["query_feature"], points)[0]
 
     def part_features(self, points: np.ndarray) -> np.ndarray:
         """Placement features of centred parts: (B, S, 3) -> (B, Fp) float32."""
-        return self.h_part.run(["part_feature"], {"points": _f32(points)})[0]
+        return self._run_points(self.h_part, ["part_feature"], points)[0]
 
     def place(self, query_features: np.ndarray, part_features: np.ndarray) -> np.ndarray:
         """Translations of parts next to queries, row by row: (B, Fq), (B, Fp) -> (B, 3) float32."""

@@ -45,7 +45,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         artifacts = load_artifacts(settings.artifacts, onnx_threads=settings.onnx_threads,
                                    faiss_threads=settings.faiss_threads,
                                    faiss_blas_threshold=settings.faiss_blas_threshold,
-                                   verify_checksums=settings.verify_checksums)
+                                   verify_checksums=settings.verify_checksums,
+                                   max_points_per_run=settings.max_points_per_run)
     except ArtifactError as exc:
         log.error("refusing to start: %s", exc)
         raise

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
@@ -130,3 +132,15 @@ def test_place_agrees_with_suggest(engine: SuggestionEngine, query: AssemblyQuer
 
 def test_warmup(engine: SuggestionEngine) -> None:
     engine.warmup()
+
+
+def test_chunked_runs_equal_one_run(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    n = engine.artifacts.n_points
+    batch = np.stack([engine.prepare(query.points * s, Frame()) for s in (1.0, 0.9, 0.8, 0.7, 0.6)])
+    whole = dataclasses.replace(engine.networks, max_points_per_run=10**9)
+    chunked = dataclasses.replace(engine.networks, max_points_per_run=2 * n)  # rows of 2, 2, 1
+    a, b = whole.mixture(batch), chunked.mixture(batch)
+    for x, y in ((a.weights, b.weights), (a.means, b.means), (a.sigmas, b.sigmas),
+                 (whole.query_features(batch), chunked.query_features(batch))):
+        assert x.shape == y.shape
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
