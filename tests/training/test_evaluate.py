@@ -458,3 +458,9 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     # Bad input is named.
     bad = runner.invoke(app, [*args, "--methods", "ours,magic", "--out", str(root / "c")])
     assert bad.exit_code == 2 and "magic" in bad.output
+    other_run = root / "other-run"
+    other_run.mkdir()
+    (other_run / "split.json").write_text(json.dumps({"test_ids": ["chair-0000"]}))
+    args_other = [a if a != str(tiny_artifacts["run"]) else str(other_run) for a in args]
+    mismatch = runner.invoke(app, [*args_other, "--out", str(root / "d"), "--report", str(root / "d.md")])
+    assert mismatch.exit_code == 2 and "split.json" in mismatch.output

@@ -18,8 +18,9 @@ QUICK_OUT = Path("runs/benchmark-quick")
 
 def evaluate_command(
     artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder (Ours)."),
-    run: Path = typer.Option(Path("runs/shipped"), "--run",
-                             help="Run folder; the fixed-embedding baseline caches its weights here."),
+    run: Path = typer.Option(Path("runs/shipped"), "--run", "--run-dir",
+                             help="The training run's folder: its split.json is checked against the "
+                                  "catalog, and the fixed-embedding baseline caches its weights there."),
     data: Optional[Path] = typer.Option(None, "--data",  # noqa: UP045 (typer needs Optional on 3.10)
                                         help="Processed dataset (default: the path in the manifest)."),
     out: Optional[Path] = typer.Option(None, "--out",  # noqa: UP045

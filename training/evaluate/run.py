@@ -209,6 +209,7 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     n_points = s.n_points or artifacts.n_points
     lap("load", t)
 
+    _check_split(s.run, index)
     t = time.monotonic()
     cats = index.categories()
     queries = {setting: make_queries(index, setting, s.queries_per_category, n_points, s.seed)
@@ -315,6 +316,22 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     write_report(results, Path(s.report), out)
     log.info("benchmark done in %.1f s: %s, %s", timing["total"], out / RESULTS_FILE, s.report)
     return results
+
+
+def _check_split(run: Path | None, index: ShapeIndex) -> None:
+    """The catalog's ``split`` fields decide the held-out shapes; if the run folder holds the
+    trainer's ``split.json``, it must agree (a catalog exported from another run would not)."""
+    path = Path(run) / "split.json" if run is not None else None
+    if path is None or not path.is_file():
+        return
+    try:
+        want = set(json.loads(path.read_text())["test_ids"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a readable split file ({exc})") from exc
+    have = {sid for sid, split in index.split.items() if split == "test"}
+    if want != have:
+        raise ValueError(f"{path}: its {len(want)} test shapes differ from the catalog's {len(have)} "
+                         f"(e.g. {sorted(want ^ have)[:3]}); pass the run the artifacts were exported from")
 
 
 def json_clean(obj: Any) -> Any:
