@@ -164,3 +164,40 @@ def test_catalog_format_errors(client: TestClient, catalog) -> None:
 def test_routing_errors(client: TestClient) -> None:
     assert_error(client.get("/no-such-route"), 404, "not_found")
     assert_error(client.get("/suggest"), 405, "method_not_allowed")
+
+
+def _upload(client: TestClient, name: str, data: bytes, **form: str) -> Any:
+    return client.post("/suggest/mesh", files={"file": (name, data)}, data=form)
+
+
+_BOX_OBJ = b"".join(f"v {x} {y} {z}\n".encode() for x in (0, 1) for y in (0, 1) for z in (0, 1)) + (
+    b"f 1 2 4\nf 1 4 3\nf 5 7 8\nf 5 8 6\nf 1 5 6\nf 1 6 2\nf 3 4 8\nf 3 8 7\nf 1 3 7\nf 1 7 5\n"
+    b"f 2 6 8\nf 2 8 4\n")
+
+
+def test_mesh_upload_errors(client: TestClient, settings: Settings) -> None:
+    assert _upload(client, "box.obj", _BOX_OBJ).status_code == 200
+    assert_error(_upload(client, "box.fbx", _BOX_OBJ), 415, "unsupported_format")
+    assert_error(_upload(client, "box", _BOX_OBJ), 415, "unsupported_format")
+    assert_error(_upload(client, "box", _BOX_OBJ, format="3ds"), 415, "unsupported_format")
+    assert_error(_upload(client, "box.ply", b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n"),
+                 422, "corrupt_mesh")
+    assert_error(_upload(client, "box.stl", b"\x00" * 40), 422, "corrupt_mesh")
+    assert_error(_upload(client, "box.obj", b""), 422, "empty_mesh")
+    assert_error(_upload(client, "line.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n"), 422, "zero_area")
+    assert_error(_upload(client, "nan.obj", b"v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n"), 422, "non_finite")
+    gltf = b'{"asset": {"version": "2.0"}, "buffers": [{"uri": "../secret.bin", "byteLength": 4}]}'
+    assert_error(_upload(client, "x.gltf", gltf), 422, "external_reference")
+    huge = f"ply\nformat ascii 1.0\nelement vertex {settings.max_mesh_vertices + 1}\nend_header\n".encode()
+    assert_error(_upload(client, "huge.ply", huge), 413, "too_large")
+    big = b"# " + b"x" * settings.max_upload_bytes + b"\n" + _BOX_OBJ
+    assert_error(_upload(client, "big.obj", big), 413, "payload_too_large")
+
+
+def test_mesh_upload_option_errors(client: TestClient) -> None:
+    assert_error(_upload(client, "box.obj", _BOX_OBJ, options='{"k": 0}'), 422, "k_out_of_range")
+    assert_error(_upload(client, "box.obj", _BOX_OBJ, options="k=3"), 400, "invalid_json")
+    err = assert_error(_upload(client, "box.obj", _BOX_OBJ, options='{"kk": 3}'), 422, "validation_error")
+    assert err["details"][0]["loc"] == ["body", "options", "kk"]
+    assert_error(client.post("/suggest/mesh", data={"options": "{}"}), 422, "validation_error")
+    assert_error(client.post("/suggest/mesh", json={"points": [[0, 0, 0]] * 20}), 422, "validation_error")
