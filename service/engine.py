@@ -191,16 +191,15 @@ class SuggestionEngine:
         item raised (the other items are unaffected).
         """
         t0 = time.perf_counter()
-        out: list[SuggestResult | ServiceError] = []
+        errors: dict[int, ServiceError] = {}
         queries: list[_Query] = []
         for i, (points, options) in enumerate(items):
             try:
                 queries.append(self._resolve(i, points, options))
-                out.append(None)  # type: ignore[arg-type]  # filled below
             except ServiceError as exc:
-                out.append(exc)
+                errors[i] = exc
         if not queries:
-            return out
+            return [errors[i] for i in range(len(items))]
         timings = {"prepare": time.perf_counter() - t0}
         batch = np.stack([q.points for q in queries])  # (B, N, 3)
         t = time.perf_counter()
@@ -227,6 +226,7 @@ class SuggestionEngine:
                         if len(parts) else np.zeros((0, 3), np.float32))
         timings["h_head"] = time.perf_counter() - t
 
+        out: dict[int, SuggestResult | ServiceError] = dict(errors)
         start = 0
         for b, q in enumerate(queries):
             idx, scores, modes, n_cand = ranked[b]
@@ -237,7 +237,7 @@ class SuggestionEngine:
                 mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
                 candidates=n_cand, timings=timings)
         timings["total"] = time.perf_counter() - t0
-        return out
+        return [out[i] for i in range(len(items))]
 
     def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None) -> PlaceResult:
         """Translations (and placed boxes) of chosen parts next to a partial assembly.
@@ -287,13 +287,15 @@ class SuggestionEngine:
             means: (B, K, D) -> list of B arrays of distinct catalog rows (int64).
         """
         K = means.shape[1]
-        nn = min(len(self.catalog), self.settings.neighbours_per_mode)
         groups: dict[tuple, list[int]] = defaultdict(list)
         for b, q in enumerate(queries):
             groups[q.filter_key].append(b)
         found: list[np.ndarray] = [np.zeros(0, np.int64)] * len(queries)
         for members in groups.values():
             allowed = queries[members[0]].allowed
+            # At least k neighbours per mode, so that a large k is not starved of candidates.
+            want = max(self.settings.neighbours_per_mode, *(queries[b].k for b in members))
+            nn = min(len(self.catalog), want)
             flat = np.ascontiguousarray(means[members].reshape(-1, means.shape[2]), dtype=np.float32)
             labels = self._faiss_search(flat, nn, allowed)
             for j, b in enumerate(members):

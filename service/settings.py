@@ -52,8 +52,8 @@ class Settings(BaseSettings):
         "Most points (queries x points per query) in one ONNX Runtime run; larger batches are "
         "split, since activations that leave the CPU caches make a big run slower per query."))
     neighbours_per_mode: int = Field(default=64, ge=1, le=4096, description=(
-        "Catalog parts FAISS returns for each mixture mean; their union is re-scored by the "
-        "exact mixture log-likelihood."))
+        "Catalog parts FAISS returns for each mixture mean (at least the request's k); their "
+        "union is re-scored by the exact mixture log-likelihood."))
     seed: int = Field(default=0, description=(
         "Seed of the deterministic resampling of inputs to the model's point count and of "
         "mesh surface sampling."))

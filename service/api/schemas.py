@@ -121,7 +121,7 @@ class BatchRequest(_Strict):
     ]})
 
     # Items are validated one by one, so one malformed item fails alone.
-    items: list[dict[str, Any]] = Field(..., description=(
+    items: list[Any] = Field(..., description=(
         "Suggestion requests (each a SuggestRequest); at most COMPLEMENTME_MAX_BATCH_ITEMS."),
         json_schema_extra={"items": {"$ref": "#/components/schemas/SuggestRequest"}})
 

@@ -229,6 +229,7 @@ def test_batch_answers_good_items_and_flags_bad_ones(client: TestClient, catalog
         {"points": queries[2].points.tolist(), "category": "spaceship"},
         {"points_base64": points_to_base64(queries[2].points), "k": 2, "exclude_parts": ["no-such/0"]},
         {"points": queries[2].points.tolist(), "k": 6},
+        42,
     ]
     import json
 
@@ -237,10 +238,10 @@ def test_batch_answers_good_items_and_flags_bad_ones(client: TestClient, catalog
     assert response.status_code == 200, response.text
     answer = BatchResponse.model_validate(response.json())
     assert [r.index for r in answer.results] == list(range(len(items)))
-    assert [r.ok for r in answer.results] == [True, False, True, False, False, False, True]
+    assert [r.ok for r in answer.results] == [True, False, True, False, False, False, True, False]
     codes = [r.error.code if r.error else None for r in answer.results]
     assert codes == [None, "non_finite_points", None, "validation_error", "unknown_category", "unknown_part",
-                     None]
+                     None, "validation_error"]
     # Each good item equals the same query sent alone.
     for r, item in zip(answer.results, items, strict=True):
         if r.ok:

@@ -144,3 +144,10 @@ def test_chunked_runs_equal_one_run(engine: SuggestionEngine, query: AssemblyQue
                  (whole.query_features(batch), chunked.query_features(batch))):
         assert x.shape == y.shape
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+
+
+def test_a_large_k_is_not_starved(engine: SuggestionEngine, settings: Settings, query: AssemblyQuery) -> None:
+    narrow = SuggestionEngine(engine.artifacts, settings.model_copy(update={"neighbours_per_mode": 2}))
+    k = min(20, len(engine.catalog))
+    result = narrow.suggest(query.points, SuggestOptions(k=k, collapse_duplicates=False))
+    assert len(result.suggestions) == k
