@@ -35,7 +35,7 @@ def evaluate_command(
     queries: int = typer.Option(100, "--queries", help="Queries per category and setting (paper: 100)."),
     placement_queries: int = typer.Option(100, "--placement-queries",
                                           help="Placement queries per category and split."),
-    plausibility_queries: int = typer.Option(100, "--plausibility-queries",
+    plausibility_queries: int = typer.Option(50, "--plausibility-queries",
                                              help="All-but-one queries per category whose top-1 is "
                                                   "placed and checked for contact."),
     methods: str = typer.Option("random,ck10,fixed,ours", "--methods",
@@ -47,7 +47,7 @@ def evaluate_command(
     dense_points: int = typer.Option(1024, "--dense-points", help="Surface samples per part from its mesh."),
     ck10_shapes: int = typer.Option(5, "--ck10-shapes", help="CK10: similar shapes whose parts come first."),
     fixed_steps: int = typer.Option(3000, "--fixed-steps", help="Fixed-embedding baseline: steps of g."),
-    fixed_minutes: float = typer.Option(10.0, "--fixed-minutes",
+    fixed_minutes: float = typer.Option(8.0, "--fixed-minutes",
                                         help="Fixed-embedding baseline: wall-clock cap of its training."),
     fixed_dim: int = typer.Option(50, "--fixed-dim", help="Fixed-embedding baseline: PCA dimensions."),
     contact_tolerance: float = typer.Option(0.02, "--contact-tolerance",

@@ -87,7 +87,8 @@ class BenchmarkSettings:
     seed: int = 0
     queries_per_category: int = 100           # per setting (all-but-one, single); paper: 100
     placement_queries_per_category: int = 100  # per split (train, test)
-    plausibility_queries_per_category: int = 100  # all-but-one queries whose top-1 is placed and tested
+    plausibility_queries_per_category: int = 50   # per category: all-but-one and test placement queries
+                                              # whose placements get the (costly) contact test
     n_points: int | None = None               # query points (default: the manifest's n_points)
     dense_points: int = 1024                  # surface samples per part (queries, Hausdorff, contact)
     methods: tuple[str, ...] = METHOD_KEYS
