@@ -178,7 +178,7 @@ def _check_run(folder: Path, nets: Networks, catalog: Catalog, manifest: dict[st
 
 def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 1,
                    faiss_blas_threshold: int = 20, verify_checksums: bool = True,
-                   max_points_per_run: int = 4096) -> Artifacts:
+                   max_points_per_run: int = 1024) -> Artifacts:
     """Load and check an artifact folder; ``ArtifactError`` names the first bad file."""
     folder = Path(folder)
     if not folder.is_dir():

@@ -41,7 +41,7 @@ class Networks:
     h_query: ort.InferenceSession
     h_part: ort.InferenceSession
     h_head: ort.InferenceSession
-    max_points_per_run: int = 4096
+    max_points_per_run: int = 1024
 
     def _run_points(self, session: ort.InferenceSession, outputs: list[str], points: np.ndarray
                     ) -> list[np.ndarray]:
