@@ -149,9 +149,22 @@ class _Measure:
         self.slack = 2.0 / np.sqrt(config.contact_samples_per_area)
 
     def exact(self, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
-        if len(faces) == 0 or len(points) * len(faces) > self.config.exact_distance_budget:
+        """Exact distances from points to a mesh, or None when too costly (no faces, over budget).
+
+        Only triangles whose box comes within ``reach`` of the points' box can be closer than
+        that, so the others are dropped first: callers only care about distances below reach.
+        """
+        if len(faces) == 0 or len(points) == 0:
             return None
-        return points_to_mesh_distance(points, vertices, faces)
+        reach = max(self.config.tau_proximity, self.config.tau_hausdorff) + self.slack
+        tri = vertices[faces]
+        lo, hi = points.min(axis=0) - reach, points.max(axis=0) + reach
+        keep = np.all((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi), axis=1)
+        if not keep.any():
+            return np.full(len(points), np.inf)
+        if len(points) * int(keep.sum()) > self.config.exact_distance_budget:
+            return None
+        return points_to_mesh_distance(points, vertices, faces[keep])
 
     def in_contact(self, a: _Piece, b: _Piece, tree_b: cKDTree) -> bool:
         """Is the minimum distance between two pieces below tau_proximity?"""
@@ -166,7 +179,7 @@ class _Measure:
         if not np.isfinite(d).any():
             return False
         # Samples overestimate distances by up to their spacing: check the closest ones exactly.
-        order = np.argsort(d, kind="stable")[:256]
+        order = np.argsort(d, kind="stable")[:32]
         cand = near[order[np.isfinite(d[order])]]
         exact = self.exact(cand, b.vertices, b.faces)
         return exact is not None and bool(exact.min() < tau)
@@ -183,11 +196,15 @@ class _Measure:
         d, _ = tree_b.query(a_points, k=1, distance_upper_bound=tau + self.slack)
         if not np.isfinite(d).all():
             return False
-        far = a_points[d >= tau]
-        if len(far) == 0:
-            return True
-        exact = self.exact(far, b_vertices, b_faces)
-        return exact is not None and bool(exact.max() < tau)
+        # Points whose sampled distance is at or above tau may still be closer: check them exactly,
+        # farthest first, so a pair that fails usually fails on the first small batch.
+        far = np.flatnonzero(d >= tau)
+        far = far[np.argsort(-d[far], kind="stable")]
+        for start in range(0, len(far), 64):
+            exact = self.exact(a_points[far[start:start + 64]], b_vertices, b_faces)
+            if exact is None or exact.max() >= tau:
+                return False
+        return True
 
 
 def _contact_edges(pieces: list[_Piece], measure: _Measure, trees: list[cKDTree]) -> set[tuple[int, int]]:
