@@ -32,6 +32,7 @@ from training.evaluate.metrics import (
     percentile_rank,
     placement_error,
     recall_at_k,
+    style_set,
     styles_match,
 )
 from training.evaluate.ours import EngineMethod
@@ -84,6 +85,7 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
     group = cat.group if settings.collapse_duplicates else None
     k = settings.top_k
     out: list[dict[str, Any]] = []
+    style_cache: dict[frozenset[str], np.ndarray] = {}
     desc = f"{method.name} {queries[0].setting if queries else ''}"
     for q in tqdm(queries, desc=desc, disable=not progress, leave=False):
         pool = candidate_pool(index, q.shape_id, q.category, settings.pool_scope)
@@ -94,7 +96,11 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
         rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "shape_id": q.shape_id,
                                "top": [cat.part_ids[r] for r in top.tolist()]}
         # Style (both settings): a hit is a part from a shape of an overlapping fine-grained class.
-        same_style = np.array([styles_match(index.style[sid], q.style) for sid in cat.shape_ids], dtype=bool)
+        key = style_set(q.style)
+        if key not in style_cache:  # a few distinct styles: match every shape once per style
+            style_cache[key] = np.array([styles_match(index.style[sid], q.style) for sid in cat.shape_ids],
+                                        dtype=bool)
+        same_style = style_cache[key]
         pool_style, top_style = same_style[cat.shape_of[pool]], same_style[cat.shape_of[top]]
         rec["style_ap"] = (average_precision_at_k(top_style, relevant_in_pool(pool_style, pool, group), k)
                            if pool_style.size else math.nan)
