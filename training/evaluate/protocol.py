@@ -9,8 +9,8 @@ A query is built from a held-out shape of the shipped catalog (``split == "test"
   (Table 4), on the train and the test split.
 
 Query points are ``n_points`` area-weighted samples of the present components, in the shape's
-frame (the catalog's cached part samples moved by each part's translation), exactly like the
-training sampler does for X.
+frame (dense surface samples of each part's shipped mesh, moved by the part's translation), drawn
+the way the training sampler draws X.
 
 Candidates ("the pool") are catalog parts from *other* shapes only, by default of the query's
 category: a query can never retrieve a part of its own shape. Rankings are filtered to the
