@@ -226,7 +226,15 @@ def glider(rng: np.random.Generator, b: ShapeBuilder) -> None:
     b.add(fuselage(xs, r, lift, ellipse(1.0, 1.0, 14)), "body")
     b.add(ellipsoid(0.16, 0.5 * R + 0.03, 0.55 * R, 12, 5), "body", [translation(xs[2] - 0.05, 0.6 * R, 0)])
     span, root = _u(rng, 1.9, 2.0), _u(rng, 0.12, 0.17)
-    b.add(wing(xs[3] + root * 0.6, 0.5 * R, root, root * 0.45, span, 0.04, _u(rng, 0.03, 0.08)), "wing")
+    x_le, dihedral = xs[3] + root * 0.6, _u(rng, 0.03, 0.08)
+    b.add(wing(x_le, 0.5 * R, root, root * 0.45, span, 0.04, dihedral), "wing")
+    # Aileron hinges: identical pins through the wing near its trailing edge.
+    hinges = [
+        [x_le - 0.04 * f - 0.8 * root * (1 - 0.55 * f), 0.5 * R + dihedral * f, sz * f * span / 2]
+        for f in (0.55, 0.8)
+        for sz in (1, -1)
+    ]
+    b.bolts(np.array(hinges), "wing", 0.008, 0.03)
     fh = _u(rng, 0.18, 0.26)
     b.add(fin(-L / 2 + 0.19, lift[-1], 0.18, 0.11, fh, 0.06), "tail")
     b.add(wing(-L / 2 + 0.13, lift[-1] + fh - 0.01, 0.1, 0.06, _u(rng, 0.35, 0.45), 0.03, 0.0), "tail")

@@ -58,9 +58,8 @@ def _wheel(rw: float, ww: float) -> tuple[Mesh, Mesh, Mesh, list[np.ndarray]]:
     """Tyre (a revolved rounded rectangle), rim disc inside it and one lug nut with its
     placements on the rim's outer (+z) face; axis along z, centre at the origin."""
     to_z = rotation("x", 0.5 * np.pi)
-    tyre = lathe(rounded_rect(0.38 * rw, ww, 0.3 * ww, 1) + np.array([0.81 * rw, 0.0]), 16, closed=True).transformed(
-        to_z
-    )
+    section = rounded_rect(0.38 * rw, ww, 0.3 * ww, 1) + np.array([0.81 * rw, 0.0])
+    tyre = lathe(section, 16, closed=True).transformed(to_z)
     rim = lathe(
         np.array(
             [

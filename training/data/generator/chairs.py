@@ -10,10 +10,11 @@ from __future__ import annotations
 import numpy as np
 
 from training.data.generator.assembly import ShapeBuilder
-from training.data.generator.mesh import Mesh, compose, rotation, translation
+from training.data.generator.mesh import Mesh, compose, rotation, scaling, translation
 from training.data.generator.outlines import chaikin, ellipse, rounded_rect, superellipse
 from training.data.generator.primitives import (
     bent_path,
+    capsule,
     curved_plank,
     ellipsoid,
     frustum,
@@ -188,7 +189,12 @@ def swivel(rng: np.random.Generator, b: ShapeBuilder) -> None:
         base = translation(ax, hs - 0.6 * st, 0)
         b.add(post, "arm", [base, compose(base, rotation("y", np.pi))])
         b.add(
-            plate(rounded_rect(pl, 0.08, 0.03), 0.035, 0.008),
+            # A capsule along x, squashed to a pad 0.045 high and 0.09 wide.
+            capsule(pl - 0.09, 0.045, 12, 3).transformed(
+                compose(
+                    scaling(1.0, 0.5, 1.0), rotation("z", -0.5 * np.pi), translation(0, -(pl - 0.09) / 2, 0)
+                )
+            ),
             "arm",
             [translation(ax, hs - 0.6 * st + ah + 0.01, za), translation(ax, hs - 0.6 * st + ah + 0.01, -za)],
         )

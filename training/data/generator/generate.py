@@ -36,7 +36,7 @@ def style_of(category: str, index: int) -> str:
     return styles[index % len(styles)]
 
 
-def _category(name: str):
+def _category(name: str) -> Category:
     if name not in CATEGORIES:
         raise ValueError(f"unknown category {name!r}; known categories: {', '.join(CATEGORIES)}")
     return CATEGORIES[name]

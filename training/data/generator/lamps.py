@@ -138,6 +138,14 @@ def pendant(rng: np.random.Generator, b: ShapeBuilder) -> None:
     H = _u(rng, 1.6, 2.1)
     cr, ch = _u(rng, 0.1, 0.16), _u(rng, 0.06, 0.1)
     b.add(lathe(np.array([[0.0, H - ch], [0.6 * cr, H - ch], [cr, H - 0.3 * ch], [cr, H]]), 18), "base")
+    # Two screws through the canopy's rim into the ceiling.
+    b.bolts(
+        np.array([[s * 0.8 * cr, H - 0.6 * ch, 0.0] for s in (1, -1)]),
+        "base",
+        0.012,
+        0.01,
+        direction=(1.0, 0.0, 0.0),
+    )
     rw, dh = _u(rng, 0.45, 0.7), _u(rng, 0.3, 0.5)
     ys = _u(rng, 0.3, 0.6)  # bottom rim of the shade
     b.add(rod([0, ys + dh - 0.02, 0], [0, H - ch + 0.01, 0], _u(rng, 0.008, 0.014), segments=8), "tube")

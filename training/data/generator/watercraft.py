@@ -16,6 +16,7 @@ from training.data.generator.outlines import ccw, chaikin, rounded_rect
 from training.data.generator.primitives import (
     bent_path,
     box,
+    capsule,
     ellipsoid,
     extrude,
     frustum,
@@ -111,6 +112,17 @@ def sailboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     xc = _u(rng, -0.2, 0.0)
     cabin = chaikin(np.array([[cl / 2, -0.01], [cl / 2 - 0.08, ch], [-cl / 2, ch], [-cl / 2, -0.01]]), 1)
     b.add(extrude(cabin, 1.4 * W * 0.7, 0.02), "cabin", [translation(xc, 0.0, 0)])
+    b.add(
+        frustum(0.025, 0.02, 0.03, 10),
+        "cabin",
+        [translation(xc - cl / 2 + 0.07, ch - 0.01, sz * (0.7 * W - 0.05)) for sz in (1, -1)],
+    )  # winches
+    stanchions = [
+        translation(x, 0.0, sz * (float(np.interp(x, xs, inner)) - 0.015))
+        for x in np.linspace(-0.3 * L, 0.25 * L, 4)
+        for sz in (1, -1)
+    ]
+    b.add(rod([0, -0.01, 0], [0, 0.09, 0], 0.005, segments=6), "deck", stanchions)
     hm, xm = _u(rng, 1.2, 1.6), xc + cl / 2 - 0.04
     b.add(rod([xm, -0.02, 0], [xm, hm, 0], _u(rng, 0.012, 0.018), segments=8), "mast")
     boom_y, main_l = ch + _u(rng, 0.06, 0.12), _u(rng, 0.5, 0.7)
@@ -223,7 +235,7 @@ def ship(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def rowboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Rowing boat: double-ended open hull, plank seats across it, two oars resting in oarlocks."""
-    L, W, D = _u(rng, 1.6, 2.0), _u(rng, 0.28, 0.36), _u(rng, 0.16, 0.22)
+    L, W, D = _u(rng, 1.6, 2.0), _u(rng, 0.28, 0.36), _u(rng, 0.2, 0.26)
     m = 11
     s = np.linspace(-1, 1, m)
     beam = np.maximum(W * (1 - np.abs(s) ** 2.2), 0.03)
@@ -234,14 +246,16 @@ def rowboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     n = int(rng.integers(2, 4))
     sw, st = _u(rng, 0.1, 0.14), 0.025
     seat_x = np.linspace(-0.25 * L, 0.25 * L, n)
-    sy = -_u(rng, 0.06, 0.1)
+    sy = -_u(rng, 0.04, 0.07)  # well above the bottom, so a seat stays a part of its own
     # Seats touch the inner walls: their length follows the width where they sit.
     for x in seat_x:
         half = float(np.interp(x, xs, inner)) * (1 - 0.2 * (-sy / D))
         b.add(plate(rounded_rect(sw, 2 * half + 0.01, 0.01), st, 0.004), "seat", [translation(x, sy, 0)])
     ol = _u(rng, 1.0, 1.3)
     blade = ellipsoid(0.12, 0.008, 0.045, 10, 4).transformed(translation(-ol / 2 + 0.1, 0, 0))
-    shaft = rod([-ol / 2 + 0.15, 0, 0], [ol / 2, 0, 0], 0.012, segments=8)
+    shaft = capsule(ol - 0.15, 0.012, 8, 2).transformed(
+        compose(rotation("z", -0.5 * np.pi), translation(0, -ol / 2 + 0.15, 0))
+    )
     oar = concatenate([shaft, blade])
     xo = float(seat_x[len(seat_x) // 2]) + 0.05
     zo = float(np.interp(xo, xs, beam))
