@@ -143,6 +143,9 @@ class SuggestionEngine:
         """
         s = self.settings
         pts = frame.to_canonical(check_points(points, s.min_points, s.max_points))
+        if not np.isfinite(pts).all():  # finite input, but a frame that blows it up (tiny radius)
+            raise InputError("non_finite_points", "points are not finite in the canonical frame; "
+                             "check the frame's center and radius")
         n = self.artifacts.n_points
         if len(pts) != n:
             pts = resample_points(pts, n, s.seed)

@@ -65,7 +65,8 @@ class Frame:
         if self.is_canonical:
             return np.asarray(points, dtype=np.float32)
         q = (np.asarray(points, dtype=np.float64) - self.center) / self.radius
-        return (q @ self.rotation.T).astype(np.float32)
+        with np.errstate(over="ignore"):  # out-of-range values become inf; callers check finiteness
+            return (q @ self.rotation.T).astype(np.float32)
 
     def from_canonical(self, points: np.ndarray) -> np.ndarray:
         """Canonical positions to the caller's frame: (N, 3) -> (N, 3) float64."""

@@ -46,7 +46,8 @@ def points_from_base64(text: str, max_points: int) -> np.ndarray:
     if len(text) > 4 * ((12 * max_points + 2) // 3):
         raise InputError("too_many_points", f"points_base64 holds more than the limit of {max_points} points")
     try:
-        raw = base64.b64decode(text, validate=True)
+        # Line breaks and spaces (MIME-style wrapping) are allowed; any other stray character is not.
+        raw = base64.b64decode("".join(text.split()), validate=True)
     except (binascii.Error, ValueError) as exc:
         raise InputError("invalid_base64", f"points_base64 is not valid base64 ({exc})") from None
     if len(raw) % 12:

@@ -61,3 +61,10 @@ def test_mesh_format() -> None:
         mesh_format("chair.fbx", None)
     with pytest.raises(UnsupportedMediaError):
         mesh_format(None, None)
+
+
+def test_base64_may_be_wrapped() -> None:
+    pts = np.arange(60, dtype=np.float32).reshape(20, 3)
+    text = points_to_base64(pts)
+    wrapped = "\n".join(text[i:i + 76] for i in range(0, len(text), 76))
+    np.testing.assert_array_equal(points_from_base64(wrapped, 100), pts)
