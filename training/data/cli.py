@@ -19,7 +19,7 @@ data_app = typer.Typer(help="Shape data: generate, ingest, preprocess (paper Sec
 
 @data_app.command("generate")
 def generate_cmd(
-    out: Path = typer.Option(Path("data/raw"), "--out", help="Writes <out>/<category>/<shape_id>.glb + .json."),
+    out: Path = typer.Option(Path("data/raw"), "--out", help="Writes <category>/<shape_id>.glb + .json."),
     seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed (same seed: byte-identical files)."),
     shapes_per_category: int = typer.Option(180, "--shapes-per-category", min=1, help="Shapes per category."),
     category: list[str] | None = typer.Option(
