@@ -98,7 +98,8 @@ def plot_histograms(summary: dict[str, Any], path: Path) -> None:
         ax.axvspan(lo - 0.5, hi + 0.5, color="#4c72b0", alpha=0.06, lw=0)
         ax.set_title(f"{r['category']} ({r['shapes']})\n{r['discarded']} discarded", fontsize=9)
         ax.set_xticks(xs)
-        ax.margins(y=0.1)
+        # Explicit limits: the shaded span would otherwise pin the y range to the tallest bar.
+        ax.set_ylim(0, 1.15 * max([*(r["histogram"].get(n, 0) for n in xs), 1]))
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(rows):]:
         ax.axis("off")
