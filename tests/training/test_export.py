@@ -23,7 +23,7 @@ from service.artifacts import (
     MANIFEST,
     read_manifest,
 )
-from training.catalog import find_duplicates
+from training.catalog import find_duplicates, sample_parts
 from training.checkpoint import load_trained
 from training.export import ExportOptions, export_graphs, export_run, graph_modules
 from training.split import load_split
@@ -126,6 +126,13 @@ def test_exported_folder_loads_and_is_consistent(exported: Path, tiny_run: Path,
     assert arrays["embeddings"].shape == (P, cfg.model.embedding_dim)
     assert arrays["embeddings"].dtype == np.float32
     assert arrays["part_features"].shape == (P, manifest["part_feature_dim"])
+    # The stored embeddings and features are what the shipped graphs compute (features as float16).
+    parts = sample_parts(toy_dataset, manifest["n_points"], seed=0)[:6]
+    emb = _session(exported / GRAPH_FILES["f"]).run(None, {"points": parts})[0]
+    np.testing.assert_allclose(arrays["embeddings"][:6], emb, atol=1e-5)
+    feats = _session(exported / GRAPH_FILES["h_part"]).run(None, {"points": parts})[0]
+    np.testing.assert_allclose(arrays["part_features"][:6].astype(np.float32), feats, rtol=2e-3, atol=1e-3)
+    assert arrays["mesh_faces"].dtype == np.uint16 and arrays["mesh_vertices"].dtype == np.float16
     assert arrays["points"].shape == (P, 256, 3) and arrays["points"].dtype == np.float16
     assert arrays["vertex_first"][-1] == len(arrays["mesh_vertices"])
 
@@ -141,7 +148,8 @@ def test_exported_folder_loads_and_is_consistent(exported: Path, tiny_run: Path,
     assert (sigma > 0).all() and (sigma <= cfg.model.sigma_max + 1e-6).all()
     qf = sessions["h_query"].run(None, {"points": pts})[0]
     assert qf.shape == (2, manifest["query_feature_dim"])
-    tr = sessions["h_head"].run(None, {"query_feature": qf, "part_feature": arrays["part_features"][:2]})[0]
+    pf = arrays["part_features"][:2].astype(np.float32)
+    tr = sessions["h_head"].run(None, {"query_feature": qf, "part_feature": pf})[0]
     assert tr.shape == (2, 3) and np.isfinite(tr).all()
 
 
