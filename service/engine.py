@@ -10,7 +10,13 @@ One request (or a batch of them) goes through these steps, each one batched:
 4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
    parts collapsed (catalog ``duplicate_of``), the top k kept;
 5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
-   features from catalog.npz; translations and boxes mapped back to the caller's frame.
+   features from catalog.npz;
+6. contact refinement (``service.contact``, on unless a request turns it off): each placed part
+   nudged by at most ``contact_max_offset`` so it touches the query's points; translations and
+   boxes mapped back to the caller's frame.
+
+Requests may also reweight or exclude g's modes and ask for a mode-balanced gallery
+(``service.preferences``).
 
 No HTTP here: routes, the CLI and tests call these methods directly.
 """
@@ -26,12 +32,14 @@ from typing import Any
 import faiss
 import numpy as np
 
+from service.contact import ContactParams, PartContacts
 from service.errors import InputError, ServiceError
 from service.frames import Frame
 from service.geometry import resample_points
 from service.inputs import check_points
 from service.loading import Artifacts
 from service.mixture import mixture_log_likelihood
+from service.preferences import Preferences, diverse_order
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -47,6 +55,9 @@ class SuggestOptions:
     exclude_shapes: tuple[str, ...] = ()     # never parts of these source shapes
     collapse_duplicates: bool = True         # one part per near-duplicate group
     frame: Frame = field(default_factory=Frame)
+    refine_contact: bool = True              # nudge placements into contact (service.contact)
+    styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
+    preferences: Preferences = field(default_factory=Preferences)  # mode weights, exclusions, gallery
 
 
 @dataclass
@@ -70,6 +81,7 @@ class Suggestion:
     translation: np.ndarray
     bbox_min: np.ndarray
     bbox_max: np.ndarray
+    contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
 
 
 @dataclass
@@ -90,13 +102,18 @@ class SuggestResult:
 
 @dataclass
 class Placement:
-    """Where one chosen part goes. Shapes: translation, bbox_min, bbox_max: (3,) caller frame."""
+    """Where one chosen part goes.
+
+    Shapes:
+        translation, bbox_min, bbox_max, contact_offset: (3,) caller frame.
+    """
 
     part_index: int
     part_id: str
     translation: np.ndarray
     bbox_min: np.ndarray
     bbox_max: np.ndarray
+    contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
 
 
 @dataclass
@@ -113,6 +130,7 @@ class _Query:
 
     item: int
     points: np.ndarray                 # (N, 3) float32 canonical, resampled
+    full: np.ndarray                   # (M, 3) float32 canonical, as given (contact refinement)
     n_input: int
     options: SuggestOptions
     k: int
@@ -129,27 +147,46 @@ class SuggestionEngine:
         self.catalog = artifacts.catalog
         self.networks = artifacts.networks
         self.index = artifacts.index
+        self.contacts = PartContacts(
+            ContactParams(max_offset=settings.contact_max_offset, tolerance=settings.contact_tolerance,
+                          search_points=settings.contact_search_points, seed=settings.seed),
+            part_samples=settings.contact_part_samples, assembly_points=settings.contact_assembly_points,
+            cache_entries=settings.contact_cache_parts)
+        self._styles: tuple[int, np.ndarray] | None = None  # (catalog id, style per part)
 
     @property
     def model_version(self) -> str:
         return self.artifacts.model_version
 
     # ---------------------------------------------------------------- step 1: input
-    def prepare(self, points: np.ndarray, frame: Frame) -> np.ndarray:
-        """Check limits, map to the canonical frame and resample to N points.
+    def canonical(self, points: np.ndarray, frame: Frame) -> np.ndarray:
+        """Check limits and map to the canonical frame.
 
         Shapes:
-            points: (M, 3) in the caller's frame -> (N, 3) float32 canonical.
+            points: (M, 3) in the caller's frame -> (M, 3) float32 canonical.
         """
         s = self.settings
         pts = frame.to_canonical(check_points(points, s.min_points, s.max_points))
         if not np.isfinite(pts).all():  # finite input, but a frame that blows it up (tiny radius)
             raise InputError("non_finite_points", "points are not finite in the canonical frame; "
                              "check the frame's center and radius")
+        return pts
+
+    def resample(self, canonical: np.ndarray) -> np.ndarray:
+        """Canonical points resampled to the networks' N points (seeded): (M, 3) -> (N, 3) float32."""
         n = self.artifacts.n_points
+        pts = canonical
         if len(pts) != n:
-            pts = resample_points(pts, n, s.seed)
+            pts = resample_points(pts, n, self.settings.seed)
         return np.ascontiguousarray(pts, dtype=np.float32)
+
+    def prepare(self, points: np.ndarray, frame: Frame) -> np.ndarray:
+        """Check limits, map to the canonical frame and resample to N points.
+
+        Shapes:
+            points: (M, 3) in the caller's frame -> (N, 3) float32 canonical.
+        """
+        return self.resample(self.canonical(points, frame))
 
     def _resolve(self, item: int, points: np.ndarray, options: SuggestOptions) -> _Query:
         s, cat = self.settings, self.catalog
@@ -169,10 +206,27 @@ class SuggestionEngine:
         if options.exclude_shapes:
             keep = ~np.isin(cat.shape_of, [cat.shape_code(sid) for sid in options.exclude_shapes])
             allowed = keep if allowed is None else allowed & keep
+        if options.styles:
+            keep = self._style_mask(options.styles)
+            allowed = keep if allowed is None else allowed & keep
+        options.preferences.check(self.artifacts.n_modes)
         key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
-               tuple(sorted(options.exclude_shapes)))
-        canonical = self.prepare(points, options.frame)
-        return _Query(item, canonical, len(points), options, k, allowed, key)
+               tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)))
+        full = self.canonical(points, options.frame)
+        return _Query(item, self.resample(full), full, len(points), options, k, allowed, key)
+
+    def _style_mask(self, styles: tuple[str, ...]) -> np.ndarray:
+        """Parts whose catalog ``style`` is one of ``styles``; ``InputError`` naming unknown styles."""
+        cat = self.catalog
+        if self._styles is None or self._styles[0] != id(cat.records) or len(self._styles[1]) != len(cat):
+            self._styles = (id(cat.records), np.array([str(r.get("style") or "") for r in cat.records]))
+        per_part = self._styles[1]
+        known = set(per_part.tolist()) - {""}
+        unknown = [s for s in styles if s not in known]
+        if unknown:
+            raise InputError("unknown_style", f"unknown style(s) {', '.join(map(repr, unknown))}; known "
+                             f"styles: {', '.join(sorted(known))}")
+        return np.isin(per_part, list(styles))
 
     # ---------------------------------------------------------------- public API
     def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
@@ -228,21 +282,30 @@ class SuggestionEngine:
         translations = (self.networks.place(qf[rows], self.catalog.part_features[parts])
                         if len(parts) else np.zeros((0, 3), np.float32))
         timings["h_head"] = time.perf_counter() - t
+        t = time.perf_counter()
+        offsets = np.zeros((len(parts), 3))
+        for b, q in enumerate(queries):
+            sel = rows == b
+            if q.options.refine_contact and sel.any():
+                offsets[sel] = self.contact_offsets(q.full, parts[sel], translations[sel])
+        timings["contact"] = time.perf_counter() - t
 
         out: dict[int, SuggestResult | ServiceError] = dict(errors)
         start = 0
         for b, q in enumerate(queries):
             idx, scores, modes, n_cand = ranked[b]
             tr = translations[start:start + len(idx)]
+            off = offsets[start:start + len(idx)]
             start += len(idx)
             out[q.item] = SuggestResult(
-                suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, q.options.frame),
+                suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame),
                 mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
                 candidates=n_cand, timings=timings)
         timings["total"] = time.perf_counter() - t0
         return [out[i] for i in range(len(items))]
 
-    def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None) -> PlaceResult:
+    def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None,
+              refine_contact: bool = True) -> PlaceResult:
         """Translations (and placed boxes) of chosen parts next to a partial assembly.
 
         Shapes:
@@ -256,7 +319,8 @@ class SuggestionEngine:
                              f"{self.settings.max_place_parts} are accepted")
         idx = np.array([self.catalog.lookup(p) for p in part_ids], dtype=np.int64)
         t0 = time.perf_counter()
-        canonical = self.prepare(points, frame)
+        full = self.canonical(points, frame)
+        canonical = self.resample(full)
         timings = {"prepare": time.perf_counter() - t0}
         t = time.perf_counter()
         qf = self.networks.query_features(canonical[None])
@@ -264,8 +328,12 @@ class SuggestionEngine:
         t = time.perf_counter()
         tr = self.networks.place(np.repeat(qf, len(idx), axis=0), self.catalog.part_features[idx])
         timings["h_head"] = time.perf_counter() - t
-        trans, lo, hi = self._placed(idx, tr, frame)
-        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j])
+        t = time.perf_counter()
+        off = self.contact_offsets(full, idx, tr) if refine_contact else np.zeros((len(idx), 3))
+        timings["contact"] = time.perf_counter() - t
+        trans, lo, hi = self._placed(idx, tr + off, frame)
+        off_caller = off @ frame.rotation * frame.radius
+        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j], off_caller[j])
                       for j, i in enumerate(idx)]
         return PlaceResult(placements, frame, len(points), timings)
 
@@ -280,7 +348,17 @@ class SuggestionEngine:
         log.info("warm-up passed: %d suggestions in %.1f ms", len(result.suggestions),
                  1000 * result.timings.get("total", 0.0))
 
-    # ---------------------------------------------------------------- steps 3-5
+    def contact_offsets(self, full: np.ndarray, rows: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """Contact refinement offsets (canonical) of parts placed next to canonical points.
+
+        Shapes:
+            full: (M, 3) canonical query points; rows: (n,); translations: (n, 3) -> (n, 3) float64.
+        """
+        assembly = self.contacts.assembly_from_points(full)
+        found = self.contacts.refine(self.catalog, rows, translations, assembly)
+        return np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
+
+    # ---------------------------------------------------------------- steps 3-6
     def _search(self, queries: list[_Query], means: np.ndarray) -> list[np.ndarray]:
         """Candidate catalog rows per query: FAISS neighbours of all its modes' means.
 
@@ -334,15 +412,28 @@ class SuggestionEngine:
         if len(cand) == 0:
             empty = np.zeros(0, np.int64)
             return empty, np.zeros(0), empty, 0
-        ll, mode = mixture_log_likelihood(self.catalog.embeddings[cand], weights, means, sigmas)
+        prefs = q.options.preferences
+        emb = self.catalog.embeddings[cand]
+        n_scored = len(cand)
+        if prefs.exclude_modes:  # drop the parts g's own mixture puts in an excluded mode
+            _, own_mode = mixture_log_likelihood(emb, weights, means, sigmas)
+            keep_own = ~np.isin(own_mode, prefs.exclude_modes)
+            cand, emb = cand[keep_own], emb[keep_own]
+        w = prefs.weights(weights) if prefs.reweights else weights
+        live = np.flatnonzero(w > 0)  # a mode weighted 0 contributes nothing (not even a floor)
+        ll, best = mixture_log_likelihood(emb, w[live], means[live], sigmas[live])
+        mode = live[best]
         order = np.argsort(-ll, kind="stable")  # ties keep catalog order: deterministic
         cand, ll, mode = cand[order], ll[order], mode[order]
         if q.options.collapse_duplicates:
             _, first = np.unique(self.catalog.group[cand], return_index=True)
-            keep = np.sort(first)[:q.k]
+            keep = np.sort(first)
         else:
-            keep = np.arange(min(q.k, len(cand)))
-        return cand[keep], ll[keep], mode[keep], len(order)
+            keep = np.arange(len(cand))
+        if prefs.diversity:
+            keep = keep[diverse_order(mode[keep], w, self.settings.diversity_min_mode_weight)]
+        keep = keep[:q.k]
+        return cand[keep], ll[keep], mode[keep], n_scored
 
     def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -352,9 +443,10 @@ class SuggestionEngine:
         return frame.from_canonical(t), lo, hi
 
     def _suggestions(self, idx: np.ndarray, scores: np.ndarray, modes: np.ndarray, weights: np.ndarray,
-                     translations: np.ndarray, frame: Frame) -> list[Suggestion]:
+                     translations: np.ndarray, offsets: np.ndarray, frame: Frame) -> list[Suggestion]:
         cat = self.catalog
-        trans, lo, hi = self._placed(idx, translations, frame)
+        trans, lo, hi = self._placed(idx, translations + offsets, frame)
+        off_caller = offsets @ frame.rotation * frame.radius
         out = []
         for r, i in enumerate(idx.tolist()):
             rec = cat.records[i]
@@ -362,7 +454,8 @@ class SuggestionEngine:
                 rank=r + 1, part_index=i, part_id=rec["part_id"], shape_id=rec["shape_id"],
                 category=rec["category"], label=rec["label"], score=float(scores[r]),
                 mode=int(modes[r]), mode_weight=float(weights[modes[r]]),
-                duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r]))
+                duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
+                contact_offset=off_caller[r]))
         return out
 
 

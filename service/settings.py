@@ -62,6 +62,42 @@ class Settings(BaseSettings):
     warmup: bool = Field(default=True, description=(
         "Run one suggestion at start; `/readyz` reports ready only after it passed."))
 
+    # --- modeling: contact refinement, preferences, assembly, export (docs/modeling.md) -------
+    contact_max_offset: float = Field(default=0.1, ge=0, le=1, description=(
+        "Largest move of contact refinement, in units of the complete object's radius; a part "
+        "that needs more keeps the placement network's translation (0: refinement never moves)."))
+    contact_tolerance: float = Field(default=0.01, gt=0, le=0.1, description=(
+        "Gap and penetration depth (sampled, object radius units) that count as touching; also "
+        "the step of the refinement's line search."))
+    contact_search_points: int = Field(default=128, ge=8, le=4096, description=(
+        "Samples per side (part, assembly) measured at each candidate offset of the refinement."))
+    contact_part_samples: int = Field(default=512, ge=32, le=20_000, description=(
+        "Oriented surface samples drawn from each catalog part's mesh for contact tests (cached)."))
+    contact_assembly_points: int = Field(default=20_000, ge=16, description=(
+        "Most query points used as the assembly in contact tests (more are subsampled, seeded)."))
+    contact_cache_parts: int = Field(default=4096, ge=1, description=(
+        "Catalog parts whose contact samples are kept in memory (least recently used dropped)."))
+    diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
+        "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
+        "ran out of parts."))
+    assemble_max_parts: int = Field(default=8, ge=1, description=(
+        "Parts `/assemble` adds to the start when the request gives no `max_parts`."))
+    max_assemble_parts: int = Field(default=24, ge=1, description=(
+        "Largest `max_parts` of an `/assemble` request."))
+    assemble_candidates: int = Field(default=10, ge=1, description=(
+        "Suggestions `/assemble` considers at each step (the sampler draws among them)."))
+    assemble_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
+        "`/assemble` stops when no candidate's mode has at least this weight phi_k."))
+    assemble_max_distance: float = Field(default=4.0, gt=0, description=(
+        "`/assemble` stops when no candidate lies within this distance of its mode's mean, in "
+        "root-mean-square standard deviations of that mode (1 = a typical draw from it)."))
+    assemble_duplicate_distance: float = Field(default=0.03, ge=0, description=(
+        "`/assemble` skips a candidate whose placed samples lie within this Chamfer distance "
+        "(object radius units) of a part already placed: the same geometry at the same spot."))
+    assemble_max_nodes: int = Field(default=63, ge=1, description=(
+        "Most parts placed over a whole `branching` tree of `/assemble` (its size bound)."))
+    max_export_parts: int = Field(default=200, ge=1, description="Most parts one `/export` request may give.")
+
     # --- limits on requests -----------------------------------------------------------------
     min_points: int = Field(default=16, ge=1, description="Fewest points a query may have.")
     max_points: int = Field(default=100_000, ge=1, description="Most points a query may have.")

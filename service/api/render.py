@@ -41,7 +41,8 @@ def render_suggest(result: SuggestResult, model_version: str) -> dict[str, Any]:
         "suggestions": [{
             "rank": s.rank, "part_id": s.part_id, "shape_id": s.shape_id, "category": s.category,
             "label": s.label, "score": s.score, "mode": s.mode, "mode_weight": s.mode_weight,
-            "duplicates": s.duplicates, "translation": _vec(s.translation), "bbox_min": _vec(s.bbox_min),
+            "duplicates": s.duplicates, "translation": _vec(s.translation),
+            "contact_offset": _vec(s.contact_offset), "bbox_min": _vec(s.bbox_min),
             "bbox_max": _vec(s.bbox_max), "links": part_links(s.part_id),
         } for s in result.suggestions],
     }
@@ -52,7 +53,8 @@ def render_place(result: PlaceResult, model_version: str) -> dict[str, Any]:
         "model_version": model_version,
         "frame": render_frame(result.frame),
         "placements": [{
-            "part_id": p.part_id, "translation": _vec(p.translation), "bbox_min": _vec(p.bbox_min),
+            "part_id": p.part_id, "translation": _vec(p.translation),
+            "contact_offset": _vec(p.contact_offset), "bbox_min": _vec(p.bbox_min),
             "bbox_max": _vec(p.bbox_max), "links": part_links(p.part_id),
         } for p in result.placements],
     }

@@ -17,6 +17,7 @@ from service.engine import SuggestOptions
 from service.errors import InputError
 from service.frames import Frame
 from service.inputs import points_from_base64, points_from_list, points_to_base64
+from service.preferences import Preferences
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[float, float, float]
@@ -57,13 +58,34 @@ class SuggestOptionsIn(_Strict):
     collapse_duplicates: bool = Field(default=True, description=(
         "Show one part per group of near-identical parts."))
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
+    style: str | list[str] | None = Field(default=None, description=(
+        "Only parts of this catalog style (or styles), e.g. \"armchair\"."))
+    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] | None = Field(
+        default=None, description=(
+            "One factor per mixture mode (GET /model: n_modes) multiplying g's mode weights before "
+            "ranking: favour some kinds of complement over others."))
+    exclude_modes: list[int] = Field(default_factory=list, description=(
+        "Mixture modes whose kind of complement is never suggested."))
+    diversity: bool = Field(default=False, description=(
+        "A gallery balanced over modes: round-robin over the modes by weight instead of "
+        "likelihood order."))
+    refine_contact: bool = Field(default=True, description=(
+        "Nudge each placement (at most COMPLEMENTME_CONTACT_MAX_OFFSET) so the part touches the "
+        "query without sinking into it; the move is reported as contact_offset."))
+
+    def preferences(self) -> Preferences:
+        return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
+                           exclude_modes=tuple(self.exclude_modes), diversity=self.diversity)
 
     def to_options(self) -> SuggestOptions:
         cats = [self.category] if isinstance(self.category, str) else list(self.category or [])
+        styles = [self.style] if isinstance(self.style, str) else list(self.style or [])
         return SuggestOptions(k=self.k, categories=tuple(cats), exclude_parts=tuple(self.exclude_parts),
                               exclude_shapes=tuple(self.exclude_shapes),
                               collapse_duplicates=self.collapse_duplicates,
-                              frame=self.frame.to_frame() if self.frame else Frame())
+                              frame=self.frame.to_frame() if self.frame else Frame(),
+                              refine_contact=self.refine_contact, styles=tuple(styles),
+                              preferences=self.preferences())
 
 
 class PointsIn(_Strict):
@@ -111,6 +133,8 @@ class PlaceRequest(PointsIn):
 
     part_ids: list[str] = Field(..., description="Catalog part ids to place.")
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
+    refine_contact: bool = Field(default=True, description=(
+        "Nudge each placement so the part touches the query without sinking into it."))
 
 
 class BatchRequest(_Strict):
@@ -173,6 +197,8 @@ class SuggestionOut(BaseModel):
     mode_weight: float = Field(..., description="That mode's weight.")
     duplicates: int = Field(..., description="Catalog parts in this part's near-duplicate group.")
     translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
+    contact_offset: Vec3 = Field(..., description=(
+        "The contact refinement's share of the translation (zero when off or not needed)."))
     bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame).")
     bbox_max: Vec3
     links: PartLinks
@@ -192,8 +218,8 @@ class SuggestResponse(BaseModel):
         "suggestions": [{
             "rank": 1, "part_id": "chair-0007/2", "shape_id": "chair-0007", "category": "chair",
             "label": "leg", "score": 41.2, "mode": 0, "mode_weight": 0.61, "duplicates": 4,
-            "translation": [0.31, -0.52, 0.28], "bbox_min": [0.27, -0.98, 0.24],
-            "bbox_max": [0.35, -0.06, 0.32],
+            "translation": [0.31, -0.52, 0.28], "contact_offset": [0.0, -0.012, 0.0],
+            "bbox_min": [0.27, -0.98, 0.24], "bbox_max": [0.35, -0.06, 0.32],
             "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
                       "points": "/parts/chair-0007/2/points"}}],
     }]})
@@ -209,6 +235,8 @@ class SuggestResponse(BaseModel):
 class PlacementOut(BaseModel):
     part_id: str
     translation: Vec3
+    contact_offset: Vec3 = Field(..., description=(
+        "The contact refinement's share of the translation (zero when off or not needed)."))
     bbox_min: Vec3
     bbox_max: Vec3
     links: PartLinks
@@ -220,6 +248,7 @@ class PlaceResponse(BaseModel):
         "frame": {"center": [0, 0, 0], "radius": 1.0, "up_axis": "y", "scale": 1.0,
                   "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
         "placements": [{"part_id": "chair-0007/2", "translation": [0.31, -0.52, 0.28],
+                        "contact_offset": [0.0, -0.012, 0.0],
                         "bbox_min": [0.27, -0.98, 0.24], "bbox_max": [0.35, -0.06, 0.32],
                         "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
                                   "points": "/parts/chair-0007/2/points"}}],

@@ -128,6 +128,7 @@ def post_suggest_batch(body: BatchRequest, engine: EngineDep, settings: Settings
 def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
                metrics: MetricsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
-    result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None)
+    result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None,
+                          refine_contact=body.refine_contact)
     metrics.observe_engine(result.timings, 1, [])
     return OrjsonResponse(render_place(result, engine.model_version))

@@ -1,0 +1,95 @@
+"""User preferences over g's mixture: weight or exclude modes, and a mode-balanced gallery.
+
+g predicts one Gaussian mode per kind of complement (legs, a back, arms, ...). A request may
+
+* ``mode_weights``: multiply each mode's weight phi_k by a factor (renormalised), so that the
+  kinds a user favours rank higher. Scores and each part's ``mode`` are computed under the
+  reweighted mixture.
+* ``exclude_modes``: drop kinds altogether. Those modes get weight 0, and a candidate that the
+  model's own mixture explains best by an excluded mode is dropped too (it is "of that kind"
+  even if another mode also covers it a little).
+* ``diversity``: order the suggestions as a gallery balanced over modes instead of by
+  likelihood alone: round-robin over the modes in order of their (reweighted) weight, each
+  round taking every mode's next best part. Modes whose weight is below a floor
+  (``min_weight``) join only when the others have run out.
+
+Pure numpy; the engine calls these between scoring and cutting to k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.errors import InputError
+
+
+@dataclass(frozen=True)
+class Preferences:
+    """What a request asks of the mixture (defaults: the model's own mixture, likelihood order)."""
+
+    mode_weights: tuple[float, ...] | None = None
+    exclude_modes: tuple[int, ...] = ()
+    diversity: bool = False
+
+    @property
+    def reweights(self) -> bool:
+        return self.mode_weights is not None or bool(self.exclude_modes)
+
+    def check(self, n_modes: int) -> None:
+        """Raise ``InputError`` if the preferences do not fit a mixture of ``n_modes`` modes."""
+        if self.mode_weights is not None:
+            w = np.asarray(self.mode_weights, dtype=np.float64)
+            if len(w) != n_modes:
+                raise InputError("bad_mode_weights", f"mode_weights has {len(w)} values; the model has "
+                                 f"{n_modes} modes (give one weight per mode)")
+            if not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise InputError("bad_mode_weights", "mode_weights must be finite and >= 0")
+        bad = [k for k in self.exclude_modes if not 0 <= k < n_modes]
+        if bad:
+            raise InputError("unknown_mode", f"exclude_modes names mode(s) {bad}; modes are 0 to "
+                             f"{n_modes - 1}")
+        if len(set(self.exclude_modes)) >= n_modes:
+            raise InputError("all_modes_excluded", "exclude_modes excludes every mode; keep at least one")
+
+    def weights(self, phi: np.ndarray) -> np.ndarray:
+        """The mixture weights after the preferences, renormalised.
+
+        Shapes:
+            phi: (K,) -> (K,) float64.
+        """
+        w = np.asarray(phi, dtype=np.float64).copy()
+        if self.mode_weights is not None:
+            w *= np.asarray(self.mode_weights, dtype=np.float64)
+        if self.exclude_modes:
+            w[list(self.exclude_modes)] = 0.0
+        total = w.sum()
+        if not total > 0:
+            raise InputError("all_modes_excluded", "the preferences leave every mode of this query with "
+                             "weight 0; give a positive weight to at least one mode")
+        return w / total
+
+
+def diverse_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> np.ndarray:
+    """Round-robin over modes by weight: positions into ``modes`` (already in likelihood order).
+
+    Args:
+        modes: (C,) each candidate's mode, candidates sorted by likelihood (best first).
+        weights: (K,) the (reweighted) mode weights.
+        min_weight: modes below this weight come after all the others.
+
+    Returns:
+        (C,) int64 positions: the gallery order.
+    """
+    modes = np.asarray(modes)
+    present = np.unique(modes)
+    strong = sorted((k for k in present if weights[k] >= min_weight), key=lambda k: (-weights[k], k))
+    weak = sorted((k for k in present if weights[k] < min_weight), key=lambda k: (-weights[k], k))
+    order: list[int] = []
+    for group in (strong, weak):
+        queues = [np.flatnonzero(modes == k).tolist() for k in group]
+        depth = max((len(q) for q in queues), default=0)
+        for r in range(depth):
+            order.extend(q[r] for q in queues if r < len(q))
+    return np.asarray(order, dtype=np.int64)

@@ -1,0 +1,202 @@
+"""Contact refinement: synthetic contacts with known answers, then the engine and the API on artifacts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from service_testkit import AssemblyQuery
+
+from service.contact import (
+    Assembly,
+    ContactParams,
+    Surface,
+    SurfaceCache,
+    measure_contact,
+    refine_offset,
+    sample_oriented,
+)
+from service.engine import SuggestionEngine, SuggestOptions
+from service.frames import Frame
+from training.evaluate.contact import Mesh, contact
+
+SEAT_TOP = 0.03  # the seat box spans y in [-0.03, 0.03]
+LEG_HALF = 0.4   # the leg cylinder spans y in [-0.4, 0.4] around its centre
+
+
+def _seat() -> trimesh.Trimesh:
+    return trimesh.creation.box((0.8, 2 * SEAT_TOP, 0.8))
+
+
+def _leg() -> trimesh.Trimesh:
+    leg = trimesh.creation.cylinder(0.03, 2 * LEG_HALF, sections=24)
+    leg.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    return leg
+
+
+@pytest.fixture(scope="module")
+def seat() -> Assembly:
+    m = _seat()
+    return Assembly(sample_oriented(m.vertices, m.faces, 4096, 0))
+
+
+@pytest.fixture(scope="module")
+def leg() -> Surface:
+    m = _leg()
+    return sample_oriented(m.vertices, m.faces, 1024, 1)
+
+
+def _exact(part_mesh: trimesh.Trimesh, t: np.ndarray, asm_mesh: trimesh.Trimesh) -> tuple[float, float]:
+    """The benchmark's exact gap and depth (winding numbers and point-triangle distances)."""
+    def mesh(m: trimesh.Trimesh, offset: np.ndarray) -> Mesh:
+        pts = sample_oriented(m.vertices, m.faces, 512, 3).points
+        return Mesh(m.vertices + offset, m.faces.astype(np.int64), pts + offset)
+    c = contact(mesh(part_mesh, t), [mesh(asm_mesh, np.zeros(3))])
+    return c.gap, c.depth
+
+
+def test_sample_oriented_normals_point_outwards() -> None:
+    box = trimesh.creation.box((1.0, 2.0, 3.0))
+    s = sample_oriented(box.vertices, box.faces, 500, 0)
+    assert s.points.shape == (500, 3) and s.normals is not None and s.normals.shape == (500, 3)
+    np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1.0, atol=1e-9)
+    # On a centred box, the outward normal points away from the centre on every face.
+    assert np.all(np.einsum("ij,ij->i", s.points, s.normals) > 0)
+    again = sample_oriented(box.vertices, box.faces, 500, 0)
+    np.testing.assert_array_equal(s.points, again.points)
+    with pytest.raises(ValueError, match="positive area"):
+        sample_oriented(box.vertices, np.zeros((0, 3), np.int64), 10, 0)
+
+
+@pytest.mark.parametrize("height", [0.05, 0.02, -0.03, -0.06])
+def test_leg_under_seat_is_brought_into_contact(seat: Assembly, leg: Surface, height: float) -> None:
+    """A leg below the seat (gap) or pushed into it (penetration) ends touching its underside."""
+    touching = np.array([0.3, -SEAT_TOP - LEG_HALF, 0.3])
+    t = touching + np.array([0.0, -height, 0.0])  # height > 0: below the seat; < 0: pushed into it
+    params = ContactParams(max_offset=0.1, tolerance=0.01)
+    r = refine_offset(leg.moved(t), seat, params)
+    assert r.resolved
+    assert not r.before.touching(params.tolerance)
+    assert r.after.touching(params.tolerance)
+    assert np.linalg.norm(r.offset) <= params.max_offset + 1e-9
+    # The benchmark's exact measure agrees: neither floating nor interpenetrating past 0.02.
+    gap, depth = _exact(_leg(), t + r.offset, _seat())
+    assert gap <= 0.02 and depth <= 0.02, (gap, depth)
+    before_gap, before_depth = _exact(_leg(), t, _seat())
+    assert before_gap > 0.02 or before_depth > 0.02
+
+
+def test_touching_part_is_left_alone(seat: Assembly, leg: Surface) -> None:
+    t = np.array([0.3, -SEAT_TOP - LEG_HALF - 0.003, 0.3])
+    r = refine_offset(leg.moved(t), seat, ContactParams())
+    assert r.resolved and np.all(r.offset == 0)
+
+
+def test_too_far_keeps_the_translation(seat: Assembly, leg: Surface) -> None:
+    """A gap larger than the bound cannot be closed: no half-way move, the translation is kept."""
+    t = np.array([0.3, -SEAT_TOP - LEG_HALF - 0.25, 0.3])
+    r = refine_offset(leg.moved(t), seat, ContactParams(max_offset=0.1))
+    assert not r.resolved and np.all(r.offset == 0)
+    # Within a larger bound the same gap closes.
+    r2 = refine_offset(leg.moved(t), seat, ContactParams(max_offset=0.3))
+    assert r2.resolved and 0.2 < np.linalg.norm(r2.offset) <= 0.3
+
+
+def test_zero_bound_never_moves(seat: Assembly, leg: Surface) -> None:
+    t = np.array([0.3, -SEAT_TOP - LEG_HALF - 0.05, 0.3])
+    r = refine_offset(leg.moved(t), seat, ContactParams(max_offset=0.0))
+    assert np.all(r.offset == 0) and not r.resolved
+
+
+def test_points_only_assembly_sees_its_samples_inside_the_part(leg: Surface) -> None:
+    """Without assembly normals, penetration is still seen from the assembly samples inside the part."""
+    m = _seat()
+    plain = Assembly(Surface(sample_oriented(m.vertices, m.faces, 4096, 0).points))
+    sunk = np.array([0.3, -SEAT_TOP - LEG_HALF + 0.05, 0.3])
+    state = measure_contact(leg.moved(sunk), plain)
+    assert state.depth > 0.02
+    r = refine_offset(leg.moved(sunk), plain, ContactParams())
+    assert r.resolved and r.offset[1] < -0.03
+
+
+def test_measure_contact_gap(seat: Assembly, leg: Surface) -> None:
+    t = np.array([0.3, -SEAT_TOP - LEG_HALF - 0.07, 0.3])
+    state = measure_contact(leg.moved(t), seat)
+    assert state.depth == 0
+    assert 0.07 <= state.gap <= 0.07 + 0.03  # sampled: at least the true gap, about a spacing more
+
+
+def test_refinement_is_deterministic(seat: Assembly, leg: Surface) -> None:
+    t = np.array([0.31, -SEAT_TOP - LEG_HALF + 0.04, 0.28])
+    a = refine_offset(leg.moved(t), seat, ContactParams())
+    b = refine_offset(leg.moved(t), seat, ContactParams())
+    np.testing.assert_array_equal(a.offset, b.offset)
+
+
+def test_surface_cache_resamples_a_changed_mesh() -> None:
+    cache = SurfaceCache(64, 0, max_entries=2)
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    a = cache.get("p/0", box.vertices, box.faces)
+    assert cache.get("p/0", box.vertices, box.faces) is a
+    bigger = trimesh.creation.box((2.0, 1.0, 1.0))
+    b = cache.get("p/0", bigger.vertices, bigger.faces)
+    assert b is not a and np.abs(b.points[:, 0]).max() > 0.6
+    cache.get("q/0", box.vertices, box.faces)
+    cache.get("r/0", box.vertices, box.faces)
+    assert len(cache._items) == 2
+
+
+# ------------------------------------------------------------------ engine and API on artifacts
+
+
+def test_engine_offsets_are_bounded_and_added(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    on = engine.suggest(query.points, SuggestOptions(k=8))
+    off = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=False))
+    assert [s.part_id for s in on.suggestions] == [s.part_id for s in off.suggestions]
+    bound = engine.settings.contact_max_offset
+    for a, b in zip(on.suggestions, off.suggestions, strict=True):
+        assert np.all(b.contact_offset == 0)
+        assert np.linalg.norm(a.contact_offset) <= bound + 1e-6
+        np.testing.assert_allclose(a.translation, b.translation + a.contact_offset, atol=1e-5)
+        np.testing.assert_allclose(a.bbox_min - b.bbox_min, a.contact_offset, atol=1e-5)
+
+
+def test_engine_refined_parts_touch_the_query(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    """Every refined placement touches the query by the service's own sampled measure."""
+    result = engine.suggest(query.points, SuggestOptions(k=8))
+    asm = engine.contacts.assembly_from_points(query.points)
+    tol = engine.settings.contact_tolerance
+    for s in result.suggestions:
+        if np.any(s.contact_offset != 0):
+            part = engine.contacts.part_surface(engine.catalog, s.part_index)
+            state = measure_contact(part.moved(s.translation), asm)
+            assert state.touching(tol + 1e-9), (s.part_id, state)
+
+
+def test_engine_offsets_follow_the_frame(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    """A scaled, shifted, z-up query gets the same offsets, mapped like translations."""
+    frame = Frame(center=np.array([1.0, 2.0, 3.0]), radius=4.0, up_axis="z")
+    caller = frame.from_canonical(query.points)
+    plain = engine.place(query.points, [query.missing])
+    framed = engine.place(caller, [query.missing], frame)
+    a, b = plain.placements[0], framed.placements[0]
+    back = b.contact_offset / frame.radius @ frame.rotation.T
+    np.testing.assert_allclose(back, a.contact_offset, atol=1e-4)
+
+
+def test_api_reports_contact_offset(client: TestClient, query: AssemblyQuery) -> None:
+    pts = query.points.tolist()
+    on = client.post("/suggest", json={"points": pts, "k": 5}).json()
+    off = client.post("/suggest", json={"points": pts, "k": 5, "refine_contact": False}).json()
+    for a, b in zip(on["suggestions"], off["suggestions"], strict=True):
+        assert a["part_id"] == b["part_id"]
+        assert b["contact_offset"] == [0.0, 0.0, 0.0]
+        np.testing.assert_allclose(np.add(b["translation"], a["contact_offset"]), a["translation"], atol=1e-5)
+    placed = client.post("/place", json={"points": pts, "part_ids": [query.missing]}).json()
+    raw = client.post("/place", json={"points": pts, "part_ids": [query.missing],
+                                      "refine_contact": False}).json()
+    p, r = placed["placements"][0], raw["placements"][0]
+    np.testing.assert_allclose(np.add(r["translation"], p["contact_offset"]), p["translation"], atol=1e-5)
+    bad = client.post("/place", json={"points": pts, "part_ids": [query.missing], "refine_contact": "maybe"})
+    assert bad.status_code == 422 and bad.json()["error"]["code"] == "validation_error"
