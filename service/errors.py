@@ -46,3 +46,34 @@ class NotReadyError(ServiceError):
     """The artifacts are not loaded (yet)."""
 
     status = 503
+
+
+class UnauthorizedError(ServiceError):
+    """A catalog write without the API key, or with a wrong one (answered with WWW-Authenticate)."""
+
+    status = 401
+
+    @property
+    def headers(self) -> dict[str, str]:
+        if self.code == "invalid_credentials":
+            return {"WWW-Authenticate": 'Bearer realm="complementme", error="invalid_token"'}
+        return {"WWW-Authenticate": 'Bearer realm="complementme"'}
+
+
+class ForbiddenError(ServiceError):
+    """A catalog write on a server that accepts none (no API key or no data folder configured)."""
+
+    status = 403
+
+
+class ConflictError(ServiceError):
+    """A write that contradicts the catalog's state (e.g. deleting a shipped part)."""
+
+    status = 409
+
+
+class StorageFullError(ServiceError):
+    """The data folder holds the most parts the settings allow."""
+
+    status = 507
+

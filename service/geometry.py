@@ -102,17 +102,34 @@ def _check_count(name: str, what: str, count: int, limit: int) -> None:
         raise MeshError("too_large", f"{name}: declares {count} {what}, more than the limit of {limit}")
 
 
+_PLY_TYPE_BYTES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2,
+                   "uint16": 2, "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4,
+                   "double": 8, "float64": 8}
+
+
 def _check_ply_header(data: bytes, name: str, max_vertices: int, max_faces: int) -> None:
+    """Refuse external textures, counts over the limits, and counts the file's bytes cannot hold.
+
+    Every element (not only vertices and faces: an ``element edge 1000000000000`` counts too)
+    must fit in the bytes after the header: at least its smallest row size (binary) or two
+    bytes per row (ASCII) times its count.
+    """
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise MeshError("corrupt_mesh", f"{name}: not a PLY file (no 'ply' magic or 'end_header')")
+    newline = data.find(b"\n", end)
+    body = len(data) - (newline + 1 if newline >= 0 else len(data))
+    binary = True
+    elements: list[list[Any]] = []  # [name, count, smallest row size in bytes]
     for raw in data[:end].decode("ascii", errors="replace").splitlines():
         tokens = raw.split()
         if len(tokens) >= 2 and tokens[0] == "comment" and tokens[1].lower() == "texturefile":
             ref = " ".join(tokens[2:])
             raise MeshError("external_reference", f"{name}: refers to an external texture file {ref!r}; "
                             "only self-contained files are accepted")
-        if len(tokens) == 3 and tokens[0] == "element":
+        if len(tokens) >= 2 and tokens[0] == "format":
+            binary = tokens[1] != "ascii"
+        elif len(tokens) == 3 and tokens[0] == "element":
             try:
                 count = int(tokens[2])
             except ValueError as err:
@@ -121,6 +138,22 @@ def _check_ply_header(data: bytes, name: str, max_vertices: int, max_faces: int)
                 _check_count(name, "vertices", count, max_vertices)
             elif tokens[1] == "face":
                 _check_count(name, "faces", count, max_faces)
+            elif count < 0:
+                raise MeshError("corrupt_mesh", f"{name}: negative {tokens[1]} count {count} in header")
+            elements.append([tokens[1], count, 0])
+        elif tokens and tokens[0] == "property" and elements:
+            # "property float x", or "property list uchar int vertex_indices": a list row holds at
+            # least its length.
+            is_list = len(tokens) >= 3 and tokens[1] == "list"
+            size = _PLY_TYPE_BYTES.get(tokens[2] if is_list else (tokens[1] if len(tokens) >= 2 else ""))
+            if size is None:
+                raise MeshError("corrupt_mesh", f"{name}: unknown PLY property type in {raw!r}")
+            elements[-1][2] += size
+    for element, count, row in elements:
+        least = count * (max(row, 1) if binary else 2)
+        if least > body:
+            raise MeshError("corrupt_mesh", f"{name}: declares {count} {element} element(s), which need at "
+                            f"least {least} bytes; only {body} follow the header")
 
 
 def _check_off_header(data: bytes, name: str, max_vertices: int, max_faces: int) -> None:
@@ -225,7 +258,96 @@ def _gltf_json(data: bytes, file_type: str, name: str) -> dict[str, Any]:
     return tree
 
 
-def _check_gltf(data: bytes, file_type: str, name: str, max_vertices: int, max_faces: int) -> None:
+# Compressed geometry expands far beyond the file (and needs decoders we do not ship).
+_COMPRESSED_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
+_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+# Everything beyond geometry is dropped before trimesh reads the file: decoding textures could
+# allocate far more than the file holds (a small PNG may declare 20000 x 20000 pixels).
+_GLTF_DROPPED = ("images", "textures", "samplers", "materials")
+_GLB_JSON, _GLB_BIN = 0x4E4F534A, 0x004E4942
+
+
+def _glb_bin_length(data: bytes) -> int:
+    """Length of a GLB's binary chunk (0 when there is none)."""
+    json_len = struct.unpack("<I", data[12:16])[0]
+    at = 20 + json_len
+    if len(data) >= at + 8:
+        length, kind = struct.unpack("<II", data[at:at + 8])
+        if kind == _GLB_BIN:
+            return min(length, len(data) - at - 8)
+    return 0
+
+
+def _nonneg_int(value: Any, what: str, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise MeshError("corrupt_mesh", f"{name}: {what} must be a non-negative integer, found {value!r}")
+    return value
+
+
+def _check_gltf_sizes(tree: dict[str, Any], bin_length: int, file_size: int, name: str,
+                      max_vertices: int, max_faces: int) -> None:
+    """Every declared size must fit in the file and the limits, before anything is allocated.
+
+    Buffers may not declare more bytes than the file holds for them; views must lie inside their
+    buffer, accessors inside their view; no accessor may hold more elements than the mesh limits
+    allow, and all accessors together may not decode to more than twice the file's size (plus
+    1 MiB), which also catches accessors without a view (zero-filled, no bytes in the file).
+    """
+    buffers = []
+    for i, buf in enumerate(tree.get("buffers", [])):
+        declared = _nonneg_int(buf.get("byteLength"), f"buffers[{i}].byteLength", name)
+        uri = buf.get("uri")
+        # The GLB's binary chunk backs buffer 0 when it has no uri; a data: URI holds 3/4 of its text.
+        held = (bin_length if i == 0 else 0) if uri is None else (len(uri) - uri.find(",") - 1) * 3 // 4
+        if declared > held:
+            raise MeshError("corrupt_mesh", f"{name}: buffers[{i}] declares {declared} bytes, but the file "
+                            f"holds {held} for it")
+        buffers.append(declared)
+    views = []
+    for j, view in enumerate(tree.get("bufferViews", [])):
+        b = _nonneg_int(view.get("buffer"), f"bufferViews[{j}].buffer", name)
+        start = _nonneg_int(view.get("byteOffset", 0), f"bufferViews[{j}].byteOffset", name)
+        length = _nonneg_int(view.get("byteLength"), f"bufferViews[{j}].byteLength", name)
+        if b >= len(buffers) or start + length > buffers[b]:
+            raise MeshError("corrupt_mesh", f"{name}: bufferViews[{j}] lies outside its buffer")
+        views.append((length, view.get("byteStride")))
+    most = max(max_vertices, 3 * max_faces)
+    total = 0
+    for k, acc in enumerate(tree.get("accessors", [])):
+        count = _nonneg_int(acc.get("count"), f"accessors[{k}].count", name)
+        if acc.get("componentType") not in _COMPONENT_BYTES or acc.get("type") not in _TYPE_SIZES:
+            raise MeshError("corrupt_mesh", f"{name}: accessors[{k}] has an unknown componentType or type")
+        elem = _COMPONENT_BYTES[acc["componentType"]] * _TYPE_SIZES[acc["type"]]
+        if count > most:
+            raise MeshError("too_large", f"{name}: accessors[{k}] declares {count} elements, more than the "
+                            f"limit of {most}")
+        total += count * elem
+        if "bufferView" in acc:
+            v = _nonneg_int(acc["bufferView"], f"accessors[{k}].bufferView", name)
+            if v >= len(views):
+                raise MeshError("corrupt_mesh", f"{name}: accessors[{k}] names a missing bufferView {v}")
+            length, stride = views[v]
+            stride = stride if isinstance(stride, int) and stride > 0 else elem
+            start = _nonneg_int(acc.get("byteOffset", 0), f"accessors[{k}].byteOffset", name)
+            if count and start + stride * (count - 1) + elem > length:
+                raise MeshError("corrupt_mesh", f"{name}: accessors[{k}] declares {count} elements, more "
+                                f"than its bufferView's {length} bytes hold")
+        sparse = acc.get("sparse")
+        if isinstance(sparse, dict):
+            n = _nonneg_int(sparse.get("count"), f"accessors[{k}].sparse.count", name)
+            if n > count:
+                raise MeshError("corrupt_mesh", f"{name}: accessors[{k}] has more sparse values than "
+                                "elements")
+            total += n * (elem + 4)
+    budget = 2 * file_size + (1 << 20)
+    if total > budget:
+        raise MeshError("too_large", f"{name}: accessors decode to {total} bytes, more than twice the file's "
+                        f"size (a file whose data expands like this is refused)")
+
+
+def _check_gltf(data: bytes, file_type: str, name: str, max_vertices: int, max_faces: int) -> bytes:
+    """Check a glTF/GLB before trimesh reads it; return it with everything but geometry removed."""
     tree = _gltf_json(data, file_type, name)
     for where, uri in _find_uris(tree):
         if not _DATA_URI.match(uri):
@@ -235,15 +357,38 @@ def _check_gltf(data: bytes, file_type: str, name: str, max_vertices: int, max_f
     accessors = tree.get("accessors", [])
     n_vertices = n_faces = 0
     try:
+        used = [*(tree.get("extensionsUsed") or []), *(tree.get("extensionsRequired") or []),
+                *(e for mesh in tree.get("meshes", []) for prim in mesh.get("primitives", [])
+                  for e in (prim.get("extensions") or {})),
+                *(e for view in tree.get("bufferViews", []) for e in (view.get("extensions") or {}))]
+        compressed = sorted({e for e in used if e in _COMPRESSED_EXTENSIONS})
+        if compressed:
+            raise MeshError("unsupported_format", f"{name}: compressed geometry ({', '.join(compressed)}) is "
+                            "not accepted; export the mesh without compression")
+        _check_gltf_sizes(tree, _glb_bin_length(data) if file_type == "glb" else 0, len(data), name,
+                          max_vertices, max_faces)
         for mesh in tree.get("meshes", []):
             for prim in mesh.get("primitives", []):
                 n_vertices += int(accessors[prim["attributes"]["POSITION"]]["count"])
                 if "indices" in prim:
                     n_faces += int(accessors[prim["indices"]]["count"]) // 3
+                prim.pop("material", None)
     except (KeyError, IndexError, TypeError, ValueError, AttributeError) as err:
+        if isinstance(err, MeshError):
+            raise
         raise MeshError("corrupt_mesh", f"{name}: malformed glTF meshes or accessors ({err!r})") from err
     _check_count(name, "vertices", n_vertices, max_vertices)
     _check_count(name, "faces", n_faces, max_faces)
+    for key in _GLTF_DROPPED:
+        tree.pop(key, None)
+    text = json.dumps(tree).encode("utf-8")
+    if file_type != "glb":
+        return text
+    text += b" " * (-len(text) % 4)
+    json_len = struct.unpack("<I", data[12:16])[0]
+    rest = data[20 + json_len:]  # the binary chunk (header included), unchanged
+    chunks = struct.pack("<II", len(text), _GLB_JSON) + text + rest
+    return b"glTF" + struct.pack("<II", 2, 12 + len(chunks)) + chunks
 
 
 # --------------------------------------------------------------------------------------------
@@ -270,7 +415,7 @@ def _load_scene(data: bytes, file_type: str, name: str, max_vertices: int, max_f
         # One piece per group / object, not per material.
         kwargs = {"split_groups": True, "split_objects": True, "group_material": False}
     else:
-        _check_gltf(data, file_type, name, max_vertices, max_faces)
+        data = _check_gltf(data, file_type, name, max_vertices, max_faces)
     resolver = _RefusingResolver(name)
     try:
         scene = trimesh.load_scene(io.BytesIO(data), file_type=file_type, resolver=resolver,

@@ -13,7 +13,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENV_PREFIX = "COMPLEMENTME_"
@@ -119,6 +119,50 @@ class Settings(BaseSettings):
     max_mesh_faces: int = Field(default=2_000_000, ge=1, description="Most faces an uploaded mesh may have.")
     max_page_size: int = Field(default=500, ge=1, description="Largest `limit` of a `GET /parts` page.")
 
+    # --- catalog additions (docs/catalog.md) --------------------------------------------------
+    data_dir: Path | None = Field(default=None, description=(
+        "Folder of catalog additions: an SQLite database (the source of truth), the added parts' "
+        "geometry files and the derived index. Unset: the catalog is read-only and the write "
+        "endpoints answer 403."))
+    api_key: SecretStr | None = Field(default=None, description=(
+        "Key that catalog writes must carry as `Authorization: Bearer <key>` (at least 16 "
+        "characters). Unset: catalog writes are refused with 403."))
+    cors_origins: list[str] = Field(default_factory=list, description=(
+        'Origins a browser may call the API from, as a JSON list (`["https://app.example"]`); '
+        "empty: no CORS headers are sent."))
+    max_added_parts: int = Field(default=100_000, ge=0, description=(
+        "Most parts the data folder may hold (deleted ones not counted); further additions get 507."))
+    max_part_extent: float = Field(default=3.0, gt=0, description=(
+        "Largest bounding-box diagonal of an added part in the canonical frame (the complete "
+        "object has unit radius); larger uploads are refused, usually a mesh in other units "
+        "sent without its `frame`."))
+    catalog_poll_seconds: float = Field(default=2.0, ge=0, description=(
+        "How often the server looks for additions made by other processes on the same data folder "
+        "(other workers, `complementme catalog add --data-dir`); 0: never."))
+
+    # --- overload ---------------------------------------------------------------------------
+    max_inflight: int = Field(default=4, ge=1, description=(
+        "Requests that run inference (every POST and DELETE) handled at once; more wait in a queue."))
+    max_queue: int = Field(default=32, ge=0, description=(
+        "Requests that may wait for an inference slot; past this the service answers 503 with "
+        "Retry-After at once."))
+    request_timeout: float = Field(default=30.0, gt=0, description=(
+        "Seconds a request may take (queueing included); past this it is cancelled and answered "
+        "504 (503 if it was still queued)."))
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_is_unset(cls, value: object) -> object:
+        return None if value == "" else value
+
+    @field_validator("api_key")
+    @classmethod
+    def _long_enough(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < 16:
+            raise ValueError("api_key must be at least 16 characters (use a random token)")
+        return value
+
+
 
 @lru_cache
 def get_settings() -> Settings:
@@ -130,7 +174,9 @@ def _env_default(name: str) -> str:
     field = Settings.model_fields[name]
     if name == "artifacts":
         return "`exported/` at the repository root"
-    value = field.default
+    value = field.default_factory() if field.default_factory is not None else field.default  # type: ignore[call-arg]
+    if value is None:
+        return "unset"
     if isinstance(value, bool):
         return "`true`" if value else "`false`"
     return f"`{value}`"

@@ -13,16 +13,19 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 
 from service import __version__
 from service.api.errors import install_error_handlers
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
-from service.api.routes import parts, probes, suggest
+from service.api.routes import catalog_write, parts, probes, suggest
 from service.artifacts import ArtifactError
 from service.engine import SuggestionEngine
 from service.loading import load_artifacts
 from service.metrics import Metrics
+from service.overload import OverloadMiddleware
 from service.settings import Settings, get_settings
+from service.store import StoreError
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +58,19 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.engine = engine
     if settings.warmup:
         engine.warmup()
+    try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
+        app.state.writer = catalog_write.start_catalog_writer(app, engine)
+    except StoreError as exc:
+        log.error("refusing to start: %s", exc)
+        raise
     app.state.ready = True
     try:
         yield
     finally:
         app.state.ready = False
+        if app.state.writer is not None:
+            app.state.writer.close()
+            app.state.writer = None
         app.state.engine = None
 
 
@@ -71,18 +82,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.engine = None
+    app.state.writer = None
     app.state.ready = False
     install_error_handlers(app)
     app.include_router(suggest.router)
     app.include_router(parts.router)
     app.include_router(probes.router)
+    app.include_router(catalog_write.router)
 
     def model_version() -> str | None:
         engine = app.state.engine
         return engine.model_version if engine is not None else None
 
     # Added last = outermost: metrics see every response, including a 413 from the body limit.
+    app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
+                       timeout=settings.request_timeout, registry=app.state.metrics.registry)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes)
+    if settings.cors_origins:  # browsers only; none by default
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST", "DELETE"],
+                           allow_headers=["Authorization", "Content-Type"],
+                           expose_headers=["X-Model-Version"])
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
     return app

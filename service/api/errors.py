@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 MAX_DETAILS = 10
 
 _HTTP_CODES = {
-    400: "bad_request", 404: "not_found", 405: "method_not_allowed", 413: "payload_too_large",
+    400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
+    413: "payload_too_large",
     415: "unsupported_media_type", 503: "not_ready",
 }
 
@@ -69,7 +70,9 @@ def service_error_body(exc: ServiceError) -> dict[str, Any]:
 
 async def _on_service_error(request: Request, exc: Exception) -> OrjsonResponse:
     assert isinstance(exc, ServiceError)
-    return OrjsonResponse(service_error_body(exc), status_code=exc.status)
+    # Some errors carry headers (WWW-Authenticate on 401, Retry-After on 503).
+    return OrjsonResponse(service_error_body(exc), status_code=exc.status,
+                          headers=getattr(exc, "headers", None))
 
 
 async def _on_validation_error(request: Request, exc: Exception) -> OrjsonResponse:

@@ -16,7 +16,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.errors import error_body
 from service.metrics import Metrics
 
-MESH_UPLOAD_PATH = "/suggest/mesh"
+# Mesh uploads get COMPLEMENTME_MAX_UPLOAD_BYTES; other bodies COMPLEMENTME_MAX_BODY_BYTES.
+MESH_UPLOAD_PATHS = ("/suggest/mesh", "/parts")
 
 
 class BodyTooLarge(HTTPException):
@@ -43,7 +44,7 @@ class BodyLimitMiddleware:
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
             await self.app(scope, receive, send)
             return
-        limit = self.max_upload_bytes if scope["path"] == MESH_UPLOAD_PATH else self.max_body_bytes
+        limit = self.max_upload_bytes if scope["path"] in MESH_UPLOAD_PATHS else self.max_body_bytes
         declared = _content_length(scope)
         seen = 0
         started = False

@@ -74,5 +74,6 @@ def render_part(catalog: Catalog, i: int) -> dict[str, Any]:
         "n_points": catalog.n_points,
         "n_vertices": int(catalog.vertex_first[i + 1] - catalog.vertex_first[i]),
         "n_faces": int(catalog.face_first[i + 1] - catalog.face_first[i]),
+        "name": rec.get("name"), "origin": rec.get("origin", "shipped"),
         "links": part_links(rec["part_id"]),
     }

@@ -284,6 +284,7 @@ _PART_EXAMPLE: dict[str, Any] = {
     "label": "leg", "split": "train", "translation": [0.31, -0.52, 0.28],
     "bbox_min": [-0.04, -0.46, -0.04], "bbox_max": [0.04, 0.46, 0.04], "area": 0.15,
     "duplicate_of": None, "duplicates": 4, "n_points": 1000, "n_vertices": 24, "n_faces": 44,
+    "name": None, "origin": "shipped",
     "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",
               "points": "/parts/chair-0007/2/points"}}
 
@@ -306,6 +307,9 @@ class PartOut(BaseModel):
     n_points: int
     n_vertices: int
     n_faces: int
+    name: str | None = Field(default=None, description="Free-text name (added parts).")
+    origin: Literal["shipped", "added"] = Field(default="shipped", description=(
+        "Whether the part ships with the artifacts or was added through POST /parts."))
     links: PartLinks
 
 

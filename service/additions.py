@@ -1,0 +1,310 @@
+"""The growing catalog of one server process: additions, deletions and the snapshot it serves.
+
+``CatalogWriter.open`` runs at start when ``COMPLEMENTME_DATA_DIR`` is set:
+
+1. open the store (SQLite WAL) and remove geometry files of adds that never committed;
+2. re-embed added parts computed by another model version (their geometry is kept, so a new
+   model never loses them);
+3. load every live part (a part whose geometry file is missing or damaged, or whose id now
+   clashes with a shipped part, is left out and listed in the status);
+4. reconcile the index file with the database: it must reflect the database's last change and
+   hold the same parts and vectors; otherwise it is rebuilt from the database rows;
+5. publish the snapshot (shipped + added parts) as the served engine.
+
+Writes: ``add`` stores a prepared part in one SQLite transaction, then brings the served
+snapshot up to the database's latest change before returning, so the next request sees the
+part. Snapshot rebuilds are serialised and coalesced: a writer whose change was already
+included by another writer's rebuild returns at once. Changes made by other processes on the
+same folder are picked up by a polling thread (``COMPLEMENTME_CATALOG_POLL_SECONDS``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import re
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from service.engine import SuggestionEngine
+from service.errors import ConflictError, InputError, NotFoundError, StorageFullError
+from service.geometry import resample_points
+from service.part_prep import embed_geometry
+from service.settings import Settings
+from service.snapshot import AddedPart, CatalogBuilder, combined_index, read_index_file, write_index_file
+from service.store import CatalogStore, NewPart, PartGeometry, StoredPart, StoreError
+
+log = logging.getLogger(__name__)
+
+# Ids and names a client may choose: shape ids become part of part ids and URLs.
+SHAPE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+CATEGORY = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$")
+
+
+def added_record(p: StoredPart) -> dict[str, Any]:
+    """The catalog record of an added part (the fields of ``CATALOG_FIELDS`` plus name, origin)."""
+    return {"part_id": p.part_id, "shape_id": p.shape_id, "category": p.category, "style": p.style,
+            "label": p.label, "translation": p.translation, "bbox_min": p.bbox_min, "bbox_max": p.bbox_max,
+            "area": p.area, "split": "added", "duplicate_of": None, "name": p.name, "origin": "added"}
+
+
+def stored_part_out(p: StoredPart, n_points: int) -> dict[str, Any]:
+    """A stored part as the API's ``PartOut`` (what ``POST /parts`` answers)."""
+    from service.api.render import part_links  # the API layer's link format, kept in one place
+
+    return {**{k: v for k, v in added_record(p).items()}, "duplicates": 1, "n_points": n_points,
+            "n_vertices": p.n_vertices, "n_faces": p.n_faces, "links": part_links(p.part_id)}
+
+
+class CatalogWriter:
+    """Owns a data folder for one process and publishes the engine (snapshot) to serve."""
+
+    def __init__(self, store: CatalogStore, base: SuggestionEngine, settings: Settings,
+                 publish: Callable[[SuggestionEngine], None]):
+        self.store = store
+        self.base = base
+        self.settings = settings
+        self._publish = publish
+        self.builder = CatalogBuilder(base.catalog)
+        self.parts: dict[int, AddedPart] = {}          # by parts.id, in order of addition
+        self.seq = 0                                    # the last change the snapshot includes
+        self.index_seq = -1                             # the change the index file reflects
+        self.index_rebuilt = False
+        self.reembedded = 0
+        self.skipped: dict[int, dict[str, str]] = {}   # parts.id -> {"part_id", "reason"}
+        self.engine = base
+        self._sync_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ start
+    @classmethod
+    def open(cls, settings: Settings, base: SuggestionEngine,
+             publish: Callable[[SuggestionEngine], None]) -> CatalogWriter:
+        """Open the data folder, reconcile it and publish the first snapshot (see module doc)."""
+        assert settings.data_dir is not None, "CatalogWriter.open needs settings.data_dir"
+        store = CatalogStore(settings.data_dir)
+        writer = cls(store, base, settings, publish)
+        try:
+            store.remove_orphans()
+            writer._reembed_stale()
+            writer._load_all()
+            writer._reconcile_index()
+        except BaseException:
+            store.close()
+            raise
+        log.info("catalog additions from %s: %d part(s) at change %d%s", settings.data_dir,
+                 len(writer.parts), writer.seq, f", {len(writer.skipped)} left out" if writer.skipped else "")
+        if settings.catalog_poll_seconds > 0:
+            writer._poller = threading.Thread(target=writer._poll, name="catalog-poll", daemon=True)
+            writer._poller.start()
+        return writer
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._poller is not None:
+            self._poller.join(timeout=10)
+        self.store.close()
+
+    @property
+    def model_version(self) -> str:
+        return self.base.model_version
+
+    def _reembed_stale(self) -> None:
+        stale = [p for p in self.store.parts() if p.model_version != self.model_version]
+        if not stale:
+            return
+        log.info("re-embedding %d added part(s) computed by other model versions", len(stale))
+        updates = []
+        for p in stale:
+            try:
+                g = self.store.read_geometry(p)
+            except StoreError as exc:
+                log.error("cannot re-embed: %s", exc)
+                continue
+            e, f = embed_geometry(self.base.networks, g.vertices, g.faces, self.base.artifacts.n_points,
+                                  self.settings.seed)
+            updates.append((p.id, e, f))
+        if updates:
+            self.store.update_embeddings(updates, self.model_version)
+        self.reembedded = len(updates)
+
+    def _load_all(self) -> None:
+        with self._sync_lock:
+            self.seq = self.store.last_seq()
+            rows = [p for p in self.store.parts() if p.added_seq <= self.seq]
+            self.parts = {}
+            self._admit(rows)
+            self.builder.set_parts(list(self.parts.values()))
+            self._publish_snapshot()
+
+    def _reconcile_index(self) -> None:
+        """Keep the index file if it matches the database exactly; rebuild it otherwise."""
+        found = read_index_file(self.store.index_path)
+        ids = np.array(list(self.parts), dtype=np.int64)
+        emb = self._added_embeddings()
+        ok = (found is not None and found.seq == self.seq and found.model_version == self.model_version
+              and np.array_equal(found.row_ids, ids) and found.embeddings.shape == emb.shape
+              and np.array_equal(found.embeddings, emb))
+        if ok:
+            self.index_seq = self.seq
+            return
+        why = "missing or unreadable" if found is None else (
+            f"reflects change {found.seq} with {len(found.row_ids)} part(s), the database is at change "
+            f"{self.seq} with {len(ids)}")
+        log.warning("%s: index file %s; rebuilding it from the database", self.store.index_path, why)
+        self.index_rebuilt = True
+        self._write_index()
+
+    # ------------------------------------------------------------------ writes
+    def add(self, part: NewPart, shape_id: str | None) -> StoredPart:
+        """Store a prepared part and serve it; returns its row (with its new ``part_id``).
+
+        Raises:
+            InputError: bad category or shape id; ConflictError: a shipped shape id;
+            StorageFullError: the data folder holds ``max_added_parts`` parts.
+        """
+        self._check_names(part.category, shape_id)
+        if self.store.counts()[0] >= self.settings.max_added_parts:
+            raise StorageFullError("catalog_full", f"the data folder holds {self.settings.max_added_parts} "
+                                   "added parts, the most COMPLEMENTME_MAX_ADDED_PARTS allows")
+        stored = self.store.add(part, shape_id)
+        self.catch_up(stored.added_seq)
+        return stored
+
+    def delete(self, part_id: str) -> None:
+        """Remove an added part from the catalog; shipped parts cannot be deleted (409)."""
+        if part_id in self.base.catalog.index_of:
+            raise ConflictError("shipped_part", f"part {part_id!r} ships with the model's artifacts and "
+                                "cannot be deleted; leave it out per request with exclude_parts")
+        seq = self.store.delete(part_id)
+        if seq is None:
+            raise NotFoundError("unknown_part", f"part {part_id!r} is not in the catalog")
+        self.catch_up(seq)
+
+    def _check_names(self, category: str, shape_id: str | None) -> None:
+        if not CATEGORY.match(category):
+            raise InputError("invalid_category", f"category {category!r} must be 1-64 letters, digits, "
+                             "spaces, '.', '_' or '-', starting with a letter or digit")
+        if shape_id is None:
+            return
+        if not SHAPE_ID.match(shape_id) or shape_id.startswith("added-"):
+            raise InputError("invalid_shape_id", f"shape_id {shape_id!r} must be 1-100 letters, digits, '.', "
+                             "'_' or '-', starting with a letter or digit (and not 'added-', kept for "
+                             "parts sent without one)")
+        if shape_id in self.base.catalog.shape_ids:
+            raise ConflictError("shipped_shape", f"shape {shape_id!r} belongs to the shipped catalog; add "
+                                "parts of new shapes only")
+
+    # ------------------------------------------------------------------ snapshots
+    def catch_up(self, seq: int) -> None:
+        """Return once the served snapshot includes change ``seq`` (rebuilding it if needed)."""
+        with self._sync_lock:
+            if self.seq < seq:
+                self._sync_locked()
+
+    def sync(self) -> bool:
+        """Bring the snapshot up to the database's latest change; True if it changed."""
+        with self._sync_lock:
+            return self._sync_locked()
+
+    def _sync_locked(self) -> bool:
+        with self.store.reading():
+            changes = self.store.changes_since(self.seq)
+            if not changes:
+                return False
+            last = changes[-1].seq
+            full = any(c.kind != "add" for c in changes)
+            if full:
+                rows = [p for p in self.store.parts() if p.added_seq <= last]
+            else:
+                rows = self.store.parts([c.part for c in changes
+                                         if c.part is not None and c.part not in self.parts])
+        self.seq = last
+        if full:
+            cached = {pid: part.geometry for pid, part in self.parts.items()}
+            self.parts, self.skipped = {}, {}
+            self._admit(rows, cached)
+            self.builder.set_parts(list(self.parts.values()))
+        else:
+            self.builder.append(self._admit(rows))
+        self._publish_snapshot()
+        self._write_index()
+        return True
+
+    def _admit(self, rows: list[StoredPart], cached: dict[int, PartGeometry] | None = None
+               ) -> list[AddedPart]:
+        """Load rows' geometry (or take it from ``cached``) and add them to ``self.parts``, in order;
+        rows that cannot be served are listed in ``self.skipped`` instead."""
+        D = self.base.catalog.embeddings.shape[1]
+        Fp = self.base.catalog.part_features.shape[1]
+        S = self.builder.n_points
+        admitted = []
+        for p in rows:
+            reason = None
+            if p.part_id in self.base.catalog.index_of:
+                reason = "its id is also the id of a shipped part"
+            elif p.embedding.shape != (D,) or p.part_feature.shape != (Fp,):
+                reason = (f"embedding/feature sizes {p.embedding.shape}/{p.part_feature.shape} do not fit "
+                          f"the model ({D}, {Fp})")
+            elif p.model_version != self.model_version:
+                reason = f"embedded by model {p.model_version}, not re-embedded"
+            if reason is None and cached is not None and p.id in cached:
+                g = cached[p.id]
+            elif reason is None:
+                try:
+                    g = self.store.read_geometry(p)
+                except StoreError as exc:
+                    reason = str(exc)
+            if reason is not None:
+                log.error("added part %s is left out of the catalog: %s", p.part_id, reason)
+                self.skipped[p.id] = {"part_id": p.part_id, "reason": reason}
+                continue
+            if len(g.points) != S:  # preview size of another artifact version
+                g = dataclasses.replace(g, points=resample_points(g.points, S, self.settings.seed))
+            part = AddedPart(p.id, added_record(p), p.embedding, p.part_feature, g)
+            self.parts[p.id] = part
+            admitted.append(part)
+        return admitted
+
+    def _publish_snapshot(self) -> None:
+        catalog = self.builder.catalog()
+        index = combined_index(self.base.index, catalog, len(self.base.catalog))
+        artifacts = dataclasses.replace(self.base.artifacts, catalog=catalog, index=index)
+        engine = type(self.base)(artifacts, self.settings)
+        self.engine = engine
+        self._publish(engine)
+
+    def _added_embeddings(self) -> np.ndarray:
+        D = self.base.catalog.embeddings.shape[1]
+        if not self.parts:
+            return np.zeros((0, D), np.float32)
+        return np.stack([p.embedding for p in self.parts.values()]).astype(np.float32)
+
+    def _write_index(self) -> None:
+        write_index_file(self.store.index_path, self.seq, self.model_version, list(self.parts),
+                         self._added_embeddings(), self.base.index.metric_type)
+        self.index_seq = self.seq
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self.settings.catalog_poll_seconds):
+            try:
+                if self.store.last_seq() > self.seq:
+                    self.sync()
+            except Exception:  # keep polling: a failed refresh must not stop later ones
+                log.exception("refreshing the catalog from %s failed", self.store.folder)
+
+    # ------------------------------------------------------------------ status
+    def status(self) -> dict[str, Any]:
+        deleted = self.store.counts()[1]
+        return {
+            "writable": True, "shipped_parts": len(self.base.catalog), "added_parts": len(self.parts),
+            "deleted_parts": deleted, "parts": len(self.engine.catalog), "sequence": self.seq,
+            "database_sequence": self.store.last_seq(), "index_sequence": self.index_seq,
+            "index_rebuilt_at_start": self.index_rebuilt, "reembedded_at_start": self.reembedded,
+            "left_out": list(self.skipped.values()),
+        }
+

@@ -1,0 +1,210 @@
+"""Catalog writes: ``POST /parts``, ``DELETE /parts/{id}``, and ``GET /catalog`` (its status).
+
+Writes need the API key (``service.auth``) and a data folder. The upload's form is parsed by
+the handler itself, after the key was checked, so an unauthenticated client cannot make the
+server read a large body first. The heavy work (mesh checks, sampling, both networks, the
+database transaction) runs in the threadpool.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.datastructures import UploadFile
+from starlette.responses import Response
+
+from service.additions import CatalogWriter, stored_part_out
+from service.api.deps import SettingsDep
+from service.api.render import part_links
+from service.api.responses import OrjsonResponse
+from service.api.routes.parts import PartId
+from service.api.schemas import ErrorResponse, FrameIn, PartOut
+from service.auth import WriterDep
+from service.engine import SuggestionEngine
+from service.errors import InputError
+from service.frames import Frame
+from service.inputs import mesh_format
+from service.part_prep import prepare_part
+from service.settings import Settings
+from service.store import StoredPart
+
+router = APIRouter(tags=["catalog"])
+
+_AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorResponse, "description": "No API key, or a wrong one (with WWW-Authenticate)."},
+    403: {"model": ErrorResponse, "description": (
+        "Writes are disabled: no API key (writes_disabled) or no data folder (read_only) configured.")},
+}
+
+
+class PartUploadIn(BaseModel):
+    """The form fields of ``POST /parts`` besides the file."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    category: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$", description=(
+        "The part's category (a new one is created if needed)."), examples=["chair"])
+    shape_id: str | None = Field(default=None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$", description=(
+        "Groups parts of one source object (exclude_shapes acts on it); the part's id is "
+        "<shape_id>/<n>. Default: a shape of its own, added-<n>."), examples=["my-chair-01"])
+    name: str | None = Field(default=None, max_length=200, description="A free-text name.",
+                             examples=["oak leg"])
+    style: str | None = Field(default=None, max_length=200, description="Fine-grained style.",
+                              examples=["windsor"])
+    label: str | None = Field(default=None, max_length=200, description="Semantic label (leg, seat...).",
+                              examples=["leg"])
+    format: str | None = Field(default=None, max_length=8, description=(
+        "Mesh format, when the file name has no extension."), examples=["obj"])
+    frame: str | None = Field(default=None, max_length=1000, description=(
+        "JSON frame of the complete object the part belongs to ({center, radius, up_axis}); the part is "
+        "mapped to the canonical frame with it. Default: the mesh is already canonical."),
+        examples=['{"center": [0, 0, 450], "radius": 600, "up_axis": "z"}'])
+
+    def to_frame(self) -> Frame:
+        if self.frame is None:
+            return Frame()
+        try:
+            return FrameIn.model_validate_json(self.frame).to_frame()
+        except ValidationError as exc:
+            raise RequestValidationError([{**e, "loc": ("body", "frame", *e["loc"])}
+                                          for e in exc.errors()]) from None
+
+
+def _upload_schema() -> dict[str, Any]:
+    schema = PartUploadIn.model_json_schema()
+    props = {"file": {"type": "string", "format": "binary", "description": (
+        "The part's mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF (no external references).")},
+        **schema["properties"]}
+    return {"type": "object", "properties": props, "required": ["file", "category"],
+            "additionalProperties": False}
+
+
+_UPLOAD_BODY: dict[str, Any] = {"requestBody": {"required": True, "content": {"multipart/form-data": {
+    "schema": _upload_schema(),
+    "examples": {"leg": {"summary": "A chair leg in the canonical frame",
+                         "value": {"file": "(leg.obj)", "category": "chair", "label": "leg"}}},
+}}}}
+
+
+class CatalogStatus(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "writable": True, "shipped_parts": 7315, "added_parts": 12, "deleted_parts": 1, "parts": 7327,
+        "sequence": 14, "database_sequence": 14, "index_sequence": 14, "index_rebuilt_at_start": False,
+        "reembedded_at_start": 0, "left_out": []}]})
+
+    writable: bool = Field(..., description="Whether this server accepts catalog writes at all.")
+    shipped_parts: int
+    added_parts: int = Field(..., description="Added parts served now.")
+    deleted_parts: int
+    parts: int = Field(..., description="Parts served now (shipped + added).")
+    sequence: int | None = Field(..., description="The last database change the served catalog includes.")
+    database_sequence: int | None = Field(..., description="The database's last change.")
+    index_sequence: int | None = Field(..., description=(
+        "The change the index file in the data folder reflects."))
+    index_rebuilt_at_start: bool
+    reembedded_at_start: int = Field(..., description="Added parts re-embedded for a new model at start.")
+    left_out: list[dict[str, str]] = Field(..., description=(
+        "Added parts that could not be served (damaged geometry file, id clash), with the reason."))
+
+
+async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
+    form = await request.form(max_files=1, max_fields=16)
+    fields: dict[str, str] = {}
+    upload: UploadFile | None = None
+    for key, value in form.multi_items():
+        if key in fields or (key == "file" and upload is not None):
+            raise InputError("duplicate_field", f"form field {key!r} is given more than once")
+        if isinstance(value, str):
+            fields[key] = value
+        elif key == "file":
+            upload = value
+        else:
+            raise InputError("unexpected_file", f"form field {key!r} is a file; only 'file' may be one")
+    if upload is None:
+        raise InputError("missing_file", "send the part's mesh as the multipart form field 'file'")
+    try:
+        meta = PartUploadIn.model_validate(fields)
+    except ValidationError as exc:
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
+    return upload, meta
+
+
+@router.post("/parts", status_code=201, response_model=PartOut, summary="Add a part to the catalog",
+             openapi_extra=_UPLOAD_BODY, responses={
+    **_AUTH_ERRORS,
+    409: {"model": ErrorResponse, "description": "shape_id belongs to the shipped catalog."},
+    413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or too many "
+          "vertices or faces."},
+    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    422: {"model": ErrorResponse, "description": "Missing file or category, bad fields, corrupt or "
+          "empty mesh, external references, a part too large for the canonical frame."},
+    507: {"model": ErrorResponse, "description": "The data folder holds COMPLEMENTME_MAX_ADDED_PARTS parts."},
+})
+async def post_part(request: Request, writer: WriterDep, settings: SettingsDep) -> OrjsonResponse:
+    """Upload one part's mesh: it is checked, centred, embedded and searchable by the next request.
+
+    The mesh is in the canonical frame of the complete object it belongs to (unit radius, y up)
+    unless `frame` says otherwise; its bounding-box centre becomes its `translation`.
+    """
+    upload, meta = await _read_form(request)
+    fmt = mesh_format(upload.filename, meta.format)
+    frame = meta.to_frame()
+    data = await upload.read()
+    stored = await run_in_threadpool(_add, writer, settings, data, fmt, upload.filename or "upload", frame,
+                                     meta)
+    return OrjsonResponse(stored_part_out(stored, writer.builder.n_points), status_code=201,
+                          headers={"Location": part_links(stored.part_id)["part"]})
+
+
+def _add(writer: CatalogWriter, settings: Settings, data: bytes, fmt: str, name: str, frame: Frame,
+         meta: PartUploadIn) -> StoredPart:
+    engine = writer.engine
+    part = prepare_part(data, fmt, name=name, frame=frame, networks=engine.networks,
+                        n_points=engine.artifacts.n_points, preview_points=writer.builder.n_points,
+                        seed=settings.seed, max_vertices=settings.max_mesh_vertices,
+                        max_faces=settings.max_mesh_faces, max_extent=settings.max_part_extent,
+                        category=meta.category, part_name=meta.name, style=meta.style, label=meta.label,
+                        model_version=engine.model_version)
+    return writer.add(part, meta.shape_id)
+
+
+@router.delete("/parts/{part_id:path}", status_code=204, response_class=Response,
+               summary="Remove an added part from the catalog", responses={
+    **_AUTH_ERRORS,
+    404: {"model": ErrorResponse, "description": "No such part."},
+    409: {"model": ErrorResponse, "description": "The part ships with the artifacts (shipped_part)."},
+})
+async def delete_part(part_id: PartId, writer: WriterDep) -> Response:
+    """The part stops being suggested at once; shipped parts cannot be deleted (409)."""
+    await run_in_threadpool(writer.delete, part_id)
+    return Response(status_code=204)
+
+
+@router.get("/catalog", response_model=CatalogStatus, summary="The catalog's additions and their state")
+def get_catalog_status(request: Request) -> OrjsonResponse:
+    writer: CatalogWriter | None = getattr(request.app.state, "writer", None)
+    if writer is not None:
+        return OrjsonResponse(writer.status())
+    engine: SuggestionEngine | None = request.app.state.engine
+    n = len(engine.catalog) if engine is not None else 0
+    return OrjsonResponse({"writable": False, "shipped_parts": n, "added_parts": 0, "deleted_parts": 0,
+                           "parts": n, "sequence": None, "database_sequence": None, "index_sequence": None,
+                           "index_rebuilt_at_start": False, "reembedded_at_start": 0, "left_out": []})
+
+
+def start_catalog_writer(app: FastAPI, engine: SuggestionEngine) -> CatalogWriter | None:
+    """Open the data folder (if configured) and serve its snapshot; None for a read-only server."""
+    settings: Settings = app.state.settings
+    if settings.data_dir is None:
+        return None
+
+    def publish(snapshot: SuggestionEngine) -> None:
+        app.state.engine = snapshot  # one reference swap: requests hold the engine they started with
+        app.state.metrics.set_model(snapshot.model_version, len(snapshot.catalog))
+
+    return CatalogWriter.open(settings, engine, publish)
+

@@ -1,0 +1,188 @@
+"""Bounded work under load: a gate on inference requests, and a deadline on every request.
+
+Latency must not grow without bound when more requests arrive than the CPU can serve. Every
+request that runs inference (each POST and DELETE) passes a gate: at most ``max_inflight`` run at
+once and at most ``max_queue`` wait for a slot; past that the service answers 503
+``overloaded`` with a ``Retry-After`` estimated from recent latencies, at once and without
+reading the body. Reads (GET) are not gated.
+
+Every request also has a deadline (``request_timeout``, queueing included). A request still
+waiting for a slot at its deadline gets 503; one still running gets 504 ``deadline_exceeded``
+and is cancelled. Work already handed to a thread cannot be interrupted (ONNX Runtime and FAISS
+do not stop halfway), so its slot is only released when the thread finishes: the gate counts the
+CPU really in use, not the requests still waited on.
+
+Pure ASGI, like the other middleware: a few function calls per request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from typing import Any
+
+import orjson
+from prometheus_client import CollectorRegistry, Counter, Gauge
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api.errors import error_body
+
+GATED_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+
+class InferenceGate:
+    """At most ``max_inflight`` holders at once, at most ``max_queue`` waiting (asyncio, one loop)."""
+
+    def __init__(self, max_inflight: int, max_queue: int):
+        self.max_inflight = max_inflight
+        self.max_queue = max_queue
+        self.inflight = 0
+        self.waiting = 0
+        self._waiters: list[asyncio.Future[None]] = []
+        # Exponentially weighted mean of gated request durations, for Retry-After.
+        self.mean_seconds = 0.05
+
+    def try_enter(self) -> asyncio.Future[None] | None:
+        """Take a slot now (None), or a future that resolves when one is handed over.
+
+        Raises:
+            OverflowError: when the queue is full.
+        """
+        if self.inflight < self.max_inflight and not self._waiters:
+            self.inflight += 1
+            return None
+        if len(self._waiters) >= self.max_queue:
+            raise OverflowError
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._waiters.append(fut)
+        self.waiting = len(self._waiters)
+        return fut
+
+    def abandon(self, fut: asyncio.Future[None]) -> None:
+        """A waiter gave up (deadline); if it had just been handed a slot, pass the slot on."""
+        if fut in self._waiters:
+            self._waiters.remove(fut)
+            self.waiting = len(self._waiters)
+        elif fut.done() and not fut.cancelled():
+            self.leave()
+
+    def leave(self, seconds: float | None = None) -> None:
+        """Release a slot: hand it to the oldest waiter, or free it."""
+        if seconds is not None:
+            self.mean_seconds += 0.1 * (seconds - self.mean_seconds)
+        while self._waiters:
+            fut = self._waiters.pop(0)
+            self.waiting = len(self._waiters)
+            if not fut.done():
+                fut.set_result(None)  # the slot moves to this waiter; inflight is unchanged
+                return
+        self.inflight -= 1
+
+    def retry_after(self) -> int:
+        """Seconds a refused client should wait: the queue's expected drain time, 1-60."""
+        drain = self.mean_seconds * (self.waiting + self.inflight + 1) / self.max_inflight
+        return int(min(60, max(1, math.ceil(drain))))
+
+
+class OverloadMiddleware:
+    """Gate inference requests and enforce the request deadline (see the module doc)."""
+
+    def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
+                 registry: CollectorRegistry | None = None):
+        self.app = app
+        self.gate = InferenceGate(max_inflight, max_queue)
+        self.timeout = timeout
+        self.rejected = Counter("complementme_overload_rejections", "Requests refused by the overload "
+                                "gate or cut at their deadline, by reason.", ["reason"], registry=registry)
+        self.inflight_gauge = Gauge("complementme_inflight_requests", "Gated requests running now.",
+                                    registry=registry)
+        self.queued_gauge = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
+                                  registry=registry)
+        self.inflight_gauge.set_function(lambda: self.gate.inflight)
+        self.queued_gauge.set_function(lambda: self.gate.waiting)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        deadline = time.monotonic() + self.timeout
+        gated = scope["method"] in GATED_METHODS
+        if gated and not await self._enter(deadline, send):
+            return
+        start = time.monotonic()
+        answered = False
+
+        async def guarded_send(message: Message) -> None:
+            if not answered:  # after a 504, the cancelled request's late messages go nowhere
+                await send(message)
+
+        started = False
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await guarded_send(message)
+
+        task = asyncio.ensure_future(self.app(scope, receive, tracking_send))
+        if gated:
+            task.add_done_callback(lambda _: self.gate.leave(time.monotonic() - start))
+        try:
+            done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
+        except asyncio.CancelledError:  # the server is shutting down or the client went away
+            task.cancel()
+            raise
+        if task in done:
+            task.result()  # re-raise what the app raised
+            return
+        task.cancel()
+        task.add_done_callback(_consume)
+        self.rejected.labels("deadline").inc()
+        if not started:
+            answered = True
+            await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
+                              f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT) and was cancelled")
+
+    async def _enter(self, deadline: float, send: Send) -> bool:
+        """Take a gate slot for a request; answer 503 and return False when that is not possible."""
+        try:
+            fut = self.gate.try_enter()
+        except OverflowError:
+            self.rejected.labels("queue_full").inc()
+            await self._overloaded(send, f"{self.gate.inflight} requests are running and "
+                                   f"{self.gate.waiting} waiting, the most this server accepts")
+            return False
+        if fut is None:
+            return True
+        try:
+            await asyncio.wait_for(asyncio.shield(fut), timeout=max(0.0, deadline - time.monotonic()))
+            return True
+        except asyncio.TimeoutError:
+            self.gate.abandon(fut)
+            self.rejected.labels("queue_timeout").inc()
+            await self._overloaded(send, f"no inference slot became free within {self.timeout:g} s")
+            return False
+        except asyncio.CancelledError:
+            self.gate.abandon(fut)
+            raise
+
+    async def _overloaded(self, send: Send, why: str) -> None:
+        retry = self.gate.retry_after()
+        await _send_error(send, 503, "overloaded", f"the service is overloaded ({why}); retry in {retry} s",
+                          [(b"retry-after", str(retry).encode())])
+
+
+def _consume(task: asyncio.Future[Any]) -> None:
+    """Retrieve a cancelled request's outcome so asyncio does not log it as never retrieved."""
+    if not task.cancelled():
+        task.exception()
+
+
+async def _send_error(send: Send, status: int, code: str, message: str,
+                      headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    data = orjson.dumps(error_body(code, message))
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"),
+                            (b"content-length", str(len(data)).encode()), *(headers or [])]})
+    await send({"type": "http.response.body", "body": data})
