@@ -8,9 +8,11 @@ reading the body. Reads (GET) are not gated.
 
 Every request also has a deadline (``request_timeout``, queueing included). A request still
 waiting for a slot at its deadline gets 503; one still running gets 504 ``deadline_exceeded``
-and is cancelled. Work already handed to a thread cannot be interrupted (ONNX Runtime and FAISS
-do not stop halfway), so its slot is only released when the thread finishes: the gate counts the
-CPU really in use, not the requests still waited on.
+at once, and its late answer is dropped. The work it started is not interrupted: ONNX Runtime
+and FAISS cannot stop halfway, and asyncio's cancellation does not reach a worker thread (it
+only abandons it). So the request runs to its end and keeps its slot until then: the gate counts
+the CPU really in use. A request still running after a second ``request_timeout`` (stuck on
+something asynchronous, which a thread never is) is cancelled.
 
 Pure ASGI, like the other middleware: a few function calls per request.
 """
@@ -111,21 +113,17 @@ class OverloadMiddleware:
         if gated and not await self._enter(deadline, send):
             return
         start = time.monotonic()
-        answered = False
+        answered = started = False
 
         async def guarded_send(message: Message) -> None:
-            if not answered:  # after a 504, the cancelled request's late messages go nowhere
-                await send(message)
-
-        started = False
-
-        async def tracking_send(message: Message) -> None:
             nonlocal started
+            if answered:  # after a 504, the late answer goes nowhere
+                return
             if message["type"] == "http.response.start":
                 started = True
-            await guarded_send(message)
+            await send(message)
 
-        task = asyncio.ensure_future(self.app(scope, receive, tracking_send))
+        task = asyncio.ensure_future(self.app(scope, receive, guarded_send))
         if gated:
             task.add_done_callback(lambda _: self.gate.leave(time.monotonic() - start))
         try:
@@ -133,16 +131,17 @@ class OverloadMiddleware:
         except asyncio.CancelledError:  # the server is shutting down or the client went away
             task.cancel()
             raise
-        if task in done:
-            task.result()  # re-raise what the app raised
+        if task in done or started:  # an answer under way cannot become a 504: let it finish
+            await task  # re-raises what the app raised
             return
-        task.cancel()
         task.add_done_callback(_consume)
+        loop = asyncio.get_running_loop()
+        stuck = loop.call_later(self.timeout, task.cancel)
+        task.add_done_callback(lambda _: stuck.cancel())
         self.rejected.labels("deadline").inc()
-        if not started:
-            answered = True
-            await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
-                              f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT) and was cancelled")
+        answered = True
+        await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
+                          f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT); its answer is dropped")
 
     async def _enter(self, deadline: float, send: Send) -> bool:
         """Take a gate slot for a request; answer 503 and return False when that is not possible."""
