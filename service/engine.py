@@ -89,7 +89,7 @@ class SuggestResult:
     """The answer to one query.
 
     Shapes:
-        mode_weights: (K,) float32.
+        mode_weights: (K,) float32.   mode_means, mode_sigmas: (K, D) float32 (the mixture's modes).
     """
 
     suggestions: list[Suggestion]
@@ -98,6 +98,8 @@ class SuggestResult:
     n_input_points: int
     candidates: int                       # distinct parts re-scored before ranking
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage (whole batch)
+    mode_means: np.ndarray | None = None
+    mode_sigmas: np.ndarray | None = None
 
 
 @dataclass
@@ -300,7 +302,7 @@ class SuggestionEngine:
             out[q.item] = SuggestResult(
                 suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame),
                 mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
-                candidates=n_cand, timings=timings)
+                candidates=n_cand, timings=timings, mode_means=mix.means[b], mode_sigmas=mix.sigmas[b])
         timings["total"] = time.perf_counter() - t0
         return [out[i] for i in range(len(items))]
 

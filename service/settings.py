@@ -94,8 +94,19 @@ class Settings(BaseSettings):
     assemble_duplicate_distance: float = Field(default=0.03, ge=0, description=(
         "`/assemble` skips a candidate whose placed samples lie within this Chamfer distance "
         "(object radius units) of a part already placed: the same geometry at the same spot."))
+    assemble_duplicate_centre: float = Field(default=0.05, ge=0, description=(
+        "`/assemble` also skips a candidate whose placed box is centred within this distance of a "
+        "placed part's box of about the same size (see `assemble_duplicate_size_ratio`)."))
+    assemble_duplicate_size_ratio: float = Field(default=1.5, ge=1, description=(
+        "Boxes count as about the same size when every extent is within this factor."))
+    assemble_duplicate_contain_ratio: float = Field(default=4.0, ge=1, description=(
+        "At the same spot, a candidate nested in a placed part's box is a duplicate, and so is one "
+        "whose box holds a placed part's box with less than this times its volume (a tyre around "
+        "a hub); a much larger enclosing part (a hull around a deck) is not."))
     assemble_max_nodes: int = Field(default=63, ge=1, description=(
         "Most parts placed over a whole `branching` tree of `/assemble` (its size bound)."))
+    max_assemble_branching: int = Field(default=4, ge=1, description=(
+        "Largest `branching` (children per state) of an `/assemble` request."))
     max_export_parts: int = Field(default=200, ge=1, description="Most parts one `/export` request may give.")
 
     # --- limits on requests -----------------------------------------------------------------

@@ -18,7 +18,8 @@ from fastapi.middleware.cors import CORSMiddleware
 from service import __version__
 from service.api.errors import install_error_handlers
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
-from service.api.routes import catalog_write, parts, probes, suggest
+from service.api.routes import assemble, catalog_write, parts, probes, suggest
+from service.api.routes.page import install_page
 from service.artifacts import ArtifactError
 from service.engine import SuggestionEngine
 from service.loading import load_artifacts
@@ -89,6 +90,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(parts.router)
     app.include_router(probes.router)
     app.include_router(catalog_write.router)
+    app.include_router(assemble.router)
+    install_page(app)
 
     def model_version() -> str | None:
         engine = app.state.engine

@@ -1,0 +1,53 @@
+"""Assembly results to JSON-ready dicts matching ``schemas_modeling`` (checked by the tests)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from service.api.render import part_links, render_frame
+from service.assembly import AssembleResult, Node
+from service.engine import SuggestionEngine
+
+
+def _vec(a: np.ndarray) -> list[float]:
+    return [float(x) for x in a]
+
+
+def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> dict[str, Any]:
+    """One placed part, mapped from the canonical frame to the result's frame."""
+    frame, cat = result.frame, engine.catalog
+    s = n.suggestion
+    i = s.part_index
+    t = n.translation.reshape(1, 3)
+    lo, hi = frame.box_from_canonical(t + cat.bbox_min[i], t + cat.bbox_max[i])
+    return {
+        "node": n.node, "parent": n.parent, "depth": n.depth, "part_id": s.part_id, "shape_id": s.shape_id,
+        "category": s.category, "label": s.label, "score": s.score, "mode": s.mode,
+        "mode_weight": s.mode_weight, "distance": n.distance,
+        "translation": _vec(frame.from_canonical(t)[0]),
+        "contact_offset": _vec(n.contact_offset @ frame.rotation * frame.radius),
+        "bbox_min": _vec(lo[0]), "bbox_max": _vec(hi[0]), "stop_reason": n.stop_reason,
+        "links": part_links(s.part_id),
+    }
+
+
+def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: str) -> dict[str, Any]:
+    frame, start = result.frame, result.start
+    start_out: dict[str, Any] = {"kind": start.kind}
+    if start.part_index is not None:
+        pid = engine.catalog.part_ids[start.part_index]
+        placed = frame.from_canonical(result.start_translation[None])[0]
+        start_out.update(part_id=pid, translation=_vec(placed), links=part_links(pid))
+    else:
+        start_out["points"] = len(start.points)
+        start_out["parts"] = len(start.parts)
+    nodes = [render_node(n, engine, result) for n in result.nodes]
+    chain = {n.node for n in result.steps}
+    return {
+        "model_version": engine.model_version, "frame": render_frame(frame), "start": start_out,
+        "category": result.category, "strategy": strategy, "stop_reason": result.stop_reason,
+        "steps": [d for d in nodes if d["node"] in chain], "nodes": nodes,
+        "timings": {k: round(v, 6) for k, v in result.timings.items()},
+    }

@@ -1,0 +1,113 @@
+"""Automatic assembly and export: ``POST /assemble``, ``/assemble/mesh`` and ``/export``.
+
+Handlers are plain ``def`` (threadpool), like the suggestion routes; the work is in
+``service.assembly`` and ``service.export_mesh``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, File, Form, UploadFile
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+from starlette.responses import Response
+
+from service.api.deps import EngineDep, SettingsDep
+from service.api.render_modeling import render_assemble
+from service.api.responses import OrjsonResponse
+from service.api.schemas import ErrorResponse
+from service.api.schemas_modeling import AssembleOptionsIn, AssembleRequest, AssembleResponse, ExportRequest
+from service.assembly import Assembler, Start
+from service.engine import SuggestionEngine
+from service.export_mesh import MEDIA_TYPES, export_assembly
+from service.frames import Frame
+from service.geometry import load_mesh_bytes, mesh_area
+from service.inputs import mesh_format, points_from_mesh
+
+router = APIRouter(tags=["modeling"])
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "The body is not JSON."},
+    404: {"model": ErrorResponse, "description": "The start part (or an excluded shape) is unknown."},
+    413: {"model": ErrorResponse, "description": "The body is larger than COMPLEMENTME_MAX_BODY_BYTES."},
+    422: {"model": ErrorResponse, "description": (
+        "No start or two of them, bad points, max_parts or branching out of range, unknown "
+        "category or style, bad mode weights.")},
+}
+
+
+def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int) -> Start:
+    """The request's start in the canonical frame: one part, or placed parts and/or points."""
+    if body.part_id is not None:
+        return Start(kind="part", part_index=engine.catalog.lookup(body.part_id))
+    frame = body.frame.to_frame() if body.frame else None
+    rows = tuple(engine.catalog.lookup(p.part_id) for p in body.parts or [])
+    trans = np.array([p.translation for p in body.parts or []], dtype=np.float64).reshape(-1, 3)
+    if frame is not None and len(trans):
+        trans = frame.to_canonical(trans).astype(np.float64)
+    cloud = body.points is not None or body.points_base64 is not None
+    points = (engine.canonical(body.to_points(max_points), frame or Frame()) if cloud
+              else np.zeros((0, 3), np.float32))
+    return Start(kind="parts" if rows else "points", points=points, parts=rows, part_translations=trans)
+
+
+@router.post("/assemble", response_model=AssembleResponse, responses=_ERRORS,
+             summary="Grow a shape automatically from a start part or points")
+def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
+    options = body.to_options()
+    result = Assembler(engine).assemble(start_of(body, engine, settings.max_points), options)
+    return OrjsonResponse(render_assemble(result, engine, options.strategy))
+
+
+@router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
+    "Grow a shape automatically from an uploaded mesh"), responses={
+    413: {"model": ErrorResponse, "description": "Upload or mesh over the limits."},
+    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
+})
+def post_assemble_mesh(
+    engine: EngineDep, settings: SettingsDep,
+    file: UploadFile = File(..., description=(
+        "The start mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF.")),
+    options: str | None = Form(None, description="Assembly options as JSON (the options of /assemble).",
+                               examples=['{"max_parts": 6, "category": "chair"}']),
+    format: str | None = Form(None, description="Mesh format, when the file name has no extension.",
+                              examples=["obj"]),
+) -> OrjsonResponse:
+    """The mesh's surface is sampled area-weighted (seeded); its area weighs it in the queries."""
+    fmt = mesh_format(file.filename, format)
+    try:
+        opts = AssembleOptionsIn.model_validate_json(options) if options else AssembleOptionsIn()
+    except ValidationError as exc:
+        raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
+                                      for e in exc.errors()]) from None
+    data = file.file.read()
+    name = file.filename or "upload"
+    n = max(engine.artifacts.n_points, settings.contact_part_samples)
+    points = points_from_mesh(data, fmt, n=n, seed=settings.seed, name=name,
+                              max_vertices=settings.max_mesh_vertices, max_faces=settings.max_mesh_faces)
+    mesh = load_mesh_bytes(data, fmt, name=name, max_vertices=settings.max_mesh_vertices,
+                           max_faces=settings.max_mesh_faces, ignore_obj_materials=True)
+    frame = opts.to_options().frame
+    area = mesh_area(mesh.vertices, mesh.faces) / frame.radius ** 2
+    start = Start(kind="mesh", points=engine.canonical(points, frame), area=area)
+    result = Assembler(engine).assemble(start, opts.to_options())
+    return OrjsonResponse(render_assemble(result, engine, opts.strategy))
+
+
+@router.post("/export", response_class=Response, summary="Placed parts as one GLB or OBJ file", responses={
+    200: {"content": {"model/gltf-binary": {"example": "(binary glTF 2.0, one node per part)"},
+                      "model/obj": {"example": "o 0_chair-0007_0\nv 0.45 -0.03 -0.38\n...\nf 1 2 3\n"}},
+          "description": "The assembly, one node (GLB) or object (OBJ) per part, as an attachment."},
+    404: {"model": ErrorResponse, "description": "A part id is unknown."},
+    422: {"model": ErrorResponse, "description": (
+        "No parts, more than COMPLEMENTME_MAX_EXPORT_PARTS, or bad translation, scale or frame.")},
+})
+def post_export(body: ExportRequest, engine: EngineDep, settings: SettingsDep) -> Response:
+    frame = body.frame.to_frame() if body.frame else None
+    data = export_assembly(engine.catalog, body.to_items(), body.format, frame,
+                           max_parts=settings.max_export_parts)
+    return Response(data, media_type=MEDIA_TYPES[body.format],
+                    headers={"Content-Disposition": f'attachment; filename="assembly.{body.format}"'})

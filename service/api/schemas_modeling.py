@@ -1,0 +1,182 @@
+"""Request and response schemas of the modeling routes: ``POST /assemble`` and ``POST /export``.
+
+Like ``schemas``: static bounds here, limits that are settings checked by the engine side, and
+request schemas that convert themselves into engine types.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from service.api.schemas import _RING, FrameIn, FrameOut, PartLinks, PointsIn, Vec3, _Strict
+from service.assembly import AssembleOptions
+from service.export_mesh import ExportItem
+from service.frames import Frame
+from service.preferences import Preferences
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class AssembleOptionsIn(_Strict):
+    """How to grow the assembly (all optional)."""
+
+    max_parts: int | None = Field(default=None, description=(
+        "Parts to add to the start (default COMPLEMENTME_ASSEMBLE_MAX_PARTS, at most "
+        "COMPLEMENTME_MAX_ASSEMBLE_PARTS); fewer when no candidate is likely enough."))
+    strategy: Literal["greedy", "sample"] = Field(default="greedy", description=(
+        "greedy: the most likely eligible part at every step; sample: a mode drawn by its weight "
+        "(seeded), then that mode's most likely part."))
+    seed: int = Field(default=0, description="Seed of the sampler.")
+    temperature: Finite = Field(default=1.0, gt=0, description=(
+        "sample: mode probabilities proportional to weight ** (1 / temperature); > 1 flattens."))
+    branching: int = Field(default=1, ge=1, description=(
+        "Children per state: 1 gives one chain; 2 gives the paper's binary tree of possibilities "
+        "(at most COMPLEMENTME_ASSEMBLE_MAX_NODES parts over the tree)."))
+    category: str | list[str] | None = Field(default=None, description=(
+        "Candidates' categories (default: the start part's; for a cloud or mesh, the first added part's)."))
+    style: str | list[str] | None = Field(default=None, description="Only parts of this catalog style.")
+    exclude_shapes: list[str] = Field(default_factory=list, description=(
+        "Source shapes never to take parts from."))
+    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] | None = Field(
+        default=None, description="One factor per mixture mode multiplying g's mode weights at every step.")
+    exclude_modes: list[int] = Field(default_factory=list, description="Mixture modes never added.")
+    refine_contact: bool = Field(default=True, description=(
+        "Nudge each placed part into contact with the parts placed before it."))
+    frame: FrameIn | None = Field(default=None, description=(
+        "The frame of the start points and parts, and of the answer."))
+
+    def to_options(self) -> AssembleOptions:
+        def tup(v: str | list[str] | None) -> tuple[str, ...]:
+            return (v,) if isinstance(v, str) else tuple(v or ())
+        return AssembleOptions(
+            max_parts=self.max_parts, strategy=self.strategy, seed=self.seed, temperature=self.temperature,
+            branching=self.branching, categories=tup(self.category), styles=tup(self.style),
+            exclude_shapes=tuple(self.exclude_shapes),
+            preferences=Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights else None,
+                                    exclude_modes=tuple(self.exclude_modes)),
+            refine_contact=self.refine_contact, frame=self.frame.to_frame() if self.frame else Frame())
+
+
+class PlacedPartIn(_Strict):
+    part_id: str = Field(..., description="Catalog part id.")
+    translation: tuple[Finite, Finite, Finite] = Field(..., description=(
+        "Where its bounding-box centre is (the request's frame), e.g. from an earlier answer."))
+
+
+class AssembleRequest(PointsIn, AssembleOptionsIn):
+    """Where to start and how to grow.
+
+    The start is one catalog part (``part_id``, at its place in its source shape), or an
+    assembly being edited: placed catalog parts (``parts``) and/or points (``points`` or
+    ``points_base64``, e.g. a scan).
+    """
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"part_id": "chair-0007/0", "max_parts": 6},
+        {"part_id": "chair-0007/0", "strategy": "sample", "seed": 3, "branching": 2, "max_parts": 4},
+        {"parts": [{"part_id": "chair-0007/0", "translation": [0.0, -0.16, 0.0]},
+                   {"part_id": "chair-0011/2", "translation": [0.0, -0.55, 0.0]}], "max_parts": 3},
+        {"points": _RING, "category": "chair", "refine_contact": False},
+    ]})
+
+    part_id: str | None = Field(default=None, description=(
+        "Start from this catalog part, at its place in its source shape (canonical frame)."))
+    parts: list[PlacedPartIn] | None = Field(default=None, description=(
+        "Start from these placed catalog parts (at most COMPLEMENTME_MAX_ASSEMBLE_PARTS)."))
+
+    @model_validator(mode="after")
+    def _one_start(self) -> AssembleRequest:
+        cloud = self.points is not None or self.points_base64 is not None
+        if self.part_id is not None and (cloud or self.parts is not None):
+            raise ValueError("part_id starts from one part: give no parts or points with it")
+        if self.part_id is None and not cloud and not self.parts:
+            raise ValueError("give a start: part_id, parts, points or points_base64")
+        return self
+
+
+class StepOut(BaseModel):
+    node: int = Field(..., description="Index of this part in `nodes` (and in `steps` without branching).")
+    parent: int | None = Field(..., description="The node this part was added to (null: the start).")
+    depth: int = Field(..., description="Parts added up to and including this one.")
+    part_id: str
+    shape_id: str
+    category: str
+    label: str | None
+    score: float = Field(..., description="Log-likelihood under the mixture predicted at that step.")
+    mode: int
+    mode_weight: float
+    distance: float = Field(..., description=(
+        "Distance of the part's embedding to its mode's mean, in RMS standard deviations."))
+    translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
+    contact_offset: Vec3 = Field(..., description="The contact refinement's share of the translation.")
+    bbox_min: Vec3
+    bbox_max: Vec3
+    stop_reason: str | None = Field(..., description="On a leaf: why its branch ended.")
+    links: PartLinks
+
+
+class StartOut(BaseModel):
+    kind: Literal["part", "parts", "points", "mesh"]
+    part_id: str | None = None
+    translation: Vec3 | None = Field(default=None, description="Where the start part sits (caller frame).")
+    points: int | None = Field(default=None, description="Start points received.")
+    parts: int | None = Field(default=None, description="Start parts received.")
+    links: PartLinks | None = None
+
+
+class AssembleResponse(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "model_version": "2025.01-chairs",
+        "frame": {"center": [0, 0, 0], "radius": 1.0, "up_axis": "y", "scale": 1.0,
+                  "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+        "start": {"kind": "part", "part_id": "chair-0007/0", "translation": [0.0, -0.16, 0.0],
+                  "links": {"part": "/parts/chair-0007/0", "mesh": "/parts/chair-0007/0/mesh",
+                            "points": "/parts/chair-0007/0/points"}},
+        "category": "chair", "strategy": "greedy", "stop_reason": "duplicates",
+        "steps": [{"node": 0, "parent": None, "depth": 1, "part_id": "chair-0011/2", "shape_id": "chair-0011",
+                   "category": "chair", "label": "leg", "score": 41.2, "mode": 3, "mode_weight": 0.4,
+                   "distance": 1.3, "translation": [0.0, -0.55, 0.0], "contact_offset": [0.0, -0.01, 0.0],
+                   "bbox_min": [-0.4, -0.95, -0.4], "bbox_max": [0.4, -0.15, 0.4], "stop_reason": None,
+                   "links": {"part": "/parts/chair-0011/2", "mesh": "/parts/chair-0011/2/mesh",
+                             "points": "/parts/chair-0011/2/points"}}],
+        "nodes": [], "timings": {"suggest": 0.02, "contact": 0.01, "total": 0.04},
+    }]})
+
+    model_version: str
+    frame: FrameOut
+    start: StartOut
+    category: str | None = Field(..., description="The category candidates were restricted to.")
+    strategy: str
+    stop_reason: str = Field(..., description=(
+        "Why the main chain ended: max_parts, no_candidates, unlikely, duplicates or node_budget."))
+    steps: list[StepOut] = Field(..., description="The main chain: the first choice at every step.")
+    nodes: list[StepOut] = Field(..., description="Every placed part of the tree (with branching >= 2).")
+    timings: dict[str, float] = Field(..., description=(
+        "Seconds spent suggesting, refining contact, in total."))
+
+
+class ExportItemIn(_Strict):
+    part_id: str = Field(..., description="Catalog part id.")
+    translation: tuple[Finite, Finite, Finite] = Field(..., description=(
+        "Where the part's bounding-box centre goes (the request's frame), as /suggest answers it."))
+    scale: Finite = Field(default=1.0, gt=0, le=1000, description="Uniform scale about the part's centre.")
+
+
+class ExportRequest(_Strict):
+    """Placed parts to write as one mesh file."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"format": "glb", "parts": [{"part_id": "chair-0007/0", "translation": [0.0, -0.16, 0.0]},
+                                    {"part_id": "chair-0011/2", "translation": [0.0, -0.55, 0.0],
+                                     "scale": 1.0}]},
+    ]})
+
+    parts: list[ExportItemIn] = Field(..., description="At most COMPLEMENTME_MAX_EXPORT_PARTS parts.")
+    format: Literal["glb", "obj"] = Field(default="glb", description="Binary glTF 2.0 or Wavefront OBJ.")
+    frame: FrameIn | None = Field(default=None, description="The frame of the translations.")
+
+    def to_items(self) -> list[ExportItem]:
+        return [ExportItem(p.part_id, p.translation, p.scale) for p in self.parts]
+

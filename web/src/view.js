@@ -1,0 +1,132 @@
+// The 3D view (orbitable, three.js + OrbitControls) and the thumbnail renderer of the gallery.
+import * as THREE from "three";
+import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
+import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
+import { getArrayBuffer, partPath } from "./api.js";
+
+const PALETTE = [0x4e79a7, 0xf28e2b, 0x59a14f, 0xe15759, 0x76b7b2, 0xedc948, 0xb07aa1, 0xff9da7, 0x9c755f,
+  0xbab0ac];
+
+export function colourOf(index) {
+  return PALETTE[index % PALETTE.length];
+}
+
+function lights(scene) {
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x667788, 1.6));
+  const sun = new THREE.DirectionalLight(0xffffff, 1.6);
+  sun.position.set(2, 3, 2.5);
+  scene.add(sun);
+}
+
+// Part geometry is fetched once per part id (GLB from /parts/{id}/mesh) and shared.
+const geometryCache = new Map();
+
+export function partGeometry(partId) {
+  if (!geometryCache.has(partId)) {
+    const promise = getArrayBuffer(partPath(partId) + "/mesh?format=glb").then(async (buffer) => {
+      const gltf = await new GLTFLoader().parseAsync(buffer, "");
+      let geometry = null;
+      gltf.scene.traverse((child) => {
+        if (child.isMesh && !geometry) geometry = child.geometry;
+      });
+      if (!geometry) throw new Error(`part ${partId}: its mesh has no triangles`);
+      geometry.computeVertexNormals();
+      return geometry;
+    });
+    promise.catch(() => geometryCache.delete(partId));
+    geometryCache.set(partId, promise);
+  }
+  return geometryCache.get(partId);
+}
+
+export class Viewer {
+  constructor(container) {
+    this.container = container;
+    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.setClearColor(0xf4f5f7);
+    container.appendChild(this.renderer.domElement);
+    this.scene = new THREE.Scene();
+    lights(this.scene);
+    const grid = new THREE.GridHelper(2.4, 12, 0xc8ccd2, 0xdde0e4);
+    grid.position.y = -1;
+    this.scene.add(grid);
+    this.group = new THREE.Group();
+    this.scene.add(this.group);
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 100);
+    this.camera.position.set(2.2, 1.4, 2.6);
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.controls.target.set(0, 0, 0);
+    this.controls.enableDamping = true;
+    this.controls.addEventListener("change", () => this.render());
+    new ResizeObserver(() => this.resize()).observe(container);
+    this.resize();
+    const tick = () => {
+      if (this.controls.update()) this.render();
+      requestAnimationFrame(tick);
+    };
+    requestAnimationFrame(tick);
+  }
+
+  resize() {
+    const w = Math.max(1, this.container.clientWidth), h = Math.max(1, this.container.clientHeight);
+    this.renderer.setSize(w, h, false);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+    this.render();
+  }
+
+  render() {
+    this.renderer.render(this.scene, this.camera);
+  }
+
+  // items: [{partId, translation, colour}] and an optional cloud geometry (uploaded start).
+  async show(items, cloudGeometry) {
+    const meshes = await Promise.all(items.map(async (item) => {
+      const geometry = await partGeometry(item.partId);
+      const mesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({
+        color: item.colour, roughness: 0.65, metalness: 0.05 }));
+      mesh.position.fromArray(item.translation);
+      mesh.userData.partId = item.partId;
+      return mesh;
+    }));
+    this.group.clear();
+    if (cloudGeometry) {
+      this.group.add(new THREE.Mesh(cloudGeometry, new THREE.MeshStandardMaterial({
+        color: 0x9aa3ad, roughness: 0.8, side: THREE.DoubleSide })));
+    }
+    meshes.forEach((m) => this.group.add(m));
+    this.render();
+  }
+}
+
+// One offscreen renderer draws every thumbnail (browsers allow only a few WebGL contexts).
+export class Thumbnailer {
+  constructor(size) {
+    this.size = size;
+    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+    this.renderer.setSize(size, size, false);
+    this.renderer.setClearColor(0xffffff);
+    this.scene = new THREE.Scene();
+    lights(this.scene);
+    this.camera = new THREE.PerspectiveCamera(35, 1, 0.01, 100);
+  }
+
+  // A data URL of the part's mesh, coloured, seen from the front-right, framed to fit.
+  async draw(partId, colour) {
+    const geometry = await partGeometry(partId);
+    const mesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({ color: colour, roughness: 0.6 }));
+    this.scene.add(mesh);
+    geometry.computeBoundingSphere();
+    const r = geometry.boundingSphere.radius || 1;
+    const c = geometry.boundingSphere.center;
+    const dir = new THREE.Vector3(1.1, 0.8, 1.4).normalize();
+    this.camera.position.copy(c).addScaledVector(dir, r * 3.2);
+    this.camera.lookAt(c);
+    this.renderer.render(this.scene, this.camera);
+    const url = this.renderer.domElement.toDataURL("image/png");
+    this.scene.remove(mesh);
+    mesh.material.dispose();
+    return url;
+  }
+}
