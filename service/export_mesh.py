@@ -47,9 +47,10 @@ def placed_meshes(catalog: Catalog, items: list[ExportItem], frame: Frame
         v, f = catalog.mesh(i)
         placed = frame.radius * ((it.scale * v.astype(np.float64)) @ frame.part_rotation.T) + np.asarray(
             it.translation, dtype=np.float64)
-        if not np.all(np.isfinite(placed)):
+        # Mesh files store float32: coordinates must stay finite there too.
+        if not np.all(np.abs(placed) < np.finfo(np.float32).max):
             raise InputError("non_finite_geometry", f"item {n} ({it.part_id}): translation, scale and "
-                             "frame give non-finite vertices")
+                             "frame give vertices that are not finite in float32")
         name = f"{n}_{it.part_id.replace('/', '_')}"
         out.append((name, trimesh.Trimesh(vertices=placed, faces=f.astype(np.int64), process=False)))
     return out

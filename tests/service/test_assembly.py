@@ -1,0 +1,333 @@
+"""Automatic assembly (service.assembly, POST /assemble): rules, trees, the API, and shape quality.
+
+The quality test runs on the shipped, trained model in exported/ (whatever
+COMPLEMENTME_TEST_ARTIFACTS says) and is skipped only when exported/ has no model: from random
+start parts of every category, seeded greedy and sampled runs must give shapes that hold the
+category's essential parts, and never two parts of one label within 0.05 of each other.
+"""
+
+from __future__ import annotations
+
+import io
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from service_testkit import make_settings
+
+from service.assembly import (
+    STOP_REASONS,
+    AssembleOptions,
+    Assembler,
+    Start,
+    Strategy,
+    _Placed,
+    estimate_area,
+)
+from service.catalog import Catalog
+from service.contact import Surface
+from service.engine import SuggestionEngine
+from service.errors import InputError, ServiceError
+from service.loading import load_artifacts
+from service.settings import DEFAULT_ARTIFACTS, Settings
+
+# What a complete shape of each category must hold (labels of training/data/generator).
+ESSENTIAL = {
+    "chair": {"seat", "back", "leg"}, "table": {"top", "leg"}, "airplane": {"body", "wing", "tail"},
+    "car": {"body", "wheel"}, "sofa": {"seat", "back"}, "lamp": {"base", "shade"},
+    "guitar": {"body", "neck"}, "watercraft": {"hull"},
+}
+SAME_LABEL_MIN_DISTANCE = 0.05
+QUALITY_RUNS = 10          # per category: half greedy, half sampled
+QUALITY_SHARE = 0.8
+
+
+def _chain_ok(result: object, max_parts: int) -> None:
+    steps = result.steps  # type: ignore[attr-defined]
+    assert len(steps) <= max_parts
+    for d, n in enumerate(steps, start=1):
+        assert n.depth == d
+        assert n.parent == (steps[d - 2].node if d > 1 else None)
+    assert result.stop_reason in STOP_REASONS  # type: ignore[attr-defined]
+
+
+def test_generator_labels_hold_the_essentials() -> None:
+    from training.data.generator.catalog import CATEGORIES
+
+    for cat, labels in ESSENTIAL.items():
+        assert labels <= set(CATEGORIES[cat].labels), cat
+
+
+# ------------------------------------------------------------------ rules on synthetic boxes
+
+
+def _box(lo: list[float], hi: list[float], n: int = 200, seed: int = 0) -> _Placed:
+    lo_, hi_ = np.array(lo, float), np.array(hi, float)
+    pts = np.random.default_rng(seed).uniform(lo_, hi_, size=(n, 3))
+    return _Placed(pts, Surface(pts), 1.0, lo_, hi_)
+
+
+@pytest.mark.parametrize(("cand", "placed", "dup"), [
+    # the same box again; nested inside (a hub in a tyre); a bit larger around (a tyre on a hub)
+    (([-.2, -.2, -.2], [.2, .2, .2]), ([-.21, -.2, -.19], [.2, .21, .2]), True),
+    (([-.1, -.1, -.02], [.1, .1, .02]), ([-.2, -.2, -.05], [.2, .2, .05]), True),
+    (([-.22, -.22, -.05], [.22, .22, .05]), ([-.15, -.15, -.05], [.15, .15, .05]), True),
+    # a hull around a deck; crossing boxes (a car body and its wheels); apart
+    (([-.8, -.3, -.5], [.8, .3, .5]), ([-.3, -.03, -.3], [.3, .03, .3]), False),
+    (([-.6, -.05, -.4], [.6, .05, .4]), ([-.05, -.3, -.05], [.05, .3, .05]), False),
+    (([.5, .5, .5], [.7, .7, .7]), ([-.2, -.2, -.2], [.2, .2, .2]), False),
+])
+def test_duplicate_rule(engine: SuggestionEngine, cand: tuple, placed: tuple, dup: bool) -> None:
+    asm = Assembler(engine)
+    assert asm._duplicate(_box(cand[0], cand[1]), [_box(placed[0], placed[1], seed=1)]) is dup
+
+
+def test_duplicate_rule_chamfer(engine: SuggestionEngine) -> None:
+    """Same samples moved by less than the Chamfer threshold: a duplicate even when centres differ."""
+    s = engine.settings
+    a = _box([-.4, -.02, -.4], [.4, .02, .4], n=2000)
+    shift = np.array([0.6 * s.assemble_duplicate_distance, 0.0, 0.0])
+    moved = _Placed(a.points + shift, a.surface, 1.0, a.lo + shift, a.hi + shift)
+    assert Assembler(engine)._duplicate(moved, [a])
+
+
+def test_estimate_area() -> None:
+    pts = np.random.default_rng(0).uniform([0, 0, 0], [1, 0, 2], size=(4000, 3))
+    assert estimate_area(pts) == pytest.approx(2.0, rel=0.3)
+
+
+# ------------------------------------------------------------------ the engine side
+
+
+@pytest.fixture(scope="module")
+def permissive(engine: SuggestionEngine, artifacts: Path) -> SuggestionEngine:
+    """The test engine with the likelihood rule off, so chains grow whatever the model's calibration."""
+    return SuggestionEngine(engine.artifacts, make_settings(
+        artifacts, assemble_max_distance=1e9, assemble_min_mode_weight=0.0))
+
+
+def test_unlikely_candidates_stop_the_chain(engine: SuggestionEngine, artifacts: Path) -> None:
+    strict = SuggestionEngine(engine.artifacts, make_settings(artifacts, assemble_max_distance=1e-9))
+    result = Assembler(strict).assemble(Start(kind="part", part_index=0), AssembleOptions(max_parts=3))
+    assert result.steps == [] and result.stop_reason == "unlikely"
+
+
+def test_chain_from_a_part(permissive: SuggestionEngine, catalog: Catalog) -> None:
+    engine = permissive
+    start = Start(kind="part", part_index=0)
+    result = Assembler(engine).assemble(start, AssembleOptions(max_parts=4))
+    _chain_ok(result, 4)
+    assert result.category == catalog.records[0]["category"]
+    assert result.nodes == result.steps
+    bound = engine.settings.contact_max_offset
+    for n in result.steps:
+        assert n.suggestion.category == result.category
+        assert np.linalg.norm(n.contact_offset) <= bound + 1e-9
+        np.testing.assert_allclose(n.translation, np.asarray(n.suggestion.translation) + n.contact_offset)
+    np.testing.assert_allclose(result.start_translation, catalog.translations[0])
+    # The same request gives the same assembly.
+    again = Assembler(engine).assemble(start, AssembleOptions(max_parts=4))
+    assert [n.suggestion.part_id for n in again.steps] == [n.suggestion.part_id for n in result.steps]
+    # Without refinement, parts sit where h put them.
+    raw = Assembler(engine).assemble(start, AssembleOptions(max_parts=4, refine_contact=False))
+    assert all(not np.any(n.contact_offset) for n in raw.steps)
+
+
+def test_sampling_is_seeded(permissive: SuggestionEngine) -> None:
+    engine = permissive
+    start = Start(kind="part", part_index=0)
+    runs = [[n.suggestion.part_id for n in Assembler(engine).assemble(
+        start, AssembleOptions(max_parts=4, strategy="sample", seed=s)).steps] for s in (1, 1, 2)]
+    assert runs[0] == runs[1]
+
+
+def test_tree(permissive: SuggestionEngine) -> None:
+    engine = permissive
+    settings = engine.settings
+    result = Assembler(engine).assemble(Start(kind="part", part_index=0),
+                                        AssembleOptions(max_parts=3, branching=2))
+    assert 1 <= len(result.nodes) <= settings.assemble_max_nodes
+    children = Counter(n.parent for n in result.nodes)
+    assert max(children.values()) <= 2
+    by_id = {n.node: n for n in result.nodes}
+    for n in result.nodes:
+        assert n.depth <= 3
+        if n.parent is not None:
+            assert by_id[n.parent].depth == n.depth - 1
+    # Siblings are different parts; the main chain takes the first child at every depth.
+    for parent in children:
+        kids = [n.suggestion.part_id for n in result.nodes if n.parent == parent]
+        assert len(set(kids)) == len(kids)
+    _chain_ok(result, 3)
+    assert result.steps[0] is next(n for n in result.nodes if n.parent is None)
+    # Leaves say why they ended.
+    leaves = [n for n in result.nodes if n.node not in children]
+    assert leaves and all(n.stop_reason in STOP_REASONS for n in leaves)
+
+
+def test_tree_node_budget(engine: SuggestionEngine, artifacts: Path) -> None:
+    small = SuggestionEngine(engine.artifacts, make_settings(artifacts, assemble_max_nodes=5))
+    result = Assembler(small).assemble(Start(kind="part", part_index=0),
+                                        AssembleOptions(max_parts=6, branching=3))
+    assert len(result.nodes) <= 5
+
+
+def test_points_start_locks_the_first_category(permissive: SuggestionEngine, catalog: Catalog) -> None:
+    engine = permissive
+    rows = np.flatnonzero(catalog.shape_of == catalog.shape_of[0])
+    pts = np.concatenate([catalog.part_points(int(i)) + catalog.translations[i] for i in rows])
+    result = Assembler(engine).assemble(Start(kind="points", points=pts), AssembleOptions(max_parts=3))
+    _chain_ok(result, 3)
+    if result.steps:
+        assert result.category == result.steps[0].suggestion.category
+        assert {n.suggestion.category for n in result.steps} == {result.category}
+
+
+@pytest.mark.parametrize(("options", "code"), [
+    (AssembleOptions(max_parts=0), "max_parts_out_of_range"),
+    (AssembleOptions(max_parts=10_000), "max_parts_out_of_range"),
+    (AssembleOptions(branching=0), "branching_out_of_range"),
+    (AssembleOptions(branching=1000), "branching_out_of_range"),
+    (AssembleOptions(temperature=0.0), "bad_temperature"),
+    (AssembleOptions(categories=("no-such-category",)), "unknown_category"),
+])
+def test_refusals(engine: SuggestionEngine, options: AssembleOptions, code: str) -> None:
+    with pytest.raises(ServiceError) as err:
+        Assembler(engine).assemble(Start(kind="part", part_index=0), options)
+    assert err.value.code == code
+
+
+def test_too_few_start_points(engine: SuggestionEngine) -> None:
+    with pytest.raises(InputError) as err:
+        Assembler(engine).assemble(Start(kind="points", points=np.zeros((3, 3), np.float32)))
+    assert err.value.code == "too_few_points"
+
+
+# ------------------------------------------------------------------ the API
+
+
+def test_api_assemble(client: TestClient, catalog: Catalog) -> None:
+    pid = catalog.part_ids[0]
+    r = client.post("/assemble", json={"part_id": pid, "max_parts": 3})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["start"]["kind"] == "part" and body["start"]["part_id"] == pid
+    np.testing.assert_allclose(body["start"]["translation"], catalog.translations[0], atol=1e-6)
+    assert body["stop_reason"] in STOP_REASONS and body["category"] == catalog.records[0]["category"]
+    assert len(body["steps"]) <= 3 and body["nodes"] == body["steps"]
+    for s in body["steps"]:
+        i = catalog.lookup(s["part_id"])
+        box_min = np.subtract(s["bbox_min"], s["translation"])
+        np.testing.assert_allclose(box_min, catalog.bbox_min[i], atol=1e-5)
+        assert s["links"]["mesh"].endswith("/mesh")
+    # A z-up, scaled frame answers the same parts at mapped translations.
+    framed = client.post("/assemble", json={"part_id": pid, "max_parts": 3, "frame": {
+        "center": [1, 2, 3], "radius": 2.0, "up_axis": "z"}}).json()
+    turn = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+    for a, b in zip(body["steps"], framed["steps"], strict=True):
+        assert a["part_id"] == b["part_id"]
+        back = (np.array(b["translation"]) - [1, 2, 3]) / 2.0 @ turn.T
+        np.testing.assert_allclose(back, a["translation"], atol=1e-5)
+
+
+def test_api_assemble_from_parts_continues(client: TestClient, catalog: Catalog) -> None:
+    first = client.post("/assemble", json={"part_id": catalog.part_ids[0], "max_parts": 2}).json()
+    parts = [{"part_id": catalog.part_ids[0], "translation": first["start"]["translation"]}]
+    parts += [{"part_id": s["part_id"], "translation": s["translation"]} for s in first["steps"]]
+    r = client.post("/assemble", json={"parts": parts, "max_parts": 2})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["start"]["kind"] == "parts" and body["start"]["parts"] == len(parts)
+    assert body["category"] == catalog.records[0]["category"]
+
+
+def test_api_assemble_tree(client: TestClient, catalog: Catalog) -> None:
+    r = client.post("/assemble", json={"part_id": catalog.part_ids[0], "max_parts": 2, "branching": 2,
+                                       "strategy": "sample", "seed": 5})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    ids = {n["node"] for n in body["nodes"]}
+    assert all(n["parent"] is None or n["parent"] in ids for n in body["nodes"])
+    assert {s["node"] for s in body["steps"]} <= ids
+
+
+def test_api_assemble_mesh(client: TestClient) -> None:
+    box = trimesh.creation.box((0.8, 0.06, 0.8))
+    data = box.export(file_type="obj").encode()
+    r = client.post("/assemble/mesh", files={"file": ("seat.obj", io.BytesIO(data), "text/plain")},
+                    data={"options": '{"max_parts": 2}'})
+    assert r.status_code == 200, r.text
+    assert r.json()["start"]["kind"] == "mesh"
+    bad = client.post("/assemble/mesh", files={"file": ("seat.obj", io.BytesIO(data), "text/plain")},
+                      data={"options": '{"max_parts": "many"}'})
+    assert bad.status_code == 422 and bad.json()["error"]["code"] == "validation_error"
+    assert bad.json()["error"]["details"][0]["loc"][:3] == ["body", "options", "max_parts"]
+
+
+@pytest.mark.parametrize(("body", "status", "code"), [
+    ({}, 422, "validation_error"),
+    ({"part_id": "P", "points": [[0, 0, 0]] * 20}, 422, "validation_error"),
+    ({"part_id": "no-such/0"}, 404, "unknown_part"),
+    ({"parts": [{"part_id": "no-such/0", "translation": [0, 0, 0]}]}, 404, "unknown_part"),
+    ({"part_id": "P", "max_parts": 0}, 422, "max_parts_out_of_range"),
+    ({"part_id": "P", "branching": 99}, 422, "branching_out_of_range"),
+    ({"part_id": "P", "branching": 0}, 422, "validation_error"),
+    ({"part_id": "P", "category": "no-such-category"}, 422, "unknown_category"),
+    ({"part_id": "P", "style": "no-such-style"}, 422, "unknown_style"),
+    ({"part_id": "P", "temperature": 0}, 422, "validation_error"),
+    ({"part_id": "P", "strategy": "best"}, 422, "validation_error"),
+    ({"part_id": "P", "exclude_modes": [999]}, 422, "unknown_mode"),
+    ({"points": [[0, 0, 0]] * 3}, 422, "too_few_points"),
+])
+def test_api_assemble_errors(client: TestClient, catalog: Catalog, body: dict, status: int,
+                             code: str) -> None:
+    if body.get("part_id") == "P":
+        body["part_id"] = catalog.part_ids[0]
+    r = client.post("/assemble", json=body)
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["code"] == code
+
+
+# ------------------------------------------------------------------ quality on the trained model
+
+
+@pytest.fixture(scope="module")
+def shipped_engine() -> SuggestionEngine:
+    folder = DEFAULT_ARTIFACTS
+    if not (folder / "manifest.json").is_file():
+        pytest.skip(f"no trained model in {folder}: the assembly quality test needs the shipped artifacts")
+    return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
+
+
+def test_automatic_assembly_quality(shipped_engine: SuggestionEngine) -> None:
+    """Random start parts of each category, greedy and sampled, seeded: essential parts present in
+    at least 80% of the runs of every category, and never two parts of one label within 0.05."""
+    engine, cat = shipped_engine, shipped_engine.catalog
+    rng = np.random.default_rng(0)
+    asm = Assembler(engine)
+    complete: dict[str, list[bool]] = {}
+    close_pairs = []
+    for c in sorted(ESSENTIAL):
+        if c not in cat.categories:
+            continue
+        rows = np.flatnonzero(cat.category_of == cat.categories.index(c))
+        for run in range(QUALITY_RUNS):
+            i = int(rng.choice(rows))
+            strategy: Strategy = "greedy" if run % 2 == 0 else "sample"
+            options = AssembleOptions(strategy=strategy, seed=run)
+            result = asm.assemble(Start(kind="part", part_index=i), options)
+            labels = [cat.records[i]["label"], *(n.suggestion.label for n in result.steps)]
+            places = [cat.translations[i].astype(np.float64), *(n.translation for n in result.steps)]
+            complete.setdefault(c, []).append(ESSENTIAL[c] <= set(labels))
+            for a in range(len(labels)):
+                for b in range(a):
+                    near = np.linalg.norm(places[a] - places[b]) < SAME_LABEL_MIN_DISTANCE
+                    if labels[a] == labels[b] and near:
+                        close_pairs.append((c, cat.part_ids[i], strategy, labels[a]))
+    assert complete, "no category of the generated dataset in the catalog"
+    shares = {c: float(np.mean(v)) for c, v in complete.items()}
+    assert all(s >= QUALITY_SHARE for s in shares.values()), shares
+    assert not close_pairs, close_pairs
