@@ -4,7 +4,9 @@ Latency must not grow without bound when more requests arrive than the CPU can s
 request that runs inference (each POST and DELETE) passes a gate: at most ``max_inflight`` run at
 once and at most ``max_queue`` wait for a slot; past that the service answers 503
 ``overloaded`` with a ``Retry-After`` estimated from recent latencies, at once and without
-reading the body. Reads (GET) are not gated.
+reading the body. Reads (GET) are not gated. Catalog writes (``POST /parts``, ``DELETE
+/parts/...``) have a gate of their own (``max_inflight_writes``): they wait for each other on the
+database, and must not take the slots of suggestion queries while they do.
 
 Every request also has a deadline (``request_timeout``, queueing included). A request still
 waiting for a slot at its deadline gets 503; one still running gets 504 ``deadline_exceeded``
@@ -91,9 +93,10 @@ class OverloadMiddleware:
     """Gate inference requests and enforce the request deadline (see the module doc)."""
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
-                 registry: CollectorRegistry | None = None):
+                 max_inflight_writes: int = 2, registry: CollectorRegistry | None = None):
         self.app = app
         self.gate = InferenceGate(max_inflight, max_queue)
+        self.write_gate = InferenceGate(max_inflight_writes, max_queue)
         self.timeout = timeout
         self.rejected = Counter("complementme_overload_rejections", "Requests refused by the overload "
                                 "gate or cut at their deadline, by reason.", ["reason"], registry=registry)
@@ -101,8 +104,8 @@ class OverloadMiddleware:
                                     registry=registry)
         self.queued_gauge = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
                                   registry=registry)
-        self.inflight_gauge.set_function(lambda: self.gate.inflight)
-        self.queued_gauge.set_function(lambda: self.gate.waiting)
+        self.inflight_gauge.set_function(lambda: self.gate.inflight + self.write_gate.inflight)
+        self.queued_gauge.set_function(lambda: self.gate.waiting + self.write_gate.waiting)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -110,7 +113,8 @@ class OverloadMiddleware:
             return
         deadline = time.monotonic() + self.timeout
         gated = scope["method"] in GATED_METHODS
-        if gated and not await self._enter(deadline, send):
+        gate = self.write_gate if _is_catalog_write(scope) else self.gate
+        if gated and not await self._enter(gate, deadline, send):
             return
         start = time.monotonic()
         answered = started = False
@@ -125,7 +129,7 @@ class OverloadMiddleware:
 
         task = asyncio.ensure_future(self.app(scope, receive, guarded_send))
         if gated:
-            task.add_done_callback(lambda _: self.gate.leave(time.monotonic() - start))
+            task.add_done_callback(lambda _: gate.leave(time.monotonic() - start))
         try:
             done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
         except asyncio.CancelledError:  # the server is shutting down or the client went away
@@ -143,14 +147,14 @@ class OverloadMiddleware:
         await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
                           f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT); its answer is dropped")
 
-    async def _enter(self, deadline: float, send: Send) -> bool:
+    async def _enter(self, gate: InferenceGate, deadline: float, send: Send) -> bool:
         """Take a gate slot for a request; answer 503 and return False when that is not possible."""
         try:
-            fut = self.gate.try_enter()
+            fut = gate.try_enter()
         except OverflowError:
             self.rejected.labels("queue_full").inc()
-            await self._overloaded(send, f"{self.gate.inflight} requests are running and "
-                                   f"{self.gate.waiting} waiting, the most this server accepts")
+            await self._overloaded(gate, send, f"{gate.inflight} requests are running and "
+                                   f"{gate.waiting} waiting, the most this server accepts")
             return False
         if fut is None:
             return True
@@ -158,18 +162,24 @@ class OverloadMiddleware:
             await asyncio.wait_for(asyncio.shield(fut), timeout=max(0.0, deadline - time.monotonic()))
             return True
         except asyncio.TimeoutError:
-            self.gate.abandon(fut)
+            gate.abandon(fut)
             self.rejected.labels("queue_timeout").inc()
-            await self._overloaded(send, f"no inference slot became free within {self.timeout:g} s")
+            await self._overloaded(gate, send, f"no slot became free within {self.timeout:g} s")
             return False
         except asyncio.CancelledError:
-            self.gate.abandon(fut)
+            gate.abandon(fut)
             raise
 
-    async def _overloaded(self, send: Send, why: str) -> None:
-        retry = self.gate.retry_after()
+    async def _overloaded(self, gate: InferenceGate, send: Send, why: str) -> None:
+        retry = gate.retry_after()
         await _send_error(send, 503, "overloaded", f"the service is overloaded ({why}); retry in {retry} s",
                           [(b"retry-after", str(retry).encode())])
+
+
+def _is_catalog_write(scope: Scope) -> bool:
+    path = scope["path"]
+    return (scope["method"] == "POST" and path == "/parts") or (
+        scope["method"] == "DELETE" and path.startswith("/parts/"))
 
 
 def _consume(task: asyncio.Future[Any]) -> None:

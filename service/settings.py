@@ -154,6 +154,9 @@ class Settings(BaseSettings):
     # --- overload ---------------------------------------------------------------------------
     max_inflight: int = Field(default=4, ge=1, description=(
         "Requests that run inference (every POST and DELETE) handled at once; more wait in a queue."))
+    max_inflight_writes: int = Field(default=2, ge=1, description=(
+        "Catalog writes (POST /parts, DELETE /parts/...) handled at once, in a gate of their own so "
+        "that suggestion queries never wait behind writes."))
     max_queue: int = Field(default=32, ge=0, description=(
         "Requests that may wait for an inference slot; past this the service answers 503 with "
         "Retry-After at once."))
@@ -172,7 +175,6 @@ class Settings(BaseSettings):
         if value is not None and len(value.get_secret_value()) < 16:
             raise ValueError("api_key must be at least 16 characters (use a random token)")
         return value
-
 
 
 @lru_cache

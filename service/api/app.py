@@ -99,7 +99,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     # Added last = outermost: metrics see every response, including a 413 from the body limit.
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
-                       timeout=settings.request_timeout, registry=app.state.metrics.registry)
+                       timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
+                       registry=app.state.metrics.registry)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes)
     if settings.cors_origins:  # browsers only; none by default

@@ -77,6 +77,20 @@ def test_past_the_queue_requests_get_503_with_retry_after() -> None:
     assert mw.gate.inflight == 0 and mw.gate.waiting == 0
 
 
+def test_catalog_writes_do_not_take_query_slots() -> None:
+    mw = OverloadMiddleware(_slow_app(0.3), max_inflight=1, max_queue=0, timeout=10, max_inflight_writes=1)
+
+    async def main() -> list[int]:
+        transport = httpx.ASGITransport(app=mw)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            answers = await asyncio.gather(client.post("/parts"), client.post("/suggest"),
+                                           client.delete("/parts/a/0"))
+            return [a.status_code for a in answers]
+
+    # The write and the query each have their slot; the second write finds the write gate full.
+    assert asyncio.run(main()) == [200, 200, 503]
+
+
 def test_a_request_past_its_deadline_gets_504_and_its_slot_waits_for_the_thread() -> None:
     mw = OverloadMiddleware(_slow_app(1.0, in_thread=True), max_inflight=1, max_queue=4, timeout=0.2)
 
