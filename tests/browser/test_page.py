@@ -109,3 +109,24 @@ def test_model_a_shape(page: Any, artifact_dir: Path) -> None:
     page.wait_for_function(IDLE)
     page.screenshot(path=str(artifact_dir / "page.png"))
     assert not page.problems, page.problems
+
+
+def test_start_from_an_uploaded_mesh(page: Any, tmp_path: Path) -> None:
+    """An uploaded mesh is the start: suggestions come for it, a click adds a part, undo removes it."""
+    seat = trimesh.creation.box((0.8, 0.06, 0.8))
+    path = tmp_path / "seat.obj"
+    path.write_text(seat.export(file_type="obj"))
+    page.wait_for_selector("#start-part-select option", state="attached")
+    page.wait_for_function(IDLE)
+    with page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
+        page.set_input_files("#mesh-upload", str(path))
+    assert answer.value.status == 200
+    page.wait_for_selector(CARDS)
+    page.wait_for_function(IDLE)
+    assert _parts(page) == 0
+    assert "uploaded mesh" in page.inner_text("#status")
+    page.locator(CARDS).first.click()
+    _wait_parts(page, 1)
+    page.click("#undo-button")
+    _wait_parts(page, 0)
+    assert not page.problems, page.problems
