@@ -13,7 +13,9 @@ filters, scoring and duplicate collapse.
   collapse.
 * Full rankings (percentile rank) score every pool part with the engine's networks (g) and its
   exact mixture log-likelihood (``service.mixture``), without the FAISS shortlist.
-* Placement uses ``engine.place`` (h_query, the part's precomputed h_part feature, h_head).
+* Placement uses ``engine.place`` (h_query, the part's precomputed h_part feature, h_head),
+  with the service's contact refinement off (h alone) or on (``refine=True``: the same call as
+  ``POST /place`` with its default ``refine_contact``).
 """
 
 from __future__ import annotations
@@ -78,11 +80,12 @@ class EngineMethod:
         ll, _ = mixture_log_likelihood(self.catalog.embeddings[np.asarray(rows, np.int64)], w, mu, sd)
         return ll
 
-    def place(self, points: np.ndarray, rows: list[int]) -> np.ndarray:
-        """Translations h predicts for catalog parts next to a query (shape frame).
+    def place(self, points: np.ndarray, rows: list[int], refine: bool = False) -> np.ndarray:
+        """Translations h predicts for catalog parts next to a query (shape frame); with ``refine``,
+        nudged into contact with the query's points by the service's refinement.
 
         Shapes:
             points (N, 3) -> (len(rows), 3) float64.
         """
-        result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows])
+        result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows], refine_contact=refine)
         return np.stack([p.translation for p in result.placements]).astype(np.float64)

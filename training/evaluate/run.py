@@ -23,8 +23,10 @@ Layout of ``results.json`` (undefined values are null)::
       functional_map, hausdorff, style_map_all_but_one, style_map_single,
       recall@1, recall@10, median_percentile_rank:
                  {method: {category: value, ..., "mean": mean of categories, "n": {category: count}}}
-      placement_error:  {"train" | "test": {category: value, ..., "mean": ..., "n": {...}}}
-      plausibility:     {"top1" | "true_h" | "true_gt": {category | "all": {n, floating,
+      placement_error, placement_error_refined (after contact refinement):
+                        {"train" | "test": {category: value, ..., "mean": ..., "n": {...}}}
+      plausibility:     {"top1" | "top1_refined" | "true_h" | "true_h_refined" | "true_gt":
+                         {category | "all": {n, floating,
                          interpenetrating, median_gap, median_depth}}}
     fixed_embedding: steps, train_seconds, final_loss, pca_explained_variance, scale, cached, ...
     timing_seconds:  {stage: seconds, "total": seconds}
@@ -271,6 +273,9 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
             placement += evaluate_placement(ours, placement_queries[split], s.progress)
         tables["placement_error"] = {sp: table([r for r in placement if r["split"] == sp], "error", cats)
                                      for sp in ("train", "test")}
+        tables["placement_error_refined"] = {
+            sp: table([r for r in placement if r["split"] == sp], "error_refined", cats)
+            for sp in ("train", "test")}
         lap("placement", t)
         t = time.monotonic()
         chosen = _first_per_category(queries["all_but_one"], s.plausibility_queries_per_category)
@@ -304,6 +309,9 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
         "pool": {c: int(np.sum(catalog.category_of == catalog.categories.index(c))) for c in cats},
         "tables": tables,
         "fixed_embedding": fixed_info,
+        # The service's contact refinement, as the "contact-refined" rows ran it.
+        "service_contact": {"contact_max_offset": engine.settings.contact_max_offset,
+                            "contact_tolerance": engine.settings.contact_tolerance},
     }
     timing["total"] = round(time.monotonic() - t_all, 2)
     results["timing_seconds"] = timing
