@@ -19,7 +19,6 @@ from service.settings import ENV_PREFIX, Settings
 
 DOCKER = REPO / "docker"
 COMPOSE = DOCKER / "compose.yaml"
-PENDING_SETTINGS = {"COMPLEMENTME_DATA_DIR"}  # see test_dockerfile.py
 
 
 def compose() -> dict[str, Any]:
@@ -73,7 +72,7 @@ def test_environment_names_real_settings_within_the_cpu_budget() -> None:
     api = compose()["services"]["complementme"]
     env = api["environment"]
     fields = {f"{ENV_PREFIX}{name.upper()}" for name in Settings.model_fields}
-    unknown = sorted(set(env) - fields - PENDING_SETTINGS)
+    unknown = sorted(set(env) - fields)
     assert not unknown, f"not settings of service/settings.py: {unknown}"
     workers = int(env.get("COMPLEMENTME_WORKERS", "1"))
     for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):

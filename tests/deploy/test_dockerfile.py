@@ -28,10 +28,6 @@ from dockerfile_model import (
 
 from service.settings import ENV_PREFIX, Settings
 
-# COMPLEMENTME_* variables the deploy files set before the service reads them: the catalog data
-# folder (mounted as a volume in compose and Kubernetes; docs/deploy.md says what it is for).
-PENDING_SETTINGS = {"COMPLEMENTME_DATA_DIR"}
-
 
 def hadolint() -> str:
     exe = Path(sys.executable).parent / "hadolint"
@@ -167,7 +163,7 @@ def test_env_sets_only_real_settings() -> None:
     fields = {f"{ENV_PREFIX}{name.upper()}" for name in Settings.model_fields}
     names = [k for ins in stages()[-1].of("ENV") for k, _ in env_pairs(ins.args) if k.startswith(ENV_PREFIX)]
     assert names, "the image sets no COMPLEMENTME_* variable"
-    unknown = [n for n in names if n not in fields | PENDING_SETTINGS]
+    unknown = [n for n in names if n not in fields]
     assert not unknown, f"not settings of service/settings.py: {unknown}"
 
 

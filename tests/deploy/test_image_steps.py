@@ -10,7 +10,7 @@ left out, as it would change the host; the service then runs as the current user
 
 What it proves: the install steps work from the repository as it is, they install no torch,
 importing the service loads no torch, and the image's command serves until ``/readyz`` says
-ready, with the HEALTHCHECK command passing against it.
+ready, opens its catalog data folder, and passes the HEALTHCHECK command.
 """
 
 from __future__ import annotations
@@ -233,6 +233,8 @@ def test_image_command_serves_until_ready(built: Built, tmp_path: Path) -> None:
             time.sleep(0.5)
         assert status == 200, f"/readyz never said 200 (last: {status}):\n{server_log.read_text()[-3000:]}"
         assert get(f"{base}/healthz")[0] == 200
+        # The image's data folder is where the catalog additions' database lives.
+        assert (data_dir / "catalog.sqlite3").is_file(), f"no additions database in {data_dir}"
         code, body = get(f"{base}/metrics")
         assert code == 200 and b"complementme_http_requests" in body
         check = [str(in_root(built.root, a)) if a.startswith("/") else a for a in built.healthcheck]

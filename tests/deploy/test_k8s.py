@@ -15,35 +15,37 @@ from kubernetes_validate.utils import latest_version
 from service.settings import ENV_PREFIX, Settings
 
 K8S = REPO / "docker" / "k8s"
-PENDING_SETTINGS = {"COMPLEMENTME_DATA_DIR"}  # see test_dockerfile.py
+WRITER = K8S / "single-writer"
 # The oldest Kubernetes release the manifests are meant for, and the newest the validator knows.
 VERSIONS = ["1.29.0", latest_version()]
 
 
-def load_all() -> list[tuple[Path, dict[str, Any]]]:
+def load_all(folder: Path = K8S) -> list[tuple[Path, dict[str, Any]]]:
     docs = []
-    for path in sorted(K8S.glob("*.yaml")):
+    for path in sorted(folder.glob("*.yaml")):
         for doc in yaml.safe_load_all(path.read_text()):
             if doc is not None:
                 docs.append((path, doc))
     return docs
 
 
-def one(kind: str) -> dict[str, Any]:
-    found = [doc for _, doc in load_all() if doc["kind"] == kind]
-    assert len(found) == 1, f"expected one {kind} in {K8S}, found {len(found)}"
+def one(kind: str, folder: Path = K8S) -> dict[str, Any]:
+    found = [doc for _, doc in load_all(folder) if doc["kind"] == kind]
+    assert len(found) == 1, f"expected one {kind} in {folder}, found {len(found)}"
     return found[0]
 
 
 def test_the_expected_resources_are_there() -> None:
     kinds = sorted(doc["kind"] for _, doc in load_all())
     assert kinds == ["ConfigMap", "Deployment", "HorizontalPodAutoscaler", "PodDisruptionBudget", "Service"]
+    writer = sorted(doc["kind"] for _, doc in load_all(WRITER))
+    assert writer == ["Deployment", "PersistentVolumeClaim", "Service"]
 
 
 @pytest.mark.parametrize("version", VERSIONS)
 def test_manifests_match_the_kubernetes_schema(version: str) -> None:
     errors = []
-    for path, doc in load_all():
+    for path, doc in load_all(K8S) + load_all(WRITER):
         try:
             kubernetes_validate.validate(doc, version, strict=True)
         except kubernetes_validate.ValidationError as exc:
@@ -111,11 +113,11 @@ def test_configmap_sets_only_real_settings_as_strings() -> None:
     fields = {f"{ENV_PREFIX}{name.upper()}" for name in Settings.model_fields}
     data = settings_env()
     assert all(isinstance(v, str) for v in data.values()), data
-    unknown = sorted(set(data) - fields - PENDING_SETTINGS)
+    unknown = sorted(set(data) - fields)
     assert not unknown, f"not settings of service/settings.py: {unknown}"
     # Every value must parse as that setting (e.g. a port in range, a known log level).
-    known = {k[len(ENV_PREFIX):].lower(): v for k, v in data.items() if k not in PENDING_SETTINGS}
-    Settings.model_validate(known)
+    Settings.model_validate({k[len(ENV_PREFIX):].lower(): v for k, v in data.items()})
+    assert f"{ENV_PREFIX}API_KEY" not in data, "the API key belongs in a Secret, and only the writer gets it"
     refs = [s["configMapRef"]["name"] for s in container()["envFrom"]]
     assert refs == [one("ConfigMap")["metadata"]["name"]]
 
@@ -159,3 +161,44 @@ def test_rollout_waits_for_readiness() -> None:
     strategy = one("Deployment")["spec"]["strategy"]
     assert strategy["type"] == "RollingUpdate"
     assert strategy["rollingUpdate"]["maxUnavailable"] == 0
+
+
+def writer_container() -> dict[str, Any]:
+    return one("Deployment", WRITER)["spec"]["template"]["spec"]["containers"][0]
+
+
+def test_one_writer_on_its_own_volume() -> None:
+    writer = one("Deployment", WRITER)
+    assert writer["spec"]["replicas"] == 1, "SQLite in the data folder allows one writing pod"
+    assert writer["spec"]["strategy"]["type"] == "Recreate", "two pods must never share the volume"
+    claim = one("PersistentVolumeClaim", WRITER)
+    assert claim["spec"]["accessModes"] == ["ReadWriteOnce"]
+    volumes = {v["name"]: v for v in writer["spec"]["template"]["spec"]["volumes"]}
+    mounts = {m["mountPath"]: m["name"] for m in writer_container()["volumeMounts"]}
+    data = volumes[mounts[settings_env()["COMPLEMENTME_DATA_DIR"]]]
+    assert data["persistentVolumeClaim"]["claimName"] == claim["metadata"]["name"]
+    sources = writer_container()["envFrom"]
+    assert {"configMapRef": {"name": one("ConfigMap")["metadata"]["name"]}} in sources
+    assert any("secretRef" in s for s in sources), "the writer needs the API key Secret"
+    hpa_target = one("HorizontalPodAutoscaler")["spec"]["scaleTargetRef"]["name"]
+    assert hpa_target != writer["metadata"]["name"], "the writer must not be scaled out"
+
+
+def test_reader_and_writer_services_do_not_mix_pods() -> None:
+    reader_pods = one("Deployment")["spec"]["template"]["metadata"]["labels"]
+    writer_pods = one("Deployment", WRITER)["spec"]["template"]["metadata"]["labels"]
+    reader_selector = one("Service")["spec"]["selector"]
+    writer_selector = one("Service", WRITER)["spec"]["selector"]
+    assert reader_selector.items() <= reader_pods.items()
+    assert not reader_selector.items() <= writer_pods.items(), "reader traffic would reach the writer"
+    assert writer_selector.items() <= writer_pods.items()
+    assert not writer_selector.items() <= reader_pods.items(), "writes would reach a reader"
+    pdb = one("PodDisruptionBudget")["spec"]["selector"]["matchLabels"]
+    assert not pdb.items() <= writer_pods.items()
+
+
+def test_writer_runs_the_same_image_and_probes() -> None:
+    reader, writer = container(), writer_container()
+    assert writer["image"] == reader["image"]
+    for key in ("ports", "startupProbe", "livenessProbe", "readinessProbe", "resources", "securityContext"):
+        assert writer[key] == reader[key], f"writer {key} differs from the readers'"
