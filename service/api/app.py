@@ -18,6 +18,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from service import __version__
 from service.api.errors import install_error_handlers
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
 from service.artifacts import ArtifactError
@@ -90,6 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(parts.router)
     app.include_router(probes.router)
     app.include_router(catalog_write.router)
+    add_common_responses(app)
     app.include_router(assemble.router)
     install_page(app)
 

@@ -8,6 +8,7 @@ database transaction) runs in the threadpool.
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 from fastapi import APIRouter, FastAPI, Request
@@ -68,7 +69,11 @@ class PartUploadIn(BaseModel):
         if self.frame is None:
             return Frame()
         try:
-            return FrameIn.model_validate_json(self.frame).to_frame()
+            value = json.loads(self.frame)
+        except json.JSONDecodeError as exc:
+            raise InputError("invalid_frame", f"frame is not valid JSON ({exc})") from None
+        try:
+            return FrameIn.model_validate(value).to_frame()
         except ValidationError as exc:
             raise RequestValidationError([{**e, "loc": ("body", "frame", *e["loc"])}
                                           for e in exc.errors()]) from None

@@ -33,7 +33,8 @@ _NOT_FOUND: dict[int | str, dict[str, Any]] = {
 
 
 @router.get("/parts", response_model=PartsPage, summary="List catalog parts, paged",
-            responses={422: {"model": ErrorResponse, "description": "Unknown category or bad paging."}})
+            responses={404: {"model": ErrorResponse, "description": "No part comes from shape_id."},
+                       422: {"model": ErrorResponse, "description": "Unknown category or bad paging."}})
 def list_parts(
     engine: EngineDep, settings: SettingsDep,
     category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
