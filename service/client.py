@@ -46,14 +46,17 @@ class ComplementMeClient:
         base_url: e.g. ``http://127.0.0.1:8000``.
         timeout: seconds for each request (connect, read and write).
         retries: extra attempts after a connection error or a 503.
-        backoff: seconds before the first retry; doubled each time.
+        backoff: seconds before the first retry; doubled each time (or the answer's Retry-After).
+        api_key: the key catalog writes need (sent as ``Authorization: Bearer``).
     """
 
     def __init__(self, base_url: str, *, timeout: float = 30.0, retries: int = 3, backoff: float = 0.5,
-                 transport: httpx.BaseTransport | None = None):
+                 transport: httpx.BaseTransport | None = None, api_key: str | None = None):
         self.retries = retries
         self.backoff = backoff
-        self.http = httpx.Client(base_url=base_url.rstrip("/"), timeout=timeout, transport=transport)
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else None
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), timeout=timeout, transport=transport,
+                                 headers=headers)
 
     def close(self) -> None:
         self.http.close()
@@ -65,14 +68,21 @@ class ComplementMeClient:
         self.close()
 
     # ------------------------------------------------------------------ transport
-    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
-        """One call with retries; raises ``ClientError`` for an error answer or no answer."""
+    def request(self, method: str, path: str, *, idempotent: bool = True, **kwargs: Any) -> httpx.Response:
+        """One call with retries; raises ``ClientError`` for an error answer or no answer.
+
+        A call that is not ``idempotent`` (a catalog add) is retried only when it surely did not
+        run: the connection failed, or the service refused it with 503.
+        """
         delay = self.backoff
         for attempt in range(self.retries + 1):
             last = attempt == self.retries
             try:
                 response = self.http.request(method, path, **kwargs)
             except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError) as exc:
+                if not idempotent and isinstance(exc, httpx.RemoteProtocolError):
+                    raise ClientError(None, "unknown_outcome", f"{method} {path}: the connection broke "
+                                      f"after sending ({exc}); the request may have run") from exc
                 if last:
                     raise ClientError(None, "unreachable", f"{method} {path}: {exc}") from exc
                 log.debug("retrying %s %s after %s", method, path, exc)
@@ -81,6 +91,7 @@ class ComplementMeClient:
             else:
                 if response.status_code == 503 and not last:
                     log.debug("retrying %s %s after 503", method, path)
+                    delay = max(delay, min(30.0, _retry_after(response)))
                 elif response.status_code >= 400:
                     raise _error_of(response)
                 else:
@@ -119,6 +130,24 @@ class ComplementMeClient:
     def part_mesh(self, part_id: str, format: str = "glb") -> bytes:
         return self.request("GET", f"/parts/{part_id}/mesh", params={"format": format}).content
 
+    def parts(self, **filters: Any) -> dict[str, Any]:
+        """``GET /parts`` (filters: category, shape_id, offset, limit)."""
+        return self.request("GET", "/parts", params=_drop_none(filters)).json()
+
+    def add_part(self, mesh: bytes, filename: str, category: str, **fields: Any) -> dict[str, Any]:
+        """``POST /parts``: add a part (fields: shape_id, name, style, label, format, frame).
+
+        Needs the client's ``api_key``. Returns the new part's record (with its ``part_id``).
+        """
+        data = {"category": category, **{k: (v if isinstance(v, str) else orjson.dumps(v).decode())
+                                        for k, v in _drop_none(fields).items()}}
+        return self.request("POST", "/parts", idempotent=False, files={"file": (filename, mesh)},
+                            data=data).json()
+
+    def delete_part(self, part_id: str) -> None:
+        """``DELETE /parts/{id}``: remove an added part (needs the client's ``api_key``)."""
+        self.request("DELETE", f"/parts/{part_id}")
+
     def model(self) -> dict[str, Any]:
         return self.request("GET", "/model").json()
 
@@ -128,6 +157,13 @@ class ComplementMeClient:
             return self.http.get("/readyz").status_code == 200
         except httpx.HTTPError:
             return False
+
+
+def _retry_after(response: httpx.Response) -> float:
+    try:
+        return float(response.headers.get("retry-after", 0))
+    except ValueError:
+        return 0.0
 
 
 def _drop_none(d: dict[str, Any]) -> dict[str, Any]:

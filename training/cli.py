@@ -11,10 +11,12 @@ import logging
 import typer
 
 from service.cli import register_service_commands
+from training.catalog_cli import catalog_app
 from training.data.cli import data_app
 
 app = typer.Typer(help="ComplementMe: component suggestions for 3D modeling.", no_args_is_help=True)
 app.add_typer(data_app, name="data")
+app.add_typer(catalog_app, name="catalog")
 register_service_commands(app)
 
 

@@ -1,0 +1,92 @@
+"""`complementme catalog ...`: add a folder of shapes to the catalog, back up a data folder.
+
+Thin wrappers over ``training.catalog_import`` and ``service.store``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+catalog_app = typer.Typer(help="The growing catalog: import shapes, back up the data folder.",
+                          no_args_is_help=True)
+
+
+@catalog_app.command("add")
+def add_cmd(
+    folder: Path = typer.Argument(..., exists=True, file_okay=False, help=(
+        "Folder of shape files (.obj .glb .gltf .ply .off .stl); sub-folders name categories.")),
+    url: str | None = typer.Option(None, help="A running service to add to (needs --api-key)."),
+    api_key: str | None = typer.Option(None, envvar="COMPLEMENTME_API_KEY", help=(
+        "The service's API key (default: COMPLEMENTME_API_KEY).")),
+    data_dir: Path | None = typer.Option(None, help=(
+        "Write this data folder directly instead of calling a service (loads the artifacts here).")),
+    artifacts: Path | None = typer.Option(None, help=(
+        "Artifact folder for --data-dir (default: COMPLEMENTME_ARTIFACTS or exported/).")),
+    category: str | None = typer.Option(None, help=(
+        "Category of every shape (default: its sub-folder's name).")),
+    up_axis: str = typer.Option("y", help="The files' up axis: y or z."),
+    report: Path | None = typer.Option(None, help="Also write the report as JSON here."),
+    timeout: float = typer.Option(120.0, help="Seconds per request (with --url)."),
+) -> None:
+    """Add every shape of a folder to the catalog: each shape's components become its parts.
+
+    Shapes are read and merged into components as the training data was (paper, Section 4).
+    Re-running continues an interrupted import; skipped files are listed with their reason and
+    make the command exit with status 1.
+    """
+    from service.client import ClientError, ComplementMeClient
+    from training.catalog_import import HttpSink, LocalSink, import_folder
+
+    if (url is None) == (data_dir is None):
+        raise typer.BadParameter("give either --url (a running service) or --data-dir (write it directly)")
+    if up_axis not in ("y", "z"):
+        raise typer.BadParameter(f"--up-axis must be y or z, found {up_axis!r}")
+    try:
+        if url is not None:
+            if not api_key:
+                raise typer.BadParameter("--url needs --api-key (or COMPLEMENTME_API_KEY)")
+            with ComplementMeClient(url, timeout=timeout, api_key=api_key) as client:
+                result = import_folder(folder, HttpSink(client), category, up_axis)
+        else:
+            from service.settings import get_settings
+
+            assert data_dir is not None
+            sink = LocalSink(artifacts or get_settings().artifacts, data_dir)
+            try:
+                result = import_folder(folder, sink, category, up_axis)
+            finally:
+                sink.close()
+    except ClientError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    except FileNotFoundError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(result.table())
+    if report is not None:
+        report.write_text(json.dumps(result.as_dict(), indent=1) + "\n")
+    if result.skipped:
+        raise typer.Exit(1)
+
+
+@catalog_app.command("backup")
+def backup_cmd(
+    data_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="The data folder to copy."),
+    dest: Path = typer.Argument(..., help="An empty or new folder for the copy."),
+) -> None:
+    """Copy a data folder consistently, also while a server writes to it (SQLite online backup)."""
+    from service.store import CatalogStore, StoreError
+
+    try:
+        store = CatalogStore(data_dir)
+        try:
+            files = store.backup(dest)
+        finally:
+            store.close()
+    except StoreError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"{data_dir} -> {dest}: database and {files - 1} geometry file(s) copied")
