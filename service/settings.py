@@ -161,8 +161,8 @@ class Settings(BaseSettings):
         "Requests that may wait for an inference slot; past this the service answers 503 with "
         "Retry-After at once."))
     request_timeout: float = Field(default=30.0, gt=0, description=(
-        "Seconds a request may take (queueing included); past this it is cancelled and answered "
-        "504 (503 if it was still queued)."))
+        "Seconds a request may take (queueing included); past this it is answered 504 (503 if it "
+        "was still queued) and its late answer is dropped."))
 
     @field_validator("api_key", mode="before")
     @classmethod

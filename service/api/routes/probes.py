@@ -56,7 +56,7 @@ async def get_model(engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
     body: dict[str, Any] = {
         "model_version": engine.model_version, "format_version": m["format_version"],
         "n_points": m["n_points"], "embedding_dim": m["embedding_dim"], "n_modes": m["n_modes"],
-        "part_count": m["part_count"],
+        "part_count": len(cat),  # shipped + added parts, as the categories below
         "categories": [{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)],
         "limits": {name: getattr(settings, name) for name in LIMIT_SETTINGS},
     }
