@@ -37,7 +37,9 @@ def add_cmd(
     Re-running continues an interrupted import; skipped files are listed with their reason and
     make the command exit with status 1.
     """
+    from service.artifacts import ArtifactError
     from service.client import ClientError, ComplementMeClient
+    from service.store import StoreError
     from training.catalog_import import HttpSink, LocalSink, import_folder
 
     if (url is None) == (data_dir is None):
@@ -59,10 +61,7 @@ def add_cmd(
                 result = import_folder(folder, sink, category, up_axis)
             finally:
                 sink.close()
-    except ClientError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-    except FileNotFoundError as exc:
+    except (ClientError, FileNotFoundError, ArtifactError, StoreError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(result.table())
