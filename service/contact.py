@@ -9,9 +9,11 @@ nearest-neighbour distances between surface samples (scipy's cKDTree):
 * gap: the smallest distance between a part sample and an assembly sample (0 once a sample of
   one side is inside the other);
 * depth: the deepest sample of one side inside the other. A sample ``x`` is inside a surface
-  when, with ``p`` its nearest sample of that surface and ``n`` the outward normal there,
+  when, for each of its few nearest samples ``p`` of that surface with outward normal ``n``,
   ``(x - p) . n < -cos(45 deg) |x - p|``: the closest-point sign test of a signed distance,
-  kept to points roughly behind the surface so that samples beside a sharp edge do not count.
+  kept to points roughly behind the surface so that samples beside a sharp edge do not count,
+  and asked of several neighbours so that a point beside a thin plate (whose neighbours lie on
+  both faces) is not taken for inside.
   Part samples always carry normals (sampled from the part's mesh); the assembly's do when it
   is made of catalog parts (``/assemble``), not when it is a caller's point cloud, where only
   assembly samples inside the part are seen.
@@ -80,6 +82,7 @@ class ContactParams:
     max_offset: float = 0.1       # largest refinement move
     tolerance: float = 0.01       # gap and depth accepted as touching; also the line-search step
     search_points: int = 128      # samples per side measured at each candidate offset
+    inside_neighbours: int = 4    # nearest samples that must all see a sample behind them (inside)
     seed: int = 0                 # which samples are measured when there are more
 
 
@@ -228,18 +231,21 @@ class _Search:
         """
         k = len(offsets)
         ub = self.reach + self.params.max_offset
-        # Part samples moved by o, against the assembly (x = part sample, its nearest assembly sample).
+        nk = self.params.inside_neighbours
+        # Part samples moved by o, against the assembly (x = part sample, its nearest assembly samples).
         q1 = (self.q_part[None] + offsets[:, None]).reshape(-1, 3)
-        d1, i1 = self.a_tree.query(q1, k=1, distance_upper_bound=ub)
+        d1n, i1n = self.a_tree.query(q1, k=nk, distance_upper_bound=ub)
         # Assembly samples against the part moved by o, i.e. assembly samples moved by -o.
         q2 = (self.q_asm[None] - offsets[:, None]).reshape(-1, 3)
-        d2, i2 = self.p_tree.query(q2, k=1, distance_upper_bound=ub)
-        j1 = np.where(i1 < len(self.a_pts), i1, 0)
-        j2 = np.where(i2 < len(self.p_pts), i2, 0)
+        d2n, i2n = self.p_tree.query(q2, k=nk, distance_upper_bound=ub)
+        d1n, i1n, d2n, i2n = (a.reshape(len(a), -1) for a in (d1n, i1n, d2n, i2n))
         # Part inside the assembly: the part must move out along the assembly's normal.
-        in1 = _inside(q1, d1, self.a_pts[j1], self.a_nrm[j1] if self.a_nrm is not None else None)
+        in1 = _inside(q1, d1n, i1n, self.a_pts, self.a_nrm)
         # Assembly inside the part: the part must move against its own normal there.
-        in2 = _inside(q2, d2, self.p_pts[j2], self.p_nrm[j2] if self.p_nrm is not None else None)
+        in2 = _inside(q2, d2n, i2n, self.p_pts, self.p_nrm)
+        d1, d2 = d1n[:, 0], d2n[:, 0]
+        j1 = np.where(i1n[:, 0] < len(self.a_pts), i1n[:, 0], 0)
+        j2 = np.where(i2n[:, 0] < len(self.p_pts), i2n[:, 0], 0)
         d1k, d2k = d1.reshape(k, -1), d2.reshape(k, -1)
         dep1 = np.where(in1, d1, 0.0).reshape(k, -1)
         dep2 = np.where(in2, d2, 0.0).reshape(k, -1)
@@ -260,13 +266,25 @@ class _Search:
         return _Probe(gap=gap, depth=depth, pull=_unit(pull), push=push)
 
 
-def _inside(x: np.ndarray, d: np.ndarray, p: np.ndarray, n: np.ndarray | None) -> np.ndarray:
-    """Which samples ``x`` lie behind their nearest sample ``p`` of an oriented surface (normal ``n``)."""
-    if n is None:
+def _inside(x: np.ndarray, d: np.ndarray, i: np.ndarray, pts: np.ndarray,
+            nrm: np.ndarray | None) -> np.ndarray:
+    """Which samples ``x`` lie behind every one of their nearest samples of an oriented surface.
+
+    Asking all the nearest samples (not only the nearest) keeps thin parts honest: a point beside
+    a thin plate has samples of both faces among its neighbours, and one of them sees it outside.
+
+    Shapes:
+        x (n, 3); d, i (n, k) distances and indices of the k nearest samples (index len(pts) and
+        distance inf where fewer were in range) -> (n,) bool.
+    """
+    if nrm is None:
         return np.zeros(len(x), dtype=bool)
-    s = np.einsum("ij,ij->i", x - p, n)
+    ok = i < len(pts)
+    j = np.where(ok, i, 0)
+    s = np.einsum("ijk,ijk->ij", x[:, None, :] - pts[j], nrm[j])
     with np.errstate(invalid="ignore"):
-        return np.isfinite(d) & np.isfinite(s) & (s < -_BEHIND * d)
+        behind = ok & np.isfinite(s) & (s < -_BEHIND * d)
+    return behind.all(axis=1) & ok[:, 0]
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -144,7 +144,7 @@ def evaluate_placement(ours: EngineMethod, queries: list[PlacementQuery],
     out = []
     for q in tqdm(queries, desc="placement", disable=not progress, leave=False):
         pred = ours.place(q.points, [q.target])[0]
-        refined = ours.place(q.points, [q.target], refine=True)[0]
+        refined = ours.refine(q.target, pred, q.present)
         out.append({"qid": q.qid, "category": q.category, "shape_id": q.shape_id, "split": q.split,
                     "part_id": ours.catalog.part_ids[q.target],
                     "error": placement_error(pred, q.true_translation),
@@ -189,7 +189,7 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
         gap or depth exceeds the true placement's by more than the tolerance (the data's own
         overlaps, e.g. legs sunk into a seat, do not count against h);
       * ``top1_refined``, ``true_h_refined``: the same placements after the service's contact
-        refinement (``POST /place`` with ``refine_contact`` on);
+        refinement against the present parts (``EngineMethod.refine``, as ``POST /assemble``);
       * ``true_gt``: the removed labelled part at its true place: the data's own rate, a floor.
     """
     cat = ours.catalog
@@ -219,7 +219,7 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
             row = cat.lookup(top[0])
             t = ours.place(q.points, [row])[0]
             record("top1", q, _placed_mesh(index, row, t, settings.samples), q.present)
-            t = ours.place(q.points, [row], refine=True)[0]
+            t = ours.refine(row, t, q.present)
             record("top1_refined", q, _placed_mesh(index, row, t, settings.samples), q.present)
         record("true_gt", q, _union(assembly(q.removed)), q.present)
     pred = {r["qid"]: r for r in placement}

@@ -13,15 +13,17 @@ filters, scoring and duplicate collapse.
   collapse.
 * Full rankings (percentile rank) score every pool part with the engine's networks (g) and its
   exact mixture log-likelihood (``service.mixture``), without the FAISS shortlist.
-* Placement uses ``engine.place`` (h_query, the part's precomputed h_part feature, h_head),
-  with the service's contact refinement off (h alone) or on (``refine=True``: the same call as
-  ``POST /place`` with its default ``refine_contact``).
+* Placement uses ``engine.place`` (h_query, the part's precomputed h_part feature, h_head) with
+  the service's contact refinement off: h alone. ``refine`` then applies the service's contact
+  refinement the way ``POST /assemble`` does for assemblies of catalog parts: against the
+  present parts' oriented surface samples (``engine.contacts``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from service.contact import Assembly, Surface
 from service.engine import SuggestionEngine, SuggestOptions
 from service.mixture import mixture_log_likelihood
 from training.evaluate.protocol import Query
@@ -80,12 +82,24 @@ class EngineMethod:
         ll, _ = mixture_log_likelihood(self.catalog.embeddings[np.asarray(rows, np.int64)], w, mu, sd)
         return ll
 
-    def place(self, points: np.ndarray, rows: list[int], refine: bool = False) -> np.ndarray:
-        """Translations h predicts for catalog parts next to a query (shape frame); with ``refine``,
-        nudged into contact with the query's points by the service's refinement.
+    def place(self, points: np.ndarray, rows: list[int]) -> np.ndarray:
+        """Translations h predicts for catalog parts next to a query (shape frame), unrefined.
 
         Shapes:
             points (N, 3) -> (len(rows), 3) float64.
         """
-        result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows], refine_contact=refine)
+        result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows], refine_contact=False)
         return np.stack([p.translation for p in result.placements]).astype(np.float64)
+
+    def refine(self, row: int, translation: np.ndarray, present: np.ndarray) -> np.ndarray:
+        """A translation of catalog part ``row`` after the service's contact refinement against the
+        present catalog parts (at their catalog translations), as ``POST /assemble`` refines.
+
+        Shapes:
+            translation (3,), present (r,) catalog rows -> (3,) float64.
+        """
+        contacts, cat = self.engine.contacts, self.catalog
+        surfaces = [contacts.part_surface(cat, int(r)).moved(cat.translations[r]) for r in present.tolist()]
+        t = np.asarray(translation, dtype=np.float64)
+        found = contacts.refine(cat, np.array([row]), t[None], Assembly(Surface.union(surfaces)))
+        return t + found[0].offset

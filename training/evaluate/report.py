@@ -84,8 +84,9 @@ CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
 REFINEMENT = """
 Contact refinement (`service/contact.py`, on by default in the service) nudges each placement by
 at most {max_offset} of the radius so that the part touches the assembly without sinking into it
-(sampled gap and depth within {tolerance}); the rows "contact-refined" are the same queries through
-`POST /place` with refinement on, the others with it off.
+(sampled gap and depth within {tolerance}). The rows "contact-refined" take h's placements of
+the other rows and refine them against the present parts' oriented surface samples, as
+`POST /assemble` does (`POST /suggest` and `/place` refine against the caller's points).
 """
 
 
