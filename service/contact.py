@@ -231,21 +231,18 @@ class _Search:
         """
         k = len(offsets)
         ub = self.reach + self.params.max_offset
-        nk = self.params.inside_neighbours
-        # Part samples moved by o, against the assembly (x = part sample, its nearest assembly samples).
+        # Part samples moved by o, against the assembly (x = part sample, its nearest assembly sample).
         q1 = (self.q_part[None] + offsets[:, None]).reshape(-1, 3)
-        d1n, i1n = self.a_tree.query(q1, k=nk, distance_upper_bound=ub)
+        d1, i1 = self.a_tree.query(q1, k=1, distance_upper_bound=ub)
         # Assembly samples against the part moved by o, i.e. assembly samples moved by -o.
         q2 = (self.q_asm[None] - offsets[:, None]).reshape(-1, 3)
-        d2n, i2n = self.p_tree.query(q2, k=nk, distance_upper_bound=ub)
-        d1n, i1n, d2n, i2n = (a.reshape(len(a), -1) for a in (d1n, i1n, d2n, i2n))
+        d2, i2 = self.p_tree.query(q2, k=1, distance_upper_bound=ub)
         # Part inside the assembly: the part must move out along the assembly's normal.
-        in1 = _inside(q1, d1n, i1n, self.a_pts, self.a_nrm)
+        in1 = self._inside(q1, d1, i1, self.a_tree, self.a_pts, self.a_nrm, ub)
         # Assembly inside the part: the part must move against its own normal there.
-        in2 = _inside(q2, d2n, i2n, self.p_pts, self.p_nrm)
-        d1, d2 = d1n[:, 0], d2n[:, 0]
-        j1 = np.where(i1n[:, 0] < len(self.a_pts), i1n[:, 0], 0)
-        j2 = np.where(i2n[:, 0] < len(self.p_pts), i2n[:, 0], 0)
+        in2 = self._inside(q2, d2, i2, self.p_tree, self.p_pts, self.p_nrm, ub)
+        j1 = np.where(i1 < len(self.a_pts), i1, 0)
+        j2 = np.where(i2 < len(self.p_pts), i2, 0)
         d1k, d2k = d1.reshape(k, -1), d2.reshape(k, -1)
         dep1 = np.where(in1, d1, 0.0).reshape(k, -1)
         dep2 = np.where(in2, d2, 0.0).reshape(k, -1)
@@ -264,6 +261,19 @@ class _Search:
         pull = np.where((d1k[rows, a1] <= d2k[rows, a2])[:, None], v1, v2)
         pull = np.where(np.isfinite(pull), pull, 0.0)
         return _Probe(gap=gap, depth=depth, pull=_unit(pull), push=push)
+
+
+    def _inside(self, x: np.ndarray, d: np.ndarray, i: np.ndarray, tree: cKDTree, pts: np.ndarray,
+                nrm: np.ndarray | None, ub: float) -> np.ndarray:
+        """Inside test of samples ``x`` whose nearest samples (``d``, ``i``) are known: the nearest
+        one first (cheap), then all ``inside_neighbours`` nearest for the few that pass it."""
+        inside = _inside(x, d[:, None], i[:, None], pts, nrm)
+        nk = self.params.inside_neighbours
+        if nk > 1 and inside.any():
+            rows = np.flatnonzero(inside)
+            dn, jn = tree.query(x[rows], k=nk, distance_upper_bound=ub)
+            inside[rows] = _inside(x[rows], dn.reshape(len(rows), -1), jn.reshape(len(rows), -1), pts, nrm)
+        return inside
 
 
 def _inside(x: np.ndarray, d: np.ndarray, i: np.ndarray, pts: np.ndarray,
@@ -304,14 +314,20 @@ def measure_contact(part: Surface, assembly: Assembly, reach: float = 0.5) -> Co
 
 def _best_touching(search: _Search, directions: np.ndarray, steps: np.ndarray, tol: float
                    ) -> tuple[np.ndarray, ContactState] | None:
-    """The smallest offset ``t u`` (u in directions, t in steps) after which the part touches."""
-    offsets = (directions[:, None, :] * steps[None, :, None]).reshape(-1, 3)
-    p = search.probe(offsets)
-    ok = np.flatnonzero((p.gap <= tol) & (p.depth <= tol))
-    if len(ok) == 0:
-        return None
-    j = ok[np.argmin(np.linalg.norm(offsets[ok], axis=1))]  # first of equals: deterministic
-    return offsets[j], ContactState(float(p.gap[j]), float(p.depth[j]))
+    """The smallest offset ``t u`` (u in directions, t in steps) after which the part touches.
+
+    Steps are tried from the smallest up, all directions of a step in one probe, so the search
+    stops at the first step where some direction resolves the contact (the first such direction
+    wins: the measured ones come first).
+    """
+    for t in steps:
+        offsets = directions * t
+        p = search.probe(offsets)
+        ok = np.flatnonzero((p.gap <= tol) & (p.depth <= tol))
+        if len(ok):
+            j = int(ok[0])
+            return offsets[j], ContactState(float(p.gap[j]), float(p.depth[j]))
+    return None
 
 
 def refine_offset(part: Surface, assembly: Assembly, params: ContactParams) -> Refinement:
