@@ -224,3 +224,42 @@ def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path
         _state(a).writer.sync()
         assert a.get(f"/parts/{pid}").status_code == 404
         assert a.get("/catalog").json()["sequence"] == b.get("/catalog").json()["sequence"] == 2
+
+
+def test_snapshots_extend_to_what_a_full_build_gives(catalog) -> None:
+    """Appended snapshots are built incrementally; they must equal a Catalog built in full."""
+    from service.catalog import Catalog
+    from service.snapshot import AddedPart, CatalogBuilder, _extension_ok
+
+    builder = CatalogBuilder(catalog)
+    rng = np.random.default_rng(0)
+    S, D, Fp = catalog.n_points, catalog.embeddings.shape[1], catalog.part_features.shape[1]
+    first = builder.catalog()
+    assert _extension_ok(first), "the incremental path is the one under test"
+    for round_, cats in enumerate((["zzz-new"], ["aaa-first", catalog.categories[0]], ["zzz-new"])):
+        parts = []
+        for j, cat in enumerate(cats):
+            faces = np.array([[0, 1, 2], [1, 2, 3]], np.int32)
+            g = PartGeometry(rng.normal(size=(4, 3)).astype(np.float32), faces,
+                             rng.normal(size=(S, 3)).astype(np.float16))
+            rec = {"part_id": f"r{round_}-{j}/0", "shape_id": f"{'0' if j else 'z'}-shape-{round_}-{j}",
+                   "category": cat, "style": None, "label": None, "translation": [0.1, 0.2, 0.3],
+                   "bbox_min": [-1, -1, -1], "bbox_max": [1, 1, 1], "area": 1.0, "split": "added",
+                   "duplicate_of": None}
+            parts.append(AddedPart(round_ * 10 + j, rec, rng.normal(size=D).astype(np.float32),
+                                   rng.normal(size=Fp).astype(np.float32), g))
+        builder.append(parts)
+        fast = builder.catalog()
+        full = Catalog(records=list(fast.records), embeddings=fast.embeddings,
+                       part_features=fast.part_features, points=fast.points, mesh_vertices=fast.mesh_vertices,
+                       mesh_faces=fast.mesh_faces, vertex_first=fast.vertex_first, face_first=fast.face_first)
+        assert set(vars(fast)) == set(vars(full))
+        for name, value in vars(full).items():
+            got = getattr(fast, name)
+            if isinstance(value, np.ndarray):
+                np.testing.assert_array_equal(got, value, err_msg=name)
+                assert got.dtype == value.dtype, name
+            else:
+                assert got == value, name
+        np.testing.assert_array_equal(fast.mesh(len(fast) - 1)[1], parts[-1].geometry.faces)
+    assert len(first) == len(catalog), "earlier snapshots are untouched by later appends"
