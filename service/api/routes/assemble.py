@@ -38,6 +38,15 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
+_MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-data": {"examples": {
+    "obj": {"summary": "A chair seat as OBJ, six parts added",
+            "value": {"file": "(seat.obj)", "options": '{"max_parts": 6, "category": "chair"}'}},
+    "z-up": {"summary": "A z-up scan in millimetres, answered in its own frame",
+             "value": {"file": "(scan.ply)", "options": '{"frame": {"center": [0, 0, 450], '
+                       '"radius": 600, "up_axis": "z"}}'}},
+}}}}}
+
+
 def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int) -> Start:
     """The request's start in the canonical frame: one part, or placed parts and/or points."""
     if body.part_id is not None:
@@ -62,7 +71,7 @@ def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDe
 
 
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
-    "Grow a shape automatically from an uploaded mesh"), responses={
+    "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE, responses={
     413: {"model": ErrorResponse, "description": "Upload or mesh over the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
     422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
