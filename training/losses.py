@@ -41,6 +41,24 @@ def mixture_nll(y: torch.Tensor, log_weights: torch.Tensor, means: torch.Tensor,
     return -torch.logsumexp(log_weights + component_log_density(y, means, log_sigmas), dim=1)
 
 
+def relaxed_wta_pull(y: torch.Tensor, means: torch.Tensor, log_sigmas: torch.Tensor,
+                     epsilon: float) -> torch.Tensor:
+    """Pull the Gaussian nearest to each positive onto it (relaxed winner-takes-all).
+
+    The per-mode negative log density of ``y`` is averaged with weight ``1 - epsilon`` on the
+    best mode and ``epsilon / (K - 1)`` on the others. Unlike the mixture NLL it ignores the
+    mixture weights, so it cannot win by moving all weight to one central mode.
+
+    Shapes:
+        y (B, D), means (B, K, D), log_sigmas (B, K, D) -> (B,).
+    """
+    nll = -component_log_density(y, means, log_sigmas)                 # (B, K)
+    k = nll.shape[1]
+    best = nll.argmin(dim=1, keepdim=True)
+    w = torch.full_like(nll, epsilon / max(k - 1, 1)).scatter(1, best, 1.0 - epsilon if k > 1 else 1.0)
+    return (w * nll).sum(dim=1)
+
+
 def triplet_hinge(e_pos: torch.Tensor, e_neg: torch.Tensor, margin: float) -> torch.Tensor:
     """Equation 2 per triplet: ``max(m + E(X, Y) - E(X, Z), 0)``.
 

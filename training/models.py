@@ -60,6 +60,13 @@ class PointNetEncoder(nn.Module):
         return self.fc(x)                   # (B, F)
 
 
+def to_sphere(x: torch.Tensor, radius: float) -> torch.Tensor:
+    """Scale vectors along the last axis to length ``radius`` (identity when radius is 0)."""
+    if radius <= 0:
+        return x
+    return x * (radius / torch.sqrt((x * x).sum(dim=-1, keepdim=True) + 1e-12))
+
+
 class EmbeddingNet(nn.Module):
     """f: a part's points to its coordinates in the D-dimensional embedding space.
 
@@ -71,9 +78,10 @@ class EmbeddingNet(nn.Module):
         super().__init__()
         self.encoder = PointNetEncoder(cfg.point_layers, cfg.fc_layers, cfg.batch_norm, cfg.dropout)
         self.out = nn.Linear(self.encoder.out_dim, cfg.embedding_dim)
+        self.radius = cfg.embedding_radius
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.out(self.encoder(points))
+        return to_sphere(self.out(self.encoder(points)), self.radius)
 
 
 class RetrievalNet(nn.Module):
@@ -95,6 +103,7 @@ class RetrievalNet(nn.Module):
         self.k, self.d = cfg.n_modes, cfg.embedding_dim
         self.sigma_param = cfg.sigma_param
         self.sigma_min, self.sigma_max = cfg.sigma_min, cfg.sigma_max
+        self.radius = cfg.embedding_radius
         self.encoder = PointNetEncoder(cfg.point_layers, cfg.fc_layers, cfg.batch_norm, cfg.dropout)
         width = self.encoder.out_dim
         self.weight_head = nn.Linear(width, self.k)
@@ -111,7 +120,7 @@ class RetrievalNet(nn.Module):
         """
         feat = self.encoder(points)                                   # (B, F)
         log_weights = F.log_softmax(self.weight_head(feat), dim=1)    # (B, K)
-        means = self.mean_head(feat).view(-1, self.k, self.d)         # (B, K, D)
+        means = to_sphere(self.mean_head(feat).view(-1, self.k, self.d), self.radius)  # (B, K, D)
         raw = self.sigma_head(feat).view(-1, self.k, self.d)          # (B, K, D)
         if self.sigma_param == "sigmoid":
             sigmas = self.sigma_min + (self.sigma_max - self.sigma_min) * torch.sigmoid(raw)

@@ -36,7 +36,7 @@ from training.batches import batch_stream
 from training.checkpoint import checkpoint_path, load_checkpoint, make_state, save_checkpoint
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
 from training.data.processed import ProcessedDataset
-from training.losses import placement_loss, triplet_loss
+from training.losses import placement_loss, relaxed_wta_pull, triplet_loss
 from training.models import build_models, count_parameters
 from training.plots import (
     LOSSES_CSV,
@@ -254,18 +254,22 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         X, Y, Z, T = batch["X"], batch["Y"], batch["Z"], batch["Y_translation"]
         if cfg.train_retrieval:
             emb, log_w, means, log_s = pair_run(X, torch.cat([Y, Z]))
-            loss, e_pos, e_neg = triplet_loss(emb[:len(Y)], emb[len(Y):], log_w, means, log_s, cfg.margin)
+            hinge, e_pos, e_neg = triplet_loss(emb[:len(Y)], emb[len(Y):], log_w, means, log_s, cfg.margin)
+            loss = hinge + cfg.nll_weight * e_pos.mean() if cfg.nll_weight else hinge
+            if cfg.wta_weight:
+                pull = relaxed_wta_pull(emb[:len(Y)], means, log_s, cfg.wta_epsilon)
+                loss = loss + cfg.wta_weight * pull.mean()
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"triplet loss is {loss.item()} at step {step}")
             opt_r.zero_grad(set_to_none=True)
             loss.backward()
             opt_r.step()
             sched_r.step()
-            window["triplet_loss"].append(loss.item())
+            window["triplet_loss"].append(hinge.item())
             window["e_pos"].append(e_pos.mean().item())
             window["e_neg"].append(e_neg.mean().item())
             window["batch_triplet_accuracy"].append((e_pos < e_neg).float().mean().item())
-            recent["triplet_loss"].append(loss.item())
+            recent["triplet_loss"].append(hinge.item())
         if cfg.train_placement:
             ploss = placement_loss(place_run(X, Y), T)
             if not torch.isfinite(ploss):

@@ -8,7 +8,14 @@ import torch
 from scipy.special import logsumexp
 from scipy.stats import norm
 
-from training.losses import mixture_nll, placement_loss, triplet_hinge, triplet_loss
+from training.losses import (
+    component_log_density,
+    mixture_nll,
+    placement_loss,
+    relaxed_wta_pull,
+    triplet_hinge,
+    triplet_loss,
+)
 
 
 def _random_mixture(rng: np.random.Generator, b: int, k: int, d: int, spread: float):
@@ -126,3 +133,15 @@ def test_placement_loss_is_the_mean_squared_distance():
     pred = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     target = torch.tensor([[0.0, 0.0, 1.0], [1.0, -1.0, 1.0]])
     assert placement_loss(pred, target).item() == pytest.approx((1.0 + 4.0) / 2)
+
+
+def test_relaxed_wta_pull_weights_the_nearest_mode():
+    means = torch.tensor([[[0.0, 0.0], [1.0, 1.0], [5.0, 5.0]]])
+    log_s = torch.log(torch.full((1, 3, 2), 0.5))
+    y = torch.tensor([[0.9, 1.1]])
+    per_mode = -component_log_density(y, means, log_s)[0]
+    got = relaxed_wta_pull(y, means, log_s, epsilon=0.1)
+    expected = 0.9 * per_mode[1] + 0.05 * (per_mode[0] + per_mode[2])
+    assert got.item() == pytest.approx(expected.item(), rel=1e-6)
+    # epsilon 0: the nearest mode alone, and the mixture weights play no part.
+    assert relaxed_wta_pull(y, means, log_s, 0.0).item() == pytest.approx(per_mode[1].item(), rel=1e-6)

@@ -127,3 +127,15 @@ def test_config_file_is_read(tmp_path):
     path.write_text("[1, 2]")
     with pytest.raises(ValueError, match=str(path)):
         resolve_config(config_file=path)
+
+
+def test_embedding_sphere_puts_embeddings_and_means_at_the_radius():
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(TINY, embedding_radius=2.0)
+    pair, _ = build_models(cfg)
+    pair.eval()
+    with torch.no_grad():
+        emb = pair.f(_points(4, 30))
+        _, means, _ = pair.g(_points(4, 30))
+    torch.testing.assert_close(emb.norm(dim=1), torch.full((4,), 2.0))
+    torch.testing.assert_close(means.norm(dim=2), torch.full((4, 3), 2.0))
