@@ -19,7 +19,12 @@ from service.frames import Frame
 from service.inputs import points_from_base64, points_from_list, points_to_base64
 from service.preferences import Preferences
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+# Request numbers and flags are strict: JSON `false` or `"1"` is not a coordinate, a count or a
+# flag (pydantic would otherwise coerce them). Integers are still accepted for floats.
+Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
+Number = Annotated[float, Field(strict=True)]
+Count = Annotated[int, Field(strict=True)]
+Flag = Annotated[bool, Field(strict=True)]
 Vec3 = tuple[float, float, float]
 
 # A small valid query for the examples: a ring of 16 points (a chair seat's rim, say).
@@ -47,7 +52,7 @@ class FrameIn(_Strict):
 class SuggestOptionsIn(_Strict):
     """Options of one suggestion query."""
 
-    k: int | None = Field(default=None, description=(
+    k: Count | None = Field(default=None, description=(
         "Suggestions to return (default and maximum: settings COMPLEMENTME_DEFAULT_K, COMPLEMENTME_MAX_K)."))
     category: str | list[str] | None = Field(default=None, description=(
         "Only parts of this category (or categories)."))
@@ -55,21 +60,21 @@ class SuggestOptionsIn(_Strict):
         "Part ids never to suggest; their near-duplicates are excluded too."))
     exclude_shapes: list[str] = Field(default_factory=list, description=(
         "Source shape ids whose parts are never suggested."))
-    collapse_duplicates: bool = Field(default=True, description=(
+    collapse_duplicates: Flag = Field(default=True, description=(
         "Show one part per group of near-identical parts."))
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
     style: str | list[str] | None = Field(default=None, description=(
         "Only parts of this catalog style (or styles), e.g. \"armchair\"."))
-    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] | None = Field(
+    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False, strict=True)]] | None = Field(
         default=None, description=(
             "One factor per mixture mode (GET /model: n_modes) multiplying g's mode weights before "
             "ranking: favour some kinds of complement over others."))
-    exclude_modes: list[int] = Field(default_factory=list, description=(
+    exclude_modes: list[Count] = Field(default_factory=list, description=(
         "Mixture modes whose kind of complement is never suggested."))
-    diversity: bool = Field(default=False, description=(
+    diversity: Flag = Field(default=False, description=(
         "A gallery balanced over modes: round-robin over the modes by weight instead of "
         "likelihood order."))
-    refine_contact: bool = Field(default=True, description=(
+    refine_contact: Flag = Field(default=True, description=(
         "Nudge each placement (at most COMPLEMENTME_CONTACT_MAX_OFFSET) so the part touches the "
         "query without sinking into it; the move is reported as contact_offset."))
 
@@ -91,7 +96,7 @@ class SuggestOptionsIn(_Strict):
 class PointsIn(_Strict):
     """A partial assembly as points: a JSON list, or base64 float32 (faster) - exactly one of them."""
 
-    points: list[list[float]] | None = Field(default=None, description=(
+    points: list[list[Number]] | None = Field(default=None, description=(
         "[[x, y, z], ...] in the request's frame."))
     points_base64: str | None = Field(default=None, description=(
         "Base64 of little-endian float32 x, y, z triples (12 bytes per point)."))
@@ -133,7 +138,7 @@ class PlaceRequest(PointsIn):
 
     part_ids: list[str] = Field(..., description="Catalog part ids to place.")
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
-    refine_contact: bool = Field(default=True, description=(
+    refine_contact: Flag = Field(default=True, description=(
         "Nudge each placement so the part touches the query without sinking into it."))
 
 

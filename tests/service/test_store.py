@@ -209,7 +209,8 @@ def test_damaged_or_stale_data_is_repaired_at_start(artifacts: Path, data_dir: P
         assert status["added_parts"] == 2 and status["index_sequence"] == status["sequence"]
         assert c.get(f"/parts/{ids[0]}").status_code == 404
         assert c.get(f"/parts/{ids[2]}").status_code == 200
-        np.testing.assert_allclose(_state(c).engine.catalog.embeddings[-1], embedding, rtol=1e-5)
+        # The same model on the same geometry: the same embedding, up to float rounding.
+        np.testing.assert_allclose(_state(c).engine.catalog.embeddings[-1], embedding, rtol=1e-4, atol=1e-6)
 
 
 def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path) -> None:
