@@ -18,9 +18,10 @@ every step or, for a tree of possibilities, several choices per step. Each step 
      within ``assemble_duplicate_centre`` of a placed part's box and either of about the same
      size (every extent within a factor ``assemble_duplicate_size_ratio``: a second back where
      a back already is), nested inside it (a hub in a tyre), or holding it with less than
-     ``assemble_duplicate_contain_ratio`` times its volume (a tyre around a hub). Parts that
-     share a centre but cross (a car body and its wheels) or enclose a much smaller part (a
-     hull around its deck) are kept;
+     ``assemble_duplicate_contain_ratio`` times its volume (a tyre around a hub) or with the
+     same profile across its longest axis (a longer rod on a shorter one). Parts that share a
+     centre but cross (a car body and its wheels) or enclose a much smaller part of another
+     profile (a hull around its deck) are kept;
 4. picks among them: ``greedy`` takes the most likely; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely part (seeded);
@@ -229,8 +230,13 @@ class Assembler:
                 similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
                                  & (ratio >= 1 / s.assemble_duplicate_size_ratio))
                 inside = np.all(cand.lo >= p.lo - margin) and np.all(cand.hi <= p.hi + margin)
-                around = (np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin)
-                          and np.prod(ratio) < s.assemble_duplicate_contain_ratio)
+                around = np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin)
+                if around:
+                    # Much larger and enclosing is another part (a hull around its deck), unless it
+                    # only extends the same profile (a longer rod on a shorter one).
+                    across = np.arange(3) != np.argmax(size)
+                    profile = np.all(ratio[across] <= s.assemble_duplicate_size_ratio)
+                    around = bool(profile or np.prod(ratio) < s.assemble_duplicate_contain_ratio)
                 if similar or inside or around:
                     return True
             if s.assemble_duplicate_distance > 0:
