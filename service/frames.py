@@ -64,8 +64,9 @@ class Frame:
         """Caller points to the canonical frame: (N, 3) -> (N, 3) float32."""
         if self.is_canonical:
             return np.asarray(points, dtype=np.float32)
-        q = (np.asarray(points, dtype=np.float64) - self.center) / self.radius
-        with np.errstate(over="ignore"):  # out-of-range values become inf; callers check finiteness
+        # Out-of-range values become inf (or NaN); callers check finiteness.
+        with np.errstate(over="ignore", invalid="ignore"):
+            q = (np.asarray(points, dtype=np.float64) - self.center) / self.radius
             return (q @ self.rotation.T).astype(np.float32)
 
     def from_canonical(self, points: np.ndarray) -> np.ndarray:
