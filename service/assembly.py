@@ -6,9 +6,10 @@ every step or, for a tree of possibilities, several choices per step. Each step 
 
 1. builds the query: the placed parts' catalog samples in the canonical frame, area-weighted
    to the networks' N points (a start cloud counts with the area its points cover);
-2. asks the engine for ``assemble_candidates`` suggestions (filters of the request; by default
-   the start part's category, or the first added part's when the start is a cloud or a mesh),
-   placed by h without contact refinement;
+2. asks the engine for ``assemble_candidates`` suggestions as a mode-balanced gallery (so that
+   every kind g proposes has candidates, even when its heaviest mode only offers more of what
+   is placed), with the request's filters (by default the start part's category, or the first
+   added part's when the start is a cloud or a mesh), placed by h without contact refinement;
 3. keeps the *eligible* candidates:
    * likely enough: the part's mode has weight >= ``assemble_min_mode_weight`` and the part's
      embedding lies within ``assemble_max_distance`` root-mean-square standard deviations of
@@ -22,7 +23,8 @@ every step or, for a tree of possibilities, several choices per step. Each step 
      same profile across its longest axis (a longer rod on a shorter one). Parts that share a
      centre but cross (a car body and its wheels) or enclose a much smaller part of another
      profile (a hull around its deck) are kept;
-4. picks among them: ``greedy`` takes the most likely; ``sample`` draws a mode with
+4. picks among them: ``greedy`` takes the most likely (highest mixture log-likelihood);
+   ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely part (seeded);
 5. refines the chosen part's placement against the placed parts' oriented samples
@@ -40,7 +42,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -265,6 +267,7 @@ class Assembler:
             placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64))
             if not self._duplicate(placed, parts):
                 out.append((sug, placed, dist))
+        out.sort(key=lambda e: -e[0].score)  # most likely first (the list came mode-balanced)
         return out, ("unlikely" if likely == 0 else "duplicates")
 
     def _choose(self, eligible: list[tuple[Suggestion, _Placed, float]], n: int, strategy: Strategy,
@@ -341,10 +344,13 @@ class Assembler:
                 continue
             cats = options.categories or ((category,) if category else ())
             t = time.perf_counter()
+            # A mode-balanced list: when g's heaviest mode only offers more of what is placed,
+            # the other kinds still have candidates to choose from.
+            prefs = replace(options.preferences, diversity=True)
             result = self.engine.suggest(self._query(parts, self.settings.seed + len(nodes)), SuggestOptions(
                 k=min(self.settings.assemble_candidates, self.settings.max_k), categories=cats,
                 styles=options.styles, exclude_shapes=options.exclude_shapes,
-                preferences=options.preferences, refine_contact=False))
+                preferences=prefs, refine_contact=False))
             suggest_time += time.perf_counter() - t
             eligible, reason = self._eligible(result, parts)
             if not eligible:
