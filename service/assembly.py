@@ -232,7 +232,7 @@ class Assembler:
                 similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
                                  & (ratio >= 1 / s.assemble_duplicate_size_ratio))
                 inside = np.all(cand.lo >= p.lo - margin) and np.all(cand.hi <= p.hi + margin)
-                around = np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin)
+                around = bool(np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin))
                 if around:
                     # Much larger and enclosing is another part (a hull around its deck), unless it
                     # only extends the same profile (a longer rod on a shorter one).
