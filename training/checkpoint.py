@@ -1,4 +1,6 @@
-"""Checkpoints of a run: weights, optimiser and scheduler states, step, elapsed time and config.
+"""Checkpoints of a run: weights, optimiser states, step, elapsed time and config.
+
+(The learning rate is a function of the step and the run's progress, so no scheduler state.)
 
 One loader (``load_trained``) serves resume, evaluation and export, so they all rebuild the
 networks from the config stored next to the weights.
@@ -51,7 +53,6 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def make_state(cfg: TrainConfig, step: int, elapsed_seconds: float, pair: RetrievalPair,
                placement: PlacementNet, optimizers: dict[str, torch.optim.Optimizer],
-               schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler],
                extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Everything a resume needs, as a dict of tensors and plain values."""
     return {
@@ -61,7 +62,6 @@ def make_state(cfg: TrainConfig, step: int, elapsed_seconds: float, pair: Retrie
         "retrieval": pair.state_dict(),
         "placement": placement.state_dict(),
         "optimizers": {k: v.state_dict() for k, v in optimizers.items()},
-        "schedulers": {k: v.state_dict() for k, v in schedulers.items()},
         **(extra or {}),
     }
 

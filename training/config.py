@@ -106,6 +106,12 @@ class TrainConfig:
     lr_decay: float = field(default=0.8, metadata=_help("LR factor per decay period (paper: 0.8)."))
     lr_decay_steps: int = field(default=50000, metadata=_help("Steps per decay period (paper: 50000)."))
     lr_staircase: bool = field(default=False, metadata=_help("Decay in steps instead of continuously."))
+    # "exp": the paper's lr * decay^(step / decay_steps). "cosine": from lr down to
+    # lr * lr_final_fraction along a half cosine over the run's progress, the larger of
+    # step / steps and (with --minutes) the elapsed share of this invocation's time budget, so
+    # a time-budgeted run ends at a low rate whatever the machine's speed.
+    lr_schedule: str = field(default="exp", metadata=_help("Learning-rate schedule: exp | cosine."))
+    lr_final_fraction: float = field(default=0.02, metadata=_help("cosine: final lr as a fraction of lr."))
     margin: float = field(default=10.0, metadata=_help("Triplet margin m of Equation 2 (paper: 10)."))
     # Not in the paper: Equation 2 only compares E(X,Y) with E(X,Z), and its gap grows with the
     # distance of a mean from the parts, so g learns means far outside the embedded parts (2.5
@@ -145,6 +151,9 @@ class TrainConfig:
                 raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.test_fraction < 1.0:
             raise ValueError(f"train config: test_fraction must be in (0, 1), got {self.test_fraction}")
+        if self.lr_schedule not in ("exp", "cosine") or not 0 <= self.lr_final_fraction <= 1:
+            raise ValueError(f"train config: lr_schedule must be exp or cosine (got {self.lr_schedule!r}) "
+                             f"and lr_final_fraction in [0, 1] (got {self.lr_final_fraction})")
         if self.lr <= 0 or self.placement_lr <= 0 or not 0 < self.lr_decay <= 1:
             raise ValueError("train config: learning rates must be > 0 and lr_decay in (0, 1]")
         if self.nll_weight < 0 or self.wta_weight < 0 or not 0 <= self.wta_epsilon < 1:

@@ -95,10 +95,13 @@ def _setup_distributed() -> _Dist:
                  local_world=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))), owns_group=owns)
 
 
-def lr_factor(step: int, decay: float, decay_steps: int, staircase: bool) -> float:
-    """Multiplier of the initial learning rate after ``step`` steps (``decay`` per ``decay_steps``)."""
-    periods = step // decay_steps if staircase else step / decay_steps
-    return float(decay ** periods)
+def lr_factor(cfg: TrainConfig, step: int, progress: float) -> float:
+    """Multiplier of the initial learning rate at ``step`` (``progress`` in [0, 1] for cosine)."""
+    if cfg.lr_schedule == "cosine":
+        p = min(max(progress, 0.0), 1.0)
+        return cfg.lr_final_fraction + (1.0 - cfg.lr_final_fraction) * 0.5 * (1.0 + math.cos(math.pi * p))
+    periods = step // cfg.lr_decay_steps if cfg.lr_staircase else step / cfg.lr_decay_steps
+    return float(cfg.lr_decay ** periods)
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any]) -> TrainConfig:
@@ -167,9 +170,6 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     pair, placement = build_models(cfg.model)
     opt_r = torch.optim.Adam(pair.parameters(), lr=cfg.lr)
     opt_p = torch.optim.Adam(placement.parameters(), lr=cfg.placement_lr)
-    factor = lambda s: lr_factor(s, cfg.lr_decay, cfg.lr_decay_steps, cfg.lr_staircase)  # noqa: E731
-    sched_r = torch.optim.lr_scheduler.LambdaLR(opt_r, factor)
-    sched_p = torch.optim.lr_scheduler.LambdaLR(opt_p, factor)
     step, elapsed_before = 0, 0.0
     last_validation: dict[str, float] = {}
     if resume:
@@ -178,8 +178,6 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         placement.load_state_dict(state["placement"])
         opt_r.load_state_dict(state["optimizers"]["retrieval"])
         opt_p.load_state_dict(state["optimizers"]["placement"])
-        sched_r.load_state_dict(state["schedulers"]["retrieval"])
-        sched_p.load_state_dict(state["schedulers"]["placement"])
         step, elapsed_before = int(state["step"]), float(state["elapsed_seconds"])
         last_validation = dict(state.get("validation", {}))
         log.info("resuming %s at step %d (%.1f min trained)", run_dir, step, elapsed_before / 60)
@@ -220,7 +218,6 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         if env.is_main:
             save_checkpoint(ckpt, make_state(cfg, step, elapsed(), pair, placement,
                                              {"retrieval": opt_r, "placement": opt_p},
-                                             {"retrieval": sched_r, "placement": sched_p},
                                              {"validation": last_validation}))
 
     validated_at = -1
@@ -242,14 +239,22 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
             dist.barrier()
 
     while step < cfg.steps:
-        stop = cfg.minutes > 0 and time.monotonic() - t_start >= cfg.minutes * 60
-        if env.world > 1:
-            flag = torch.tensor([1 if stop else 0])
-            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-            stop = bool(flag.item())
-        if stop:
+        # Progress through the budget: steps, or this invocation's share of --minutes.
+        progress = step / cfg.steps
+        if cfg.minutes > 0:
+            progress = max(progress, (time.monotonic() - t_start) / (cfg.minutes * 60))
+        if env.world > 1:  # every rank must stop at the same step and use the same learning rate
+            shared = torch.tensor([progress], dtype=torch.float64)
+            dist.all_reduce(shared, op=dist.ReduceOp.MAX)
+            progress = float(shared.item())
+        if cfg.minutes > 0 and progress >= 1.0:
             log.info("time budget of %.1f min reached at step %d", cfg.minutes, step)
             break
+        factor = lr_factor(cfg, step, progress)
+        for group in opt_r.param_groups:
+            group["lr"] = cfg.lr * factor
+        for group in opt_p.param_groups:
+            group["lr"] = cfg.placement_lr * factor
         batch = next(stream)
         X, Y, Z, T = batch["X"], batch["Y"], batch["Z"], batch["Y_translation"]
         if cfg.train_retrieval:
@@ -264,7 +269,6 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
             opt_r.zero_grad(set_to_none=True)
             loss.backward()
             opt_r.step()
-            sched_r.step()
             window["triplet_loss"].append(hinge.item())
             window["e_pos"].append(e_pos.mean().item())
             window["e_neg"].append(e_neg.mean().item())
@@ -277,7 +281,6 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
             opt_p.zero_grad(set_to_none=True)
             ploss.backward()
             opt_p.step()
-            sched_p.step()
             window["placement_loss"].append(ploss.item())
             recent["placement_loss"].append(ploss.item())
         step += 1

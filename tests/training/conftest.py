@@ -168,3 +168,15 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, toy_dataset_dir: Path) ->
 def toy_dataset_factory():
     """``make_toy_dataset`` itself, for tests that need a dataset of their own."""
     return make_toy_dataset
+
+
+@pytest.fixture(scope="session")
+def generated_dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The real pipeline on a tiny scale: `data generate` (6 shapes per category) then `data preprocess`."""
+    from training.data.generator.generate import generate_dataset
+    from training.data.preprocess import PreprocessConfig, preprocess_folder
+
+    root = tmp_path_factory.mktemp("generated")
+    generate_dataset(root / "raw", seed=0, shapes_per_category=6, workers=1)
+    preprocess_folder(root / "raw", root / "processed", PreprocessConfig(points_per_component=512), workers=1)
+    return root / "processed"

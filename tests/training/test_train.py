@@ -32,10 +32,11 @@ def _tiny(data: Path, run: Path, **overrides):
 
 
 @pytest.mark.slow
-def test_train_then_export_end_to_end(toy_dataset_dir: Path, tmp_path: Path):
+def test_train_then_export_end_to_end(generated_dataset_dir: Path, tmp_path: Path):
+    """Generated and preprocessed shapes -> training -> export -> the artifact folder loads."""
     run = tmp_path / "run"
     steps = 150
-    result = train(_tiny(toy_dataset_dir, run, steps=steps, val_every=75, seed=3), show_progress=False)
+    result = train(_tiny(generated_dataset_dir, run, steps=steps, val_every=75, seed=3), show_progress=False)
     assert result.step == steps
 
     log = read_csv(run / LOSSES_CSV)
@@ -135,11 +136,18 @@ def test_split_is_per_category_seeded_and_checked(toy_dataset, tmp_path: Path):
         load_split(tmp_path, other)
 
 
-def test_lr_decay():
-    assert lr_factor(0, 0.8, 100, False) == 1.0
-    assert lr_factor(100, 0.8, 100, False) == pytest.approx(0.8)
-    assert lr_factor(150, 0.8, 100, False) == pytest.approx(0.8 ** 1.5)
-    assert lr_factor(150, 0.8, 100, True) == pytest.approx(0.8)
+def test_lr_schedules():
+    exp = resolve_config(overrides={"lr_decay": 0.8, "lr_decay_steps": 100})
+    assert lr_factor(exp, 0, 0.0) == 1.0
+    assert lr_factor(exp, 100, 0.5) == pytest.approx(0.8)
+    assert lr_factor(exp, 150, 0.9) == pytest.approx(0.8 ** 1.5)
+    stair = resolve_config(overrides={"lr_decay": 0.8, "lr_decay_steps": 100, "lr_staircase": True})
+    assert lr_factor(stair, 150, 0.0) == pytest.approx(0.8)
+    cos = resolve_config(overrides={"lr_schedule": "cosine", "lr_final_fraction": 0.1})
+    assert lr_factor(cos, 0, 0.0) == pytest.approx(1.0)
+    assert lr_factor(cos, 7, 0.5) == pytest.approx(0.55)
+    assert lr_factor(cos, 7, 1.0) == pytest.approx(0.1)
+    assert lr_factor(cos, 7, 3.0) == pytest.approx(0.1)
 
 
 @pytest.mark.slow
