@@ -134,8 +134,9 @@ class CatalogWriter:
 
     def _load_all(self) -> None:
         with self._sync_lock:
-            self.seq = self.store.last_seq()
-            rows = [p for p in self.store.parts() if p.added_seq <= self.seq]
+            with self.store.reading():  # the change number and the rows of one moment
+                self.seq = self.store.last_seq()
+                rows = self.store.parts()
             self.parts = {}
             self._admit(rows)
             self.builder.set_parts(list(self.parts.values()))
@@ -155,7 +156,8 @@ class CatalogWriter:
         why = "missing or unreadable" if found is None else (
             f"reflects change {found.seq} with {len(found.row_ids)} part(s), the database is at change "
             f"{self.seq} with {len(ids)}")
-        log.warning("%s: index file %s; rebuilding it from the database", self.store.index_path, why)
+        level = logging.INFO if found is None and not self.parts else logging.WARNING  # a new folder
+        log.log(level, "%s: index file %s; rebuilding it from the database", self.store.index_path, why)
         self.index_rebuilt = True
         self._write_index()
 
