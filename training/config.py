@@ -168,7 +168,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # A few seconds per hundred steps: tests and smoke runs.
     "tiny": {
         "batch_size": 8, "n_points": 128, "val_every": 0, "val_triplets": 32, "ckpt_every": 1000,
-        "log_every": 1, "num_workers": 0,
+        "log_every": 1, "num_workers": 0, "threads": 1,
         "model": {"point_layers": (16, 32), "fc_layers": (32,), "embedding_dim": 8, "n_modes": 3,
                   "placement_point_layers": (16, 32), "placement_fc_layers": (32,),
                   "placement_head_layers": (32,)},
@@ -176,6 +176,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Slim PointNets at N = 512: about 0.3 s per joint f+g+h step on 2 cores.
     "shipped": {
         "steps": 100000, "n_points": 512, "lr_decay_steps": 3000, "val_every": 1000, "ckpt_every": 500,
+        # The shipped run used 0.1: label precision@5 after 500 steps rose from 0.26 (0) to 0.44.
+        "nll_weight": 0.1,
         "model": {},
     },
     # The paper's sizes (about 5x slower per step on CPU).
