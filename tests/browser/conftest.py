@@ -105,7 +105,9 @@ def server(artifacts: Path) -> Iterator[str]:
     thread.join(timeout=30)
 
 
-@pytest.fixture(scope="session")
+# Module scope: Playwright's sync API keeps an event loop running in this thread while it is
+# open, and later tests that call asyncio.run() would fail if it stayed open for the session.
+@pytest.fixture(scope="module")
 def browser(chromium_path: str) -> Iterator[object]:
     playwright = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     with playwright.sync_playwright() as p:
