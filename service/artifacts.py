@@ -134,7 +134,8 @@ def read_manifest(folder: Path, verify_checksums: bool = True) -> dict[str, Any]
         raise ArtifactError(f"{path}: not valid JSON ({exc})") from exc
     version = manifest.get("format_version")
     if version != FORMAT_VERSION:
-        raise ArtifactError(f"{path}: format_version {version!r} is not supported (expected {FORMAT_VERSION})")
+        raise ArtifactError(f"{path}: format_version {version!r} is not supported "
+                            f"(expected {FORMAT_VERSION})")
     for key in ("model_version", "n_points", "embedding_dim", "n_modes", "part_count", "files"):
         if key not in manifest:
             raise ArtifactError(f"{path}: required key {key!r} missing")
