@@ -14,15 +14,18 @@ every step or, for a tree of possibilities, several choices per step. Each step 
    * likely enough: the part's mode has weight >= ``assemble_min_mode_weight`` and the part's
      embedding lies within ``assemble_max_distance`` root-mean-square standard deviations of
      that mode's mean (a typical draw from the mode is about 1);
-   * not a duplicate of a placed part, judged on geometry alone: its placed samples within
-     ``assemble_duplicate_distance`` Chamfer distance of a placed part's; or its box centred
-     within ``assemble_duplicate_centre`` of a placed part's box and either of about the same
-     size (every extent within a factor ``assemble_duplicate_size_ratio``: a second back where
-     a back already is), nested inside it (a hub in a tyre), or holding it with less than
-     ``assemble_duplicate_contain_ratio`` times its volume (a tyre around a hub) or with the
-     same profile across its longest axis (a longer rod on a shorter one). Parts that share a
-     centre but cross (a car body and its wheels) or enclose a much smaller part of another
-     profile (a hull around its deck) are kept;
+   * not a duplicate of a placed part, judged on geometry alone (labels are never used): its
+     placed samples within ``assemble_duplicate_distance`` Chamfer distance of a placed part's;
+     or its box centred within ``assemble_duplicate_centre`` of a placed part's box (one part
+     per spot: a second back where a back is, a tyre on a hub, a longer rod on a shorter one,
+     crossing boxes), unless it encloses the placed part's box with at least
+     ``assemble_duplicate_contain_ratio`` times its volume and another profile across its
+     longest axis (a hull around its deck); boxes of about the same size (every extent within
+     ``assemble_duplicate_size_ratio``) are duplicates even then;
+   * not redundant: less than ``assemble_cover_share`` of its placed samples lie within
+     ``assemble_cover_distance`` of the placed parts' samples (a part lying mostly where the
+     assembly already has surface adds nothing: a second seat just above the first, a back
+     pressed against the back);
 4. picks among them: ``greedy`` takes the most likely (highest mixture log-likelihood);
    ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -136,7 +140,9 @@ class _Placed:
     """One part of a state's assembly, in the canonical frame."""
 
     points: np.ndarray                       # (S, 3) float64 placed samples (duplicate tests)
-    surface: Surface                         # oriented samples for contact (normals NaN for a cloud)
+    # Oriented samples for contact (normals NaN for a cloud), or how to make them: most
+    # candidates are only checked, never placed, so their samples are drawn on first use.
+    surface_source: Surface | Callable[[], Surface]
     area: float
     lo: np.ndarray                           # (3,) placed box
     hi: np.ndarray
@@ -146,6 +152,12 @@ class _Placed:
         if self.tree is None:
             self.tree = cKDTree(self.points)
         return self.tree
+
+    @property
+    def surface(self) -> Surface:
+        if not isinstance(self.surface_source, Surface):
+            self.surface_source = self.surface_source()
+        return self.surface_source
 
 
 def estimate_area(points: np.ndarray) -> float:
@@ -188,7 +200,11 @@ class Assembler:
     def _catalog_part(self, i: int, t: np.ndarray) -> _Placed:
         cat = self.engine.catalog
         pts = cat.part_points(i).astype(np.float64) + t
-        surface = self.engine.contacts.part_surface(cat, i).moved(t)
+        contacts = self.engine.contacts
+
+        def surface() -> Surface:
+            return contacts.part_surface(cat, i).moved(t)
+
         return _Placed(pts, surface, max(float(cat.records[i]["area"]), 1e-9),
                        cat.bbox_min[i].astype(np.float64) + t, cat.bbox_max[i].astype(np.float64) + t)
 
@@ -219,6 +235,21 @@ class Assembler:
         z = (y - result.mode_means[s.mode]) / result.mode_sigmas[s.mode]
         return float(np.sqrt(np.mean(z * z)))
 
+    def _redundant(self, cand: _Placed, parts: list[_Placed], surface: cKDTree | None = None) -> bool:
+        """A duplicate of a placed part, or a part lying mostly where the assembly already has surface.
+
+        ``surface``: a KD-tree over every placed part's samples (built here when not given).
+        """
+        s = self.settings
+        if self._duplicate(cand, parts):
+            return True
+        if s.assemble_cover_share >= 1:
+            return False
+        if surface is None:
+            surface = cKDTree(np.concatenate([p.points for p in parts]))
+        d, _ = surface.query(cand.points, k=1, distance_upper_bound=s.assemble_cover_distance)
+        return bool(np.mean(np.isfinite(d)) >= s.assemble_cover_share)
+
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""
         s = self.settings
@@ -231,15 +262,14 @@ class Assembler:
                 ratio = size / p_size
                 similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
                                  & (ratio >= 1 / s.assemble_duplicate_size_ratio))
-                inside = np.all(cand.lo >= p.lo - margin) and np.all(cand.hi <= p.hi + margin)
                 around = bool(np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin))
-                if around:
-                    # Much larger and enclosing is another part (a hull around its deck), unless it
-                    # only extends the same profile (a longer rod on a shorter one).
-                    across = np.arange(3) != np.argmax(size)
-                    profile = np.all(ratio[across] <= s.assemble_duplicate_size_ratio)
-                    around = bool(profile or np.prod(ratio) < s.assemble_duplicate_contain_ratio)
-                if similar or inside or around:
+                # At the same spot only a much larger part of another profile that encloses the
+                # placed one is something else (a hull around its deck); a longer rod on a shorter
+                # one, a tyre on a hub, a part nested in or crossing the placed one are not.
+                across = np.arange(3) != np.argmax(size)
+                profile = np.all(ratio[across] <= s.assemble_duplicate_size_ratio)
+                enclosing = around and not profile and np.prod(ratio) >= s.assemble_duplicate_contain_ratio
+                if similar or not enclosing:
                     return True
             if s.assemble_duplicate_distance > 0:
                 box_gap = np.maximum(0, np.maximum(p.lo - cand.hi, cand.lo - p.hi))
@@ -259,13 +289,14 @@ class Assembler:
             return [], "no_candidates"
         out = []
         likely = 0
+        surface = cKDTree(np.concatenate([p.points for p in parts]))
         for sug in result.suggestions:
             dist = self._distance(result, sug)
             if sug.mode_weight < s.assemble_min_mode_weight or dist > s.assemble_max_distance:
                 continue
             likely += 1
             placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64))
-            if not self._duplicate(placed, parts):
+            if not self._redundant(placed, parts, surface):
                 out.append((sug, placed, dist))
         out.sort(key=lambda e: -e[0].score)  # most likely first (the list came mode-balanced)
         return out, ("unlikely" if likely == 0 else "duplicates")
@@ -393,7 +424,7 @@ class Assembler:
         if not np.any(r.offset):
             return t, zero, placed
         moved = self._catalog_part(sug.part_index, t + r.offset)
-        if self._duplicate(moved, parts):
+        if self._redundant(moved, parts):
             return t, zero, placed
         return t + r.offset, r.offset, moved
 

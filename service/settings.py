@@ -84,8 +84,9 @@ class Settings(BaseSettings):
         "Parts `/assemble` adds to the start when the request gives no `max_parts`."))
     max_assemble_parts: int = Field(default=24, ge=1, description=(
         "Largest `max_parts` of an `/assemble` request."))
-    assemble_candidates: int = Field(default=10, ge=1, description=(
-        "Suggestions `/assemble` considers at each step (the sampler draws among them)."))
+    assemble_candidates: int = Field(default=60, ge=1, description=(
+        "Suggestions `/assemble` considers at each step (at most `max_k`): enough that the "
+        "complementary kinds are among them when g's favourites are all already placed."))
     assemble_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
         "`/assemble` stops when no candidate's mode has at least this weight phi_k."))
     assemble_max_distance: float = Field(default=4.0, gt=0, description=(
@@ -96,13 +97,20 @@ class Settings(BaseSettings):
         "(object radius units) of a part already placed: the same geometry at the same spot."))
     assemble_duplicate_centre: float = Field(default=0.05, ge=0, description=(
         "`/assemble` also skips a candidate whose placed box is centred within this distance of a "
-        "placed part's box of about the same size (see `assemble_duplicate_size_ratio`)."))
+        "placed part's box, unless it encloses a much smaller part (see "
+        "`assemble_duplicate_contain_ratio`)."))
     assemble_duplicate_size_ratio: float = Field(default=1.5, ge=1, description=(
-        "Boxes count as about the same size when every extent is within this factor."))
-    assemble_duplicate_contain_ratio: float = Field(default=4.0, ge=1, description=(
-        "At the same spot, a candidate nested in a placed part's box is a duplicate, and so is one "
-        "whose box holds a placed part's box with less than this times its volume (a tyre around "
-        "a hub); a much larger enclosing part (a hull around a deck) is not."))
+        "Extents within this factor count as the same (same size, same profile)."))
+    assemble_duplicate_contain_ratio: float = Field(default=7.0, ge=1, description=(
+        "At the same spot (see `assemble_duplicate_centre`) only a candidate whose box holds a "
+        "placed part's box, with at least this times its volume and another profile across its "
+        "longest axis, is a new part (a hull around its deck); any other candidate there is a "
+        "duplicate (a tyre on a hub, a longer rod on a shorter one, crossing or nested boxes)."))
+    assemble_cover_distance: float = Field(default=0.08, ge=0, description=(
+        "`/assemble` skips a candidate when at least `assemble_cover_share` of its placed samples "
+        "lie within this distance of the placed parts' samples: it adds little new surface."))
+    assemble_cover_share: float = Field(default=0.5, ge=0, le=1, description=(
+        "Share of a candidate's samples near placed surface that makes it redundant (1: rule off)."))
     assemble_max_nodes: int = Field(default=63, ge=1, description=(
         "Most parts placed over a whole `branching` tree of `/assemble` (its size bound)."))
     max_assemble_branching: int = Field(default=4, ge=1, description=(

@@ -77,9 +77,11 @@ def _box(lo: list[float], hi: list[float], n: int = 200, seed: int = 0) -> _Plac
     (([-.22, -.22, -.05], [.22, .22, .05]), ([-.15, -.15, -.05], [.15, .15, .05]), True),
     # a longer rod on a shorter one (the same profile)
     (([-.03, -.8, -.03], [.03, .8, .03]), ([-.025, -.3, -.025], [.025, .3, .025]), True),
-    # a hull around a deck; crossing boxes (a car body and its wheels); apart
+    # crossing boxes at one spot (one part per spot)
+    (([-.6, -.05, -.4], [.6, .05, .4]), ([-.05, -.3, -.05], [.05, .3, .05]), True),
+    # a hull around its deck (much larger, another profile); crossing boxes centred apart; apart
     (([-.8, -.3, -.5], [.8, .3, .5]), ([-.3, -.03, -.3], [.3, .03, .3]), False),
-    (([-.6, -.05, -.4], [.6, .05, .4]), ([-.05, -.3, -.05], [.05, .3, .05]), False),
+    (([-.6, -.05, -.4], [.6, .05, .4]), ([.0, -.3, .2], [.1, .3, .3]), False),
     (([.5, .5, .5], [.7, .7, .7]), ([-.2, -.2, -.2], [.2, .2, .2]), False),
 ])
 def test_duplicate_rule(engine: SuggestionEngine, cand: tuple, placed: tuple, dup: bool) -> None:
@@ -94,6 +96,19 @@ def test_duplicate_rule_chamfer(engine: SuggestionEngine) -> None:
     shift = np.array([0.6 * s.assemble_duplicate_distance, 0.0, 0.0])
     moved = _Placed(a.points + shift, a.surface, 1.0, a.lo + shift, a.hi + shift)
     assert Assembler(engine)._duplicate(moved, [a])
+
+
+def test_redundant_part_on_placed_surface(engine: SuggestionEngine) -> None:
+    """A plate just above a placed plate (within the cover distance) adds no new surface."""
+    s = engine.settings
+    seat = _box([-.4, -.02, -.4], [.4, .02, .4], n=2000)
+    lift = s.assemble_cover_distance / 2
+    above = _box([-.4, .02 + lift, -.3], [.4, .04 + lift, .5], n=2000, seed=2)
+    asm = Assembler(engine)
+    assert not asm._duplicate(above, [seat])  # not the same spot...
+    assert asm._redundant(above, [seat])      # ...but lying on placed surface
+    far = _box([-.4, .5, -.4], [.4, .54, .4], n=2000, seed=3)
+    assert not asm._redundant(far, [seat])
 
 
 def test_estimate_area() -> None:
