@@ -83,21 +83,27 @@ def test_model_a_shape(page: Any, artifact_dir: Path) -> None:
     page.click("#redo-button")
     _wait_parts(page, 3)
 
-    # Auto-complete: the service's /assemble steps are appended.
-    with page.expect_response(lambda r: r.url.endswith("/assemble")) as answer:
-        page.click("#autocomplete-button")
-    assert answer.value.status == 200, answer.value.text()
-    added = len(answer.value.json()["steps"])
-    _wait_parts(page, 3 + added)
-    total = _parts(page)
-
-    # Alternatives: a tree of possibilities, one button per node.
+    # Alternatives: a tree of possibilities, one button per node; a click applies that branch.
     with page.expect_response(lambda r: r.url.endswith("/assemble")) as answer:
         page.click("#alternatives-button")
     assert answer.value.status == 200, answer.value.text()
     page.wait_for_function(IDLE)
     nodes = answer.value.json()["nodes"]
     assert page.locator("[data-testid=tree-node]").count() == len(nodes)
+    parts = 3
+    if nodes:
+        deepest = max(nodes, key=lambda n: n["depth"])
+        page.click(f"[data-testid=tree-node][data-node='{deepest['node']}']")
+        parts += deepest["depth"]
+        _wait_parts(page, parts)
+
+    # Auto-complete: the service's /assemble steps are appended.
+    with page.expect_response(lambda r: r.url.endswith("/assemble")) as answer:
+        page.click("#autocomplete-button")
+    assert answer.value.status == 200, answer.value.text()
+    added = len(answer.value.json()["steps"])
+    _wait_parts(page, parts + added)
+    total = _parts(page)
 
     # Download the model and parse it.
     with page.expect_download() as download:
