@@ -127,6 +127,10 @@ class TrainConfig:
                               metadata=_help("Weight of the relaxed winner-takes-all pull of the modes."))
     wta_epsilon: float = field(default=0.05,
                                metadata=_help("Share of that pull spread over the other modes."))
+    # The pulls fit g's mixture to the embedded positives; letting their gradient reach f as
+    # well shrinks the whole embedding towards the modes (measured: catalog spread below sigma).
+    pull_moves_embedding: bool = field(default=False,
+                                       metadata=_help("Let the NLL / winner-takes-all pulls train f too."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))

@@ -36,7 +36,7 @@ from training.batches import batch_stream
 from training.checkpoint import checkpoint_path, load_checkpoint, make_state, save_checkpoint
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
 from training.data.processed import ProcessedDataset
-from training.losses import placement_loss, relaxed_wta_pull, triplet_loss
+from training.losses import mixture_nll, placement_loss, relaxed_wta_pull, triplet_loss
 from training.models import build_models, count_parameters
 from training.plots import (
     LOSSES_CSV,
@@ -102,6 +102,27 @@ def lr_factor(cfg: TrainConfig, step: int, progress: float) -> float:
         return cfg.lr_final_fraction + (1.0 - cfg.lr_final_fraction) * 0.5 * (1.0 + math.cos(math.pi * p))
     periods = step // cfg.lr_decay_steps if cfg.lr_staircase else step / cfg.lr_decay_steps
     return float(cfg.lr_decay ** periods)
+
+
+def retrieval_objective(cfg: TrainConfig, y_emb: torch.Tensor, z_emb: torch.Tensor, log_w: torch.Tensor,
+                        means: torch.Tensor, log_s: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The loss of f and g: Equation 2, plus the optional pulls of the mixture onto the positives.
+
+    Returns (loss, mean hinge, e_pos, e_neg). Unless ``cfg.pull_moves_embedding``, the pulls see
+    the positives' embeddings detached: they move g's modes, and f is shaped by Equation 2 alone.
+
+    Shapes:
+        y_emb, z_emb (B, D); log_w (B, K); means, log_s (B, K, D).
+    """
+    hinge, e_pos, e_neg = triplet_loss(y_emb, z_emb, log_w, means, log_s, cfg.margin)
+    loss = hinge
+    y_fit = y_emb if cfg.pull_moves_embedding else y_emb.detach()
+    if cfg.nll_weight:
+        loss = loss + cfg.nll_weight * mixture_nll(y_fit, log_w, means, log_s).mean()
+    if cfg.wta_weight:
+        loss = loss + cfg.wta_weight * relaxed_wta_pull(y_fit, means, log_s, cfg.wta_epsilon).mean()
+    return loss, hinge, e_pos, e_neg
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any]) -> TrainConfig:
@@ -259,11 +280,8 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         X, Y, Z, T = batch["X"], batch["Y"], batch["Z"], batch["Y_translation"]
         if cfg.train_retrieval:
             emb, log_w, means, log_s = pair_run(X, torch.cat([Y, Z]))
-            hinge, e_pos, e_neg = triplet_loss(emb[:len(Y)], emb[len(Y):], log_w, means, log_s, cfg.margin)
-            loss = hinge + cfg.nll_weight * e_pos.mean() if cfg.nll_weight else hinge
-            if cfg.wta_weight:
-                pull = relaxed_wta_pull(emb[:len(Y)], means, log_s, cfg.wta_epsilon)
-                loss = loss + cfg.wta_weight * pull.mean()
+            b = len(Y)
+            loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:b], emb[b:], log_w, means, log_s)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"triplet loss is {loss.item()} at step {step}")
             opt_r.zero_grad(set_to_none=True)

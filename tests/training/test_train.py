@@ -13,6 +13,7 @@ import faiss
 import numpy as np
 import onnxruntime as ort
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from service.artifacts import GRAPH_FILES, INDEX_FILE, read_manifest
@@ -22,7 +23,7 @@ from training.config import resolve_config
 from training.export import export_run
 from training.plots import LOSSES_CSV, VALIDATION_CSV, read_csv
 from training.split import load_split, make_split, save_split
-from training.train import lr_factor, train
+from training.train import lr_factor, retrieval_objective, train
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -173,3 +174,20 @@ def test_torchrun_two_processes(toy_dataset_dir: Path, tmp_path: Path):
     assert summary["processes"] == 2 and summary["step"] == 6
     assert load_checkpoint(run / "checkpoint.pt")["step"] == 6
     assert read_csv(run / LOSSES_CSV)["step"] == [float(s) for s in range(1, 7)]
+
+
+@pytest.mark.parametrize("moves", [False, True])
+def test_pulls_reach_the_embedding_only_when_asked(moves: bool):
+    torch.manual_seed(0)
+    y = torch.randn(4, 3, requires_grad=True)
+    z = torch.randn(4, 3) + 3.0                       # far negatives: the hinge is inactive
+    log_w = torch.log_softmax(torch.randn(4, 2), dim=1)
+    means = torch.randn(4, 2, 3, requires_grad=True)
+    log_s = torch.log(torch.full((4, 2, 3), 0.05))
+    cfg = resolve_config(overrides={"nll_weight": 0.1, "wta_weight": 0.1, "pull_moves_embedding": moves,
+                                    "margin": 0.001})
+    loss, hinge, _, _ = retrieval_objective(cfg, y, z, log_w, means, log_s)
+    assert hinge.item() == 0.0
+    loss.backward()
+    assert means.grad is not None and means.grad.abs().sum() > 0
+    assert (y.grad is not None and y.grad.abs().sum() > 0) == moves
