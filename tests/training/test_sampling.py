@@ -87,6 +87,26 @@ def test_triplets_respect_the_contact_graph(dataset: ProcessedDataset) -> None:
         assert not any(t.negative in adj[q] for q in t.query)
 
 
+def test_query_negatives_come_from_the_query_at_the_asked_share(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=64, query_negative_fraction=0.4)
+    adj = dataset.adjacency()
+    rng = np.random.default_rng(5)
+    from_query = 0
+    for _ in range(1000):
+        t = sampler.sample_triplet(rng)
+        assert t.negative != t.positive
+        if t.negative in t.query:
+            from_query += 1
+        else:  # the paper's negative: neither in X nor adjacent to it
+            assert not any(t.negative in adj[q] for q in t.query)
+    assert from_query / 1000 == pytest.approx(0.4, abs=0.05)
+
+
+def test_query_negative_fraction_outside_0_1_is_refused(dataset: ProcessedDataset) -> None:
+    with pytest.raises(ValueError, match="query_negative_fraction"):
+        TripletSampler(dataset, query_negative_fraction=1.5)
+
+
 def test_sampled_points_lie_on_the_components(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=128)
     rng = np.random.default_rng(2)

@@ -75,11 +75,20 @@ class TripletSampler:
     X is a random connected subgraph of r in [1, n - 1] nodes of a random shape, Y a random
     component adjacent to X, Z a random component not adjacent to X and not in it (from the same
     shape or, as the paper allows, from any other shape).
+
+    Not in the paper: with probability ``query_negative_fraction`` Z is instead one of X's own
+    components. A part the assembly already has is never its missing part, so this negative needs
+    no labels (the supervision stays weak), and it is the hard case the paper's random negatives
+    almost never show: a chair that has its seat must not be offered another seat. Random
+    negatives mostly come from other categories and teach category, not which part is missing.
     """
 
-    def __init__(self, ds: ProcessedDataset, n_points: int = 1000):
+    def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0):
+        if not 0.0 <= query_negative_fraction <= 1.0:
+            raise ValueError(f"query_negative_fraction must be in [0, 1], got {query_negative_fraction}")
         self.ds = ds
         self.n_points = n_points
+        self.query_negative_fraction = query_negative_fraction
         self.adj = ds.adjacency()
         self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
         assert self.eligible, "no shape has two or more components"
@@ -95,8 +104,10 @@ class TripletSampler:
         if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
             return self.sample_triplet(rng)
         positive = neighbours[int(rng.integers(len(neighbours)))]
-        blocked = qset | set(neighbours)
-        negative = self._negative(blocked, rng)
+        if self.query_negative_fraction > 0 and rng.random() < self.query_negative_fraction:
+            negative = query[int(rng.integers(len(query)))]
+        else:
+            negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative)
 
     def _negative(self, blocked: set[int], rng: np.random.Generator, tries: int = 64) -> int:
