@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Literal
 
 import faiss
 import numpy as np
@@ -38,7 +39,7 @@ def test_small_catalog_gets_an_exact_flat_index() -> None:
 
 
 @pytest.mark.parametrize("kind", ["ivf", "hnsw"])
-def test_large_catalog_index_reaches_the_recall_target(kind: str, tmp_path: Path) -> None:
+def test_large_catalog_index_reaches_the_recall_target(kind: Literal["ivf", "hnsw"], tmp_path: Path) -> None:
     x = _clustered(6000)
     index, params = build_index(x, flat_max=1000, kind="auto" if kind == "ivf" else kind,
                                 target_recall=0.95, recall_k=32, tuning_queries=300)
