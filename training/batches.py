@@ -22,9 +22,11 @@ class TripletBatches(IterableDataset):
     """Yields dicts of tensors ``X, Y, Z (B, N, 3)`` and ``Y_translation (B, 3)``, forever."""
 
     def __init__(self, ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
-                 start_step: int = 0, query_negative_fraction: float = 0.0):
+                 start_step: int = 0, query_negative_fraction: float = 0.0,
+                 lookalike_negative_fraction: float = 0.0):
         super().__init__()
-        self.sampler = TripletSampler(ds, n_points=n_points, query_negative_fraction=query_negative_fraction)
+        self.sampler = TripletSampler(ds, n_points=n_points, query_negative_fraction=query_negative_fraction,
+                                      lookalike_negative_fraction=lookalike_negative_fraction)
         self.batch_size = batch_size
         self.seed, self.rank, self.start_step = seed, rank, start_step
 
@@ -39,9 +41,11 @@ class TripletBatches(IterableDataset):
 
 def batch_stream(ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
                  start_step: int = 0, num_workers: int = 0,
-                 query_negative_fraction: float = 0.0) -> Iterator[dict[str, torch.Tensor]]:
+                 query_negative_fraction: float = 0.0,
+                 lookalike_negative_fraction: float = 0.0) -> Iterator[dict[str, torch.Tensor]]:
     """An iterator over training batches; ``num_workers`` > 0 samples in background processes."""
-    source = TripletBatches(ds, n_points, batch_size, seed, rank, start_step, query_negative_fraction)
+    source = TripletBatches(ds, n_points, batch_size, seed, rank, start_step, query_negative_fraction,
+                            lookalike_negative_fraction)
     if num_workers == 0:
         return iter(source)
     loader = DataLoader(source, batch_size=None, num_workers=num_workers, prefetch_factor=4,

@@ -135,6 +135,8 @@ class TrainConfig:
     # components (see data.sampling.TripletSampler). Validation keeps the paper's negatives.
     query_negative_fraction: float = field(
         default=0.0, metadata=_help("Share of negatives drawn from the query's own components."))
+    lookalike_negative_fraction: float = field(
+        default=0.0, metadata=_help("Share of negatives that look like a query component (other shapes)."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
@@ -166,9 +168,10 @@ class TrainConfig:
             raise ValueError("train config: learning rates must be > 0 and lr_decay in (0, 1]")
         if self.nll_weight < 0 or self.wta_weight < 0 or not 0 <= self.wta_epsilon < 1:
             raise ValueError("train config: nll_weight and wta_weight must be >= 0 and wta_epsilon in [0, 1)")
-        if not 0.0 <= self.query_negative_fraction <= 1.0:
-            raise ValueError("train config: query_negative_fraction must be in [0, 1], "
-                             f"got {self.query_negative_fraction}")
+        shares = (self.query_negative_fraction, self.lookalike_negative_fraction)
+        if min(shares) < 0 or sum(shares) > 1:
+            raise ValueError("train config: query_negative_fraction and lookalike_negative_fraction must be "
+                             f">= 0 and sum to at most 1, got {shares}")
         if not (self.train_retrieval or self.train_placement):
             raise ValueError("train config: nothing to train "
                              "(train_retrieval and train_placement are both off)")

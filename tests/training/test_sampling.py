@@ -9,7 +9,13 @@ import trimesh
 from service.geometry import points_to_mesh_distance
 from training.data.preprocess import PreprocessConfig, assemble, preprocess_shape
 from training.data.processed import ProcessedDataset
-from training.data.sampling import TripletSampler, sample_assembly, sample_part
+from training.data.sampling import (
+    TripletSampler,
+    component_descriptors,
+    lookalike_components,
+    sample_assembly,
+    sample_part,
+)
 from training.data.shapes import RawPiece, RawShape
 
 # Cached points are float16: coordinates below 1 round by at most 2.4e-4 each.
@@ -105,6 +111,35 @@ def test_query_negatives_come_from_the_query_at_the_asked_share(dataset: Process
 def test_query_negative_fraction_outside_0_1_is_refused(dataset: ProcessedDataset) -> None:
     with pytest.raises(ValueError, match="query_negative_fraction"):
         TripletSampler(dataset, query_negative_fraction=1.5)
+
+
+def test_lookalikes_are_the_nearest_components_of_other_shapes_of_the_category(
+        dataset: ProcessedDataset) -> None:
+    desc = component_descriptors(dataset)
+    near = lookalike_components(dataset, 2)
+    category = [dataset.shapes[int(s)]["category"] for s in dataset.shape_of]
+    for comp in range(dataset.n_components):
+        others = [c for c in range(dataset.n_components)
+                  if category[c] == category[comp] and dataset.shape_of[c] != dataset.shape_of[comp]]
+        dist = {c: float(np.linalg.norm(desc[c] - desc[comp])) for c in others}
+        best = sorted(dist.values())[:2]
+        assert [dist[int(c)] for c in near[comp]] == pytest.approx(best)
+
+
+def test_lookalike_negatives_come_from_other_shapes_of_the_category(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=32, lookalike_negative_fraction=1.0, lookalike_neighbours=2)
+    rng = np.random.default_rng(6)
+    for _ in range(200):
+        t = sampler.sample_triplet(rng)
+        neg_shape = int(dataset.shape_of[t.negative])
+        assert neg_shape != t.shape
+        assert dataset.shapes[neg_shape]["category"] == dataset.shapes[t.shape]["category"]
+        assert any(t.negative in sampler.lookalikes[q] for q in t.query)
+
+
+def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset) -> None:
+    with pytest.raises(ValueError, match="at most 1"):
+        TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.6)
 
 
 def test_sampled_points_lie_on_the_components(dataset: ProcessedDataset) -> None:

@@ -59,6 +59,44 @@ def random_connected_subgraph(nodes: list[int], adj: list[set[int]], r: int,
     return chosen
 
 
+def component_descriptors(ds: ProcessedDataset) -> np.ndarray:
+    """Where a component sits and how big it is: box centre and box extents, both in the shape's frame.
+
+    Shapes share the canonical frame (y up, unit radius), so a seat sits at a seat's height and
+    has a seat's proportions whatever its style.
+
+    Shapes:
+        returns (n_components, 6) float32.
+    """
+    pts = ds.points.astype(np.float32)
+    extents = pts.max(axis=1) - pts.min(axis=1)
+    return np.concatenate([ds.translation.astype(np.float32), extents], axis=1)
+
+
+def lookalike_components(ds: ProcessedDataset, k: int) -> np.ndarray:
+    """For every component, its ``k`` nearest components of other shapes of the same category.
+
+    Shapes:
+        returns (n_components, k) int64, padded with -1 where a category has too few others.
+    """
+    from scipy.spatial import cKDTree
+
+    desc = component_descriptors(ds)
+    out = np.full((ds.n_components, k), -1, np.int64)
+    categories = np.array([str(ds.shapes[int(s)].get("category", "")) for s in ds.shape_of])
+    for cat in np.unique(categories):
+        members = np.flatnonzero(categories == cat)
+        tree = cKDTree(desc[members])
+        # Ask for enough neighbours to skip the component's own shape (at most 8 components each).
+        want = min(len(members), k + 16)
+        _, nn = tree.query(desc[members], k=want)
+        nn = members[np.asarray(nn).reshape(len(members), want)]
+        for row, comp in enumerate(members):
+            others = nn[row][ds.shape_of[nn[row]] != ds.shape_of[comp]][:k]
+            out[comp, :len(others)] = others
+    return out
+
+
 @dataclass
 class Triplet:
     """One training example: query components X, a positive complement Y and a negative Z."""
@@ -81,14 +119,28 @@ class TripletSampler:
     no labels (the supervision stays weak), and it is the hard case the paper's random negatives
     almost never show: a chair that has its seat must not be offered another seat. Random
     negatives mostly come from other categories and teach category, not which part is missing.
+
+    With probability ``lookalike_negative_fraction`` Z is a look-alike of one of X's components:
+    one of its ``lookalike_neighbours`` nearest components from other shapes of the same category,
+    by position and box extent in the shared canonical frame (``component_descriptors``). It
+    carries the same lesson to parts of other styles, still without part labels.
     """
 
-    def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0):
-        if not 0.0 <= query_negative_fraction <= 1.0:
-            raise ValueError(f"query_negative_fraction must be in [0, 1], got {query_negative_fraction}")
+    def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
+                 lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8):
+        for name, value in (("query_negative_fraction", query_negative_fraction),
+                            ("lookalike_negative_fraction", lookalike_negative_fraction)):
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value}")
+        if query_negative_fraction + lookalike_negative_fraction > 1.0:
+            raise ValueError("query_negative_fraction + lookalike_negative_fraction must be at most 1, got "
+                             f"{query_negative_fraction + lookalike_negative_fraction}")
         self.ds = ds
         self.n_points = n_points
         self.query_negative_fraction = query_negative_fraction
+        self.lookalike_negative_fraction = lookalike_negative_fraction
+        self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
+                           if lookalike_negative_fraction > 0 else None)
         self.adj = ds.adjacency()
         self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
         assert self.eligible, "no shape has two or more components"
@@ -104,8 +156,15 @@ class TripletSampler:
         if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
             return self.sample_triplet(rng)
         positive = neighbours[int(rng.integers(len(neighbours)))]
-        if self.query_negative_fraction > 0 and rng.random() < self.query_negative_fraction:
+        u = rng.random() if self.query_negative_fraction + self.lookalike_negative_fraction > 0 else 1.0
+        if u < self.query_negative_fraction:
             negative = query[int(rng.integers(len(query)))]
+        elif u < self.query_negative_fraction + self.lookalike_negative_fraction:
+            assert self.lookalikes is not None
+            candidates = self.lookalikes[query[int(rng.integers(len(query)))]]
+            candidates = candidates[candidates >= 0]
+            negative = (int(candidates[int(rng.integers(len(candidates)))]) if len(candidates)
+                        else self._negative(qset | set(neighbours), rng))
         else:
             negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative)
