@@ -223,8 +223,11 @@ class _Search:
         da, _ = self.p_tree.query(self.a_pts, k=1)
         self.q_asm = self.a_pts[_closest(np.arange(len(near_a)), da, m)]                 # asm -> part
 
-    def probe(self, offsets: np.ndarray) -> _Probe:
+    def probe(self, offsets: np.ndarray, directions: bool = True) -> _Probe:
         """Gap, depth and the directions that would improve them, for the part moved by each offset.
+
+        ``directions=False`` leaves ``pull`` and ``push`` zero (the line search needs only gap
+        and depth once its directions are chosen).
 
         Shapes:
             offsets (k, 3) -> _Probe with (k,) and (k, 3) arrays.
@@ -249,6 +252,8 @@ class _Search:
         depth = np.maximum(dep1.max(axis=1), dep2.max(axis=1))
         gap = np.where(depth > 0, 0.0, np.minimum(d1k.min(axis=1), d2k.min(axis=1)))
         push = np.zeros((k, 3))
+        if not directions:
+            return _Probe(gap=gap, depth=depth, pull=push, push=push)
         if self.a_nrm is not None:
             push += (np.nan_to_num(self.a_nrm[j1]) * dep1.reshape(-1, 1)).reshape(k, -1, 3).sum(axis=1)
         if self.p_nrm is not None:
@@ -322,7 +327,7 @@ def _best_touching(search: _Search, directions: np.ndarray, steps: np.ndarray, t
     """
     for t in steps:
         offsets = directions * t
-        p = search.probe(offsets)
+        p = search.probe(offsets, directions=False)
         ok = np.flatnonzero((p.gap <= tol) & (p.depth <= tol))
         if len(ok):
             j = int(ok[0])

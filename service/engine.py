@@ -11,9 +11,10 @@ One request (or a batch of them) goes through these steps, each one batched:
    parts collapsed (catalog ``duplicate_of``), the top k kept;
 5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
    features from catalog.npz;
-6. contact refinement (``service.contact``, on unless a request turns it off): each placed part
-   nudged by at most ``contact_max_offset`` so it touches the query's points; translations and
-   boxes mapped back to the caller's frame.
+6. contact refinement (``service.contact``; for suggestions only when asked, or when the setting
+   ``suggest_refine_contact`` turns it on by default: it costs about ten times the rest of the
+   request): each placed part nudged by at most ``contact_max_offset`` so it touches the
+   query's points; translations and boxes mapped back to the caller's frame.
 
 Requests may also reweight or exclude g's modes and ask for a mode-balanced gallery
 (``service.preferences``).
@@ -55,7 +56,8 @@ class SuggestOptions:
     exclude_shapes: tuple[str, ...] = ()     # never parts of these source shapes
     collapse_duplicates: bool = True         # one part per near-duplicate group
     frame: Frame = field(default_factory=Frame)
-    refine_contact: bool = True              # nudge placements into contact (service.contact)
+    refine_contact: bool | None = None       # nudge placements into contact (service.contact);
+                                             # None: the setting suggest_refine_contact
     styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
     preferences: Preferences = field(default_factory=Preferences)  # mode weights, exclusions, gallery
 
@@ -230,6 +232,12 @@ class SuggestionEngine:
                              f"styles: {', '.join(sorted(known))}")
         return np.isin(per_part, list(styles))
 
+    def _refines(self, options: SuggestOptions) -> bool:
+        """Whether a suggestion query's placements get contact refinement."""
+        if options.refine_contact is None:
+            return self.settings.suggest_refine_contact
+        return options.refine_contact
+
     # ---------------------------------------------------------------- public API
     def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
         """Ranked, placed suggestions for one partial assembly; raises ``ServiceError`` on bad input.
@@ -288,7 +296,7 @@ class SuggestionEngine:
         offsets = np.zeros((len(parts), 3))
         for b, q in enumerate(queries):
             sel = rows == b
-            if q.options.refine_contact and sel.any():
+            if self._refines(q.options) and sel.any():
                 offsets[sel] = self.contact_offsets(q.full, parts[sel], translations[sel])
         timings["contact"] = time.perf_counter() - t
 

@@ -69,6 +69,11 @@ class Settings(BaseSettings):
     contact_tolerance: float = Field(default=0.01, gt=0, le=0.1, description=(
         "Gap and penetration depth (sampled, object radius units) that count as touching; also "
         "the step of the refinement's line search."))
+    suggest_refine_contact: bool = Field(default=False, description=(
+        "Contact refinement of suggestions (`/suggest`, `/suggest/mesh`, `/suggest/batch`) when a "
+        "request does not send `refine_contact`. Off by default: for k = 10 it costs about ten "
+        "times the rest of a suggestion (tens of milliseconds against a few); `/place` and "
+        "`/assemble` refine unless told not to."))
     contact_search_points: int = Field(default=128, ge=8, le=4096, description=(
         "Samples per side (part, assembly) measured at each candidate offset of the refinement."))
     contact_part_samples: int = Field(default=512, ge=32, le=20_000, description=(

@@ -74,9 +74,11 @@ class SuggestOptionsIn(_Strict):
     diversity: Flag = Field(default=False, description=(
         "A gallery balanced over modes: round-robin over the modes by weight instead of "
         "likelihood order."))
-    refine_contact: Flag = Field(default=True, description=(
+    refine_contact: Flag | None = Field(default=None, description=(
         "Nudge each placement (at most COMPLEMENTME_CONTACT_MAX_OFFSET) so the part touches the "
-        "query without sinking into it; the move is reported as contact_offset."))
+        "query without sinking into it; the move is reported as contact_offset. Omitted: "
+        "COMPLEMENTME_SUGGEST_REFINE_CONTACT (false unless configured; refinement costs about ten "
+        "times the rest of a suggestion)."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,

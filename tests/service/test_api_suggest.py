@@ -186,10 +186,13 @@ def test_frames_round_trip_generally(client: TestClient, query: AssemblyQuery, c
         np.testing.assert_allclose(back, canonical[s["part_id"]]["translation"], atol=1e-3)
 
 
-def test_place_matches_suggest(client: TestClient, query: AssemblyQuery) -> None:
-    answer = suggest(client, points=query.points.tolist(), k=5)
+@pytest.mark.parametrize("refine", [False, True])
+def test_place_matches_suggest(client: TestClient, query: AssemblyQuery, refine: bool) -> None:
+    """/place and /suggest agree, with contact refinement on in both or off in both."""
+    answer = suggest(client, points=query.points.tolist(), k=5, **({"refine_contact": True} if refine else {}))
     ids = ranking(answer)
-    response = client.post("/place", json={"points_base64": points_to_base64(query.points), "part_ids": ids})
+    response = client.post("/place", json={"points_base64": points_to_base64(query.points), "part_ids": ids,
+                                           **({} if refine else {"refine_contact": False})})
     assert response.status_code == 200, response.text
     placed = PlaceResponse.model_validate(response.json())
     assert [p.part_id for p in placed.placements] == ids

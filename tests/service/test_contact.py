@@ -151,7 +151,7 @@ def test_surface_cache_resamples_a_changed_mesh() -> None:
 
 
 def test_engine_offsets_are_bounded_and_added(engine: SuggestionEngine, query: AssemblyQuery) -> None:
-    on = engine.suggest(query.points, SuggestOptions(k=8))
+    on = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True))
     off = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=False))
     assert [s.part_id for s in on.suggestions] == [s.part_id for s in off.suggestions]
     bound = engine.settings.contact_max_offset
@@ -164,7 +164,7 @@ def test_engine_offsets_are_bounded_and_added(engine: SuggestionEngine, query: A
 
 def test_engine_refined_parts_touch_the_query(engine: SuggestionEngine, query: AssemblyQuery) -> None:
     """Every refined placement touches the query by the service's own sampled measure."""
-    result = engine.suggest(query.points, SuggestOptions(k=8))
+    result = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True))
     asm = engine.contacts.assembly_from_points(query.points)
     tol = engine.settings.contact_tolerance
     for s in result.suggestions:
@@ -187,7 +187,7 @@ def test_engine_offsets_follow_the_frame(engine: SuggestionEngine, query: Assemb
 
 def test_api_reports_contact_offset(client: TestClient, query: AssemblyQuery) -> None:
     pts = query.points.tolist()
-    on = client.post("/suggest", json={"points": pts, "k": 5}).json()
+    on = client.post("/suggest", json={"points": pts, "k": 5, "refine_contact": True}).json()
     off = client.post("/suggest", json={"points": pts, "k": 5, "refine_contact": False}).json()
     for a, b in zip(on["suggestions"], off["suggestions"], strict=True):
         assert a["part_id"] == b["part_id"]
@@ -200,3 +200,24 @@ def test_api_reports_contact_offset(client: TestClient, query: AssemblyQuery) ->
     np.testing.assert_allclose(np.add(r["translation"], p["contact_offset"]), p["translation"], atol=1e-5)
     bad = client.post("/place", json={"points": pts, "part_ids": [query.missing], "refine_contact": "maybe"})
     assert bad.status_code == 422 and bad.json()["error"]["code"] == "validation_error"
+
+
+def test_suggest_refines_only_when_asked_or_configured(engine: SuggestionEngine, client: TestClient,
+                                                       query: AssemblyQuery) -> None:
+    """Refinement of suggestions is opt-in (it costs ten times the rest); the setting flips it."""
+    pts = query.points.tolist()
+    plain = client.post("/suggest", json={"points": pts, "k": 5}).json()
+    asked = client.post("/suggest", json={"points": pts, "k": 5, "refine_contact": True}).json()
+    assert all(s["contact_offset"] == [0.0, 0.0, 0.0] for s in plain["suggestions"])
+    assert any(s["contact_offset"] != [0.0, 0.0, 0.0] for s in asked["suggestions"])
+    default = engine.suggest(query.points, SuggestOptions(k=5))
+    assert all(np.all(s.contact_offset == 0) for s in default.suggestions)
+    on_by_default = SuggestionEngine(engine.artifacts, engine.settings.model_copy(
+        update={"suggest_refine_contact": True}))
+    refined = on_by_default.suggest(query.points, SuggestOptions(k=5))
+    np.testing.assert_allclose([s.contact_offset for s in refined.suggestions],
+                               [s["contact_offset"] for s in asked["suggestions"]], atol=1e-5)
+    # /place keeps refining unless told not to (the modeling page and /assemble rely on it).
+    offsets = [client.post("/place", json={"points": pts, "part_ids": [query.missing], **flag}).json()[
+        "placements"][0]["contact_offset"] for flag in ({}, {"refine_contact": True})]
+    assert offsets[0] == offsets[1]

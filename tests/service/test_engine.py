@@ -125,10 +125,11 @@ def test_a_filter_that_leaves_nothing(engine: SuggestionEngine, query: AssemblyQ
 
 
 def test_place_agrees_with_suggest(engine: SuggestionEngine, query: AssemblyQuery) -> None:
-    result = engine.suggest(query.points, SuggestOptions(k=6))
-    placed = engine.place(query.points, ids(result))
-    for p, s in zip(placed.placements, result.suggestions, strict=True):
-        np.testing.assert_allclose(p.translation, s.translation, atol=1e-6)
+    for refine in (False, True):
+        result = engine.suggest(query.points, SuggestOptions(k=6, refine_contact=refine))
+        placed = engine.place(query.points, ids(result), refine_contact=refine)
+        for p, s in zip(placed.placements, result.suggestions, strict=True):
+            np.testing.assert_allclose(p.translation, s.translation, atol=1e-6)
     with pytest.raises(NotFoundError):
         engine.place(query.points, ["no-such/0"])
 
