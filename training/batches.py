@@ -23,10 +23,11 @@ class TripletBatches(IterableDataset):
 
     def __init__(self, ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
                  start_step: int = 0, query_negative_fraction: float = 0.0,
-                 lookalike_negative_fraction: float = 0.0):
+                 lookalike_negative_fraction: float = 0.0, removal_query_fraction: float = 0.0):
         super().__init__()
         self.sampler = TripletSampler(ds, n_points=n_points, query_negative_fraction=query_negative_fraction,
-                                      lookalike_negative_fraction=lookalike_negative_fraction)
+                                      lookalike_negative_fraction=lookalike_negative_fraction,
+                                      removal_query_fraction=removal_query_fraction)
         self.batch_size = batch_size
         self.seed, self.rank, self.start_step = seed, rank, start_step
 
@@ -42,10 +43,11 @@ class TripletBatches(IterableDataset):
 def batch_stream(ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
                  start_step: int = 0, num_workers: int = 0,
                  query_negative_fraction: float = 0.0,
-                 lookalike_negative_fraction: float = 0.0) -> Iterator[dict[str, torch.Tensor]]:
+                 lookalike_negative_fraction: float = 0.0,
+                 removal_query_fraction: float = 0.0) -> Iterator[dict[str, torch.Tensor]]:
     """An iterator over training batches; ``num_workers`` > 0 samples in background processes."""
     source = TripletBatches(ds, n_points, batch_size, seed, rank, start_step, query_negative_fraction,
-                            lookalike_negative_fraction)
+                            lookalike_negative_fraction, removal_query_fraction)
     if num_workers == 0:
         return iter(source)
     loader = DataLoader(source, batch_size=None, num_workers=num_workers, prefetch_factor=4,

@@ -137,6 +137,10 @@ class TrainConfig:
         default=0.0, metadata=_help("Share of negatives drawn from the query's own components."))
     lookalike_negative_fraction: float = field(
         default=0.0, metadata=_help("Share of negatives that look like a query component (other shapes)."))
+    # Not in the paper: the share of queries drawn as "the shape minus a connected group" (X may
+    # then be disconnected, as in the benchmark's all-but-one-part queries).
+    removal_query_fraction: float = field(
+        default=0.0, metadata=_help("Share of queries that are a shape minus a connected group of parts."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
@@ -172,6 +176,9 @@ class TrainConfig:
         if min(shares) < 0 or sum(shares) > 1:
             raise ValueError("train config: query_negative_fraction and lookalike_negative_fraction must be "
                              f">= 0 and sum to at most 1, got {shares}")
+        if not 0.0 <= self.removal_query_fraction <= 1.0:
+            raise ValueError("train config: removal_query_fraction must be in [0, 1], "
+                             f"got {self.removal_query_fraction}")
         if not (self.train_retrieval or self.train_placement):
             raise ValueError("train config: nothing to train "
                              "(train_retrieval and train_placement are both off)")

@@ -225,7 +225,8 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     stream = batch_stream(train_ds, cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
                           start_step=step, num_workers=cfg.num_workers,
                           query_negative_fraction=cfg.query_negative_fraction,
-                          lookalike_negative_fraction=cfg.lookalike_negative_fraction)
+                          lookalike_negative_fraction=cfg.lookalike_negative_fraction,
+                          removal_query_fraction=cfg.removal_query_fraction)
     window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:8]}
     recent: dict[str, deque[float]] = {k: deque(maxlen=100) for k in ("triplet_loss", "placement_loss")}
     t_start = time.monotonic()

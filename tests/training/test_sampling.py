@@ -142,6 +142,22 @@ def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset)
         TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.6)
 
 
+def test_removal_queries_are_a_shape_minus_a_connected_group(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=32, removal_query_fraction=1.0)
+    adj = dataset.adjacency()
+    rng = np.random.default_rng(8)
+    disconnected = 0
+    for _ in range(300):
+        t = sampler.sample_triplet(rng)
+        comps = set(dataset.components_of(t.shape).tolist())
+        removed = sorted(comps - set(t.query))
+        assert removed and t.query and _connected_within(removed, adj)
+        assert t.positive in removed and any(t.positive in adj[q] for q in t.query)
+        assert t.negative not in t.query and not any(t.negative in adj[q] for q in t.query)
+        disconnected += not _connected_within(t.query, adj)
+    assert disconnected > 0  # a chair without its seat: legs and back do not touch
+
+
 def test_sampled_points_lie_on_the_components(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=128)
     rng = np.random.default_rng(2)

@@ -124,12 +124,19 @@ class TripletSampler:
     one of its ``lookalike_neighbours`` nearest components from other shapes of the same category,
     by position and box extent in the shared canonical frame (``component_descriptors``). It
     carries the same lesson to parts of other styles, still without part labels.
+
+    With probability ``removal_query_fraction`` X is drawn the other way round: the shape minus a
+    random connected group of components. The paper's X is always connected, so a chair without
+    its seat (legs and back, which do not touch) never occurs in training; a modeller's "all but
+    one part" query often looks like that.
     """
 
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
-                 lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8):
+                 lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
+                 removal_query_fraction: float = 0.0):
         for name, value in (("query_negative_fraction", query_negative_fraction),
-                            ("lookalike_negative_fraction", lookalike_negative_fraction)):
+                            ("lookalike_negative_fraction", lookalike_negative_fraction),
+                            ("removal_query_fraction", removal_query_fraction)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         if query_negative_fraction + lookalike_negative_fraction > 1.0:
@@ -139,6 +146,7 @@ class TripletSampler:
         self.n_points = n_points
         self.query_negative_fraction = query_negative_fraction
         self.lookalike_negative_fraction = lookalike_negative_fraction
+        self.removal_query_fraction = removal_query_fraction
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
                            if lookalike_negative_fraction > 0 else None)
         self.adj = ds.adjacency()
@@ -150,7 +158,13 @@ class TripletSampler:
         shape = self.eligible[int(rng.integers(len(self.eligible)))]
         nodes = ds.components_of(shape).tolist()
         r = int(rng.integers(1, len(nodes)))  # r in [1, n - 1]: at least one complement remains
-        query = random_connected_subgraph(nodes, self.adj, r, rng)
+        if self.removal_query_fraction > 0 and rng.random() < self.removal_query_fraction:
+            # X is the shape minus a connected group of n - r components (usually one part): the
+            # "everything but the legs" query, whose X need not be connected.
+            removed = set(random_connected_subgraph(nodes, self.adj, len(nodes) - r, rng))
+            query = [c for c in nodes if c not in removed]
+        else:
+            query = random_connected_subgraph(nodes, self.adj, r, rng)
         qset = set(query)
         neighbours = sorted(set().union(*(self.adj[c] for c in query)) - qset)
         if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
