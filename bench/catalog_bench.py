@@ -1,0 +1,211 @@
+"""Benchmark c: catalog scaling, 10k to 1M parts made from the real catalog.
+
+For each size: the replicated embeddings (``bench.replicate``), the index the service would
+build for them (``service.indexing.build_index``; built once and cached under ``bench/.cache``),
+its build time and parameters, the search latency for one query's K mixture means, recall@64
+against exact flat search over the mixture means of held-out queries, and the whole engine's
+/suggest latency with that index and a catalog of that size plugged in. The shipped catalog
+(its own exported index) is measured the same way as the baseline row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+
+from bench.engine_bench import request_once
+from bench.query import BenchQuery, held_out_queries
+from bench.replicate import ReplicatedCatalog, replicate_embeddings
+from bench.stats import summarize_seconds
+from service.engine import SuggestionEngine
+from service.frames import Frame
+from service.indexing import build_index, configure_search
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CatalogBenchConfig:
+    """Settings of the catalog scaling benchmark."""
+
+    sizes: tuple[int, ...] = (10_000, 100_000, 1_000_000)
+    noise: float = 0.05            # replica jitter, fraction of each embedding dimension's std
+    seed: int = 0
+    recall_k: int = 64             # neighbours per mean (the engine's neighbours_per_mode)
+    recall_queries: int = 63       # held-out queries (plus the benchmark's own) whose means are searched
+    search_reps: int = 300         # timed searches of one query's K means per size
+    engine_reps: int = 300         # timed whole /suggest requests per size
+    warmup: int = 20
+    max_seconds: float = 30.0      # a timing loop stops early past this (its count is recorded)
+    index_kind: str = "auto"       # service.indexing kind: auto (the service's choice), flat, ivf, hnsw
+    flat_max: int | None = None    # None: build_index's own default
+    body: str = "json"             # request body of the engine runs
+    refine_contact: bool = True    # the default request's contact refinement
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["sizes"] = list(self.sizes)
+        return d
+
+
+def recall_at_k(x: np.ndarray, queries: np.ndarray, found: np.ndarray, exact_dist: np.ndarray,
+                rtol: float = 1e-5) -> float:
+    """Mean share of the exact k nearest neighbours an approximate search found, ties counted.
+
+    A found row counts when its true squared distance is at most the exact k-th distance (times
+    ``1 + rtol``): with ties at the k-th place any of the tied rows is a correct answer, which a
+    plain label intersection would count as a miss. Duplicate and -1 labels count once / never.
+
+    Shapes:
+        x: (n, D) indexed rows; queries: (q, D); found: (q, k) labels; exact_dist: (q, k) ascending
+        squared distances of the exact search.
+    """
+    q, k = found.shape
+    if exact_dist.shape != (q, k) or queries.shape[0] != q:
+        raise ValueError(f"found {found.shape}, exact_dist {exact_dist.shape} and queries "
+                         f"{queries.shape} disagree")
+    hits = 0
+    for j in range(q):
+        rows = np.unique(found[j][found[j] >= 0])
+        d = np.sum((x[rows].astype(np.float64) - queries[j].astype(np.float64)) ** 2, axis=1)
+        kth = float(exact_dist[j, -1])
+        hits += min(k, int(np.count_nonzero(d <= kth * (1 + rtol) + 1e-12)))
+    return hits / (q * k)
+
+
+def time_calls(fn: Callable[[], object], reps: int, warmup: int, max_seconds: float) -> list[float]:
+    """Seconds per call of ``fn`` over at most ``reps`` calls, stopping early past ``max_seconds``."""
+    for _ in range(warmup):
+        fn()
+    out: list[float] = []
+    start = time.perf_counter()
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+        if time.perf_counter() - start > max_seconds:
+            break
+    return out
+
+
+def query_means(engine: SuggestionEngine, clouds: list[np.ndarray]) -> np.ndarray:
+    """g's mixture means of each point cloud (canonical frame), stacked: (len(clouds) * K, D)."""
+    prepared = np.stack([engine.prepare(c, Frame()) for c in clouds])
+    means = engine.networks.mixture(prepared).means
+    return np.ascontiguousarray(means.reshape(-1, means.shape[-1]), dtype=np.float32)
+
+
+def cached_index(x: np.ndarray, cfg: CatalogBenchConfig, cache: Path
+                 ) -> tuple[faiss.Index, dict[str, Any], float, bool]:
+    """The index ``build_index`` makes for ``x``, from the cache when built before.
+
+    Returns ``(index, params, build_seconds, from_cache)``; the build time is the original one.
+    """
+    kwargs: dict[str, Any] = {"kind": cfg.index_kind, "recall_k": cfg.recall_k, "seed": cfg.seed}
+    if cfg.flat_max is not None:
+        kwargs["flat_max"] = cfg.flat_max
+    key = hashlib.sha256(x.tobytes()).hexdigest()[:16] + "-" + hashlib.sha256(
+        json.dumps(kwargs, sort_keys=True).encode()).hexdigest()[:8]
+    path = cache / f"index-{len(x)}-{key}.faiss"
+    meta = path.with_suffix(".json")
+    if path.is_file() and meta.is_file():
+        info = json.loads(meta.read_text())
+        index = faiss.read_index(str(path))
+        configure_search(index, info["params"])
+        return index, info["params"], float(info["build_seconds"]), True
+    t = time.perf_counter()
+    index, params = build_index(x, **kwargs)
+    seconds = time.perf_counter() - t
+    cache.mkdir(parents=True, exist_ok=True)
+    faiss.write_index(index, str(path))
+    info = {"params": params, "build_seconds": seconds, "build_kwargs": kwargs}
+    meta.write_text(json.dumps(info, indent=1))
+    return index, params, seconds, False
+
+
+def measure_size(engine: SuggestionEngine, x: np.ndarray, index: faiss.Index, means: np.ndarray, K: int,
+                 body: bytes, cfg: CatalogBenchConfig, catalog: Any) -> dict[str, Any]:
+    """Search latency, recall@k and whole-engine latency of one catalog size and its index."""
+    faiss.omp_set_num_threads(engine.settings.faiss_threads)
+    k = min(cfg.recall_k, len(x))
+    one = np.ascontiguousarray(means[:K])  # the benchmark query's K means
+    search = time_calls(lambda: index.search(one, k), cfg.search_reps, cfg.warmup, cfg.max_seconds)
+    exact = faiss.IndexFlatL2(x.shape[1])
+    exact.add(x)
+    exact_search = time_calls(lambda: exact.search(one, k), cfg.search_reps, cfg.warmup, cfg.max_seconds)
+    exact_dist, _ = exact.search(means, k)
+    found = index.search(means, k)[1]
+    recall = recall_at_k(x, means, found, exact_dist)
+    exact.reset()  # free its copy of the vectors before the engine runs
+    plugged = dataclasses.replace(engine.artifacts, index=index, catalog=catalog)
+    big = SuggestionEngine(plugged, engine.settings)
+    timings: dict[str, list[float]] = {}
+    stages: dict[str, list[float]] = {}
+    answer = b""
+
+    def once() -> None:
+        nonlocal answer
+        st, tm, answer = request_once(big, body)
+        for key, v in st.items():
+            stages.setdefault(key, []).append(v)
+        for key, v in tm.items():
+            timings.setdefault(key, []).append(v)
+
+    time_calls(once, cfg.warmup, 0, cfg.max_seconds)
+    stages.clear()
+    timings.clear()
+    time_calls(once, cfg.engine_reps, 0, cfg.max_seconds)
+    top = json.loads(answer)["suggestions"]
+    return {
+        "search": summarize_seconds(search),
+        "exact_search": summarize_seconds(exact_search),
+        "recall_at_k": recall,
+        "recall_k": k,
+        "recall_means": len(means),
+        "engine": {key: summarize_seconds(v) for key, v in stages.items()},
+        "engine_timings": {key: summarize_seconds(v) for key, v in timings.items()},
+        "top_part": top[0]["part_id"] if top else None,
+    }
+
+
+def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogBenchConfig,
+                      cache: Path) -> dict[str, Any]:
+    """The shipped catalog, then every replicated size, measured the same way."""
+    base = engine.catalog
+    K = engine.artifacts.n_modes
+    clouds = [query.points, *held_out_queries(base, cfg.recall_queries, len(query.points), cfg.seed)]
+    means = query_means(engine, clouds)
+    body = query.body(cfg.body) if cfg.refine_contact else query.body(cfg.body, refine_contact=False)
+    rows = []
+    log.info("catalog: shipped catalog (%d parts, %s)", len(base), type(engine.index).__name__)
+    shipped = measure_size(engine, base.embeddings, engine.index, means, K, body, cfg, base)
+    rows.append({"parts": len(base), "kind": "shipped", "index": engine.artifacts.manifest.get("index"),
+                 "build_seconds": None, **shipped})
+    for n in cfg.sizes:
+        t = time.perf_counter()
+        x = replicate_embeddings(base.embeddings, n, cfg.noise, cfg.seed)
+        index, params, build_s, cached = cached_index(x, cfg, cache)
+        log.info("catalog: %d parts, %s (%s, %.1f s)", n, params.get("type"),
+                 "cached" if cached else "built", build_s)
+        catalog = ReplicatedCatalog(base, x)
+        prep = time.perf_counter() - t
+        res = measure_size(engine, x, index, means, K, body, cfg, catalog)
+        rows.append({"parts": n, "kind": "replicated", "index": params, "build_seconds": build_s,
+                     "index_from_cache": cached, "setup_seconds": prep, **res})
+        del index, catalog, x
+    return {
+        "query": {"source": query.source, "points": len(query.points), "k": query.k, "body": cfg.body,
+                  "refine_contact": cfg.refine_contact},
+        "n_modes": K,
+        "rows": rows,
+    }
