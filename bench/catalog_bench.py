@@ -23,7 +23,7 @@ from typing import Any
 import faiss
 import numpy as np
 
-from bench.engine_bench import request_once
+from bench.engine_bench import contact_default, request_once
 from bench.query import BenchQuery, held_out_queries
 from bench.replicate import ReplicatedCatalog, replicate_embeddings
 from bench.stats import summarize_seconds
@@ -50,7 +50,7 @@ class CatalogBenchConfig:
     index_kind: str = "auto"       # service.indexing kind: auto (the service's choice), flat, ivf, hnsw
     flat_max: int | None = None    # None: build_index's own default
     body: str = "json"             # request body of the engine runs
-    refine_contact: bool = True    # the default request's contact refinement
+    refine_contact: bool | None = None  # None: the request does not say (the service's default)
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -185,7 +185,8 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
     K = engine.artifacts.n_modes
     clouds = [query.points, *held_out_queries(base, cfg.recall_queries, len(query.points), cfg.seed)]
     means = query_means(engine, clouds)
-    body = query.body(cfg.body) if cfg.refine_contact else query.body(cfg.body, refine_contact=False)
+    body = (query.body(cfg.body) if cfg.refine_contact is None
+            else query.body(cfg.body, refine_contact=cfg.refine_contact))
     rows = []
     log.info("catalog: shipped catalog (%d parts, %s)", len(base), type(engine.index).__name__)
     shipped = measure_size(engine, base.embeddings, engine.index, means, K, body, cfg, base)
@@ -205,7 +206,9 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
         del index, catalog, x
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k, "body": cfg.body,
-                  "refine_contact": cfg.refine_contact},
+                  "refine_contact": cfg.refine_contact,
+                  "contact_applied": (contact_default(engine.settings) if cfg.refine_contact is None
+                                      else cfg.refine_contact)},
         "n_modes": K,
         "rows": rows,
     }

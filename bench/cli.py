@@ -119,11 +119,23 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
     _save(results_dir, "catalog", cfg.as_dict(), run_catalog_bench(engine, _query(query), cfg, cache))
 
 
+def check_peer_inputs(run_dir: Path) -> None:
+    """Fail before any benchmark runs when the peer's torch checkpoint is missing."""
+    from training.checkpoint import checkpoint_path
+
+    path = checkpoint_path(run_dir)
+    if not path.is_file():
+        raise typer.BadParameter(f"the peer baseline loads the torch checkpoint {path}, which does not exist "
+                                 "(runs/ is not committed: train with training/recipes/shipped.sh, or give "
+                                 "--run-dir)", param_hint="--run-dir")
+
+
 def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any, run_dir: Path,
             server_env: list[str] | None) -> None:
     from bench.peer_bench import PeerBenchConfig, run_peer_bench
     from service.settings import get_settings
 
+    check_peer_inputs(run_dir)
     cfg = PeerBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load, run_dir=run_dir,
                           artifacts=get_settings().artifacts, server_env=_env_pairs(server_env))
     _save(results_dir, "peer", cfg.as_dict(), run_peer_bench(_query(query), cfg, cache))
@@ -213,6 +225,7 @@ def run_all(
     sizes: str | None = typer.Option(None, help="Catalog sizes (default 10000,100000,1000000)."),
 ) -> None:
     """engine, http, catalog and peer with their defaults, then the report."""
+    check_peer_inputs(REPO / "runs" / "shipped")
     load = _load(quick, duration, None, 1, 30.0)
     do_engine(results_dir, query, quick, None, None)
     do_http(results_dir, query, quick, cache_dir, "1,8,32,64", load, None)

@@ -42,7 +42,9 @@ class EngineBenchConfig:
     reps: int = 1000          # timed repetitions per variant
     warmup: int = 50          # untimed repetitions first (caches, allocator, branch predictors)
     bodies: tuple[str, ...] = BODY_KINDS
-    contact: tuple[bool, ...] = (True, False)  # contact refinement on (the default request) / off
+    # Contact refinement: None = the request does not say (the service's default,
+    # COMPLEMENTME_SUGGEST_REFINE_CONTACT), True / False = the request asks for it / not.
+    contact: tuple[bool | None, ...] = (None, True)
 
 
 def load_engine(settings: Settings) -> SuggestionEngine:
@@ -101,14 +103,16 @@ def run_variant(engine: SuggestionEngine, body: bytes, reps: int, warmup: int) -
 
 
 def run_engine_bench(engine: SuggestionEngine, query: BenchQuery, cfg: EngineBenchConfig) -> dict[str, Any]:
-    """Every (body kind, contact on/off) variant; the first is the default request's."""
+    """Every (body kind, contact refinement) variant; ``refine_contact`` None is the default request."""
     variants = []
+    default = contact_default(engine.settings)
     for kind in cfg.bodies:
         for contact in cfg.contact:
-            log.info("engine: %s body, contact %s, %d reps", kind, "on" if contact else "off", cfg.reps)
-            body = query.body(kind) if contact else query.body(kind, refine_contact=False)
+            log.info("engine: %s body, refine_contact %s, %d reps", kind, contact, cfg.reps)
+            body = query.body(kind) if contact is None else query.body(kind, refine_contact=contact)
             res = run_variant(engine, body, cfg.reps, cfg.warmup)
-            variants.append({"body": kind, "refine_contact": contact, **res})
+            variants.append({"body": kind, "refine_contact": contact,
+                             "contact_applied": default if contact is None else contact, **res})
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},
         "network_points": engine.artifacts.n_points,
@@ -119,10 +123,16 @@ def run_engine_bench(engine: SuggestionEngine, query: BenchQuery, cfg: EngineBen
     }
 
 
+def contact_default(s: Settings) -> bool:
+    """Whether /suggest refines contact when a request does not say (the service's setting)."""
+    return bool(getattr(s, "suggest_refine_contact", True))
+
+
 def _timing_settings(s: Settings) -> dict[str, Any]:
     """The settings that change the timings (recorded with the results)."""
     keys = ("onnx_threads", "faiss_threads", "faiss_blas_threshold", "max_points_per_run",
-            "neighbours_per_mode", "contact_search_points", "contact_part_samples", "contact_cache_parts")
+            "neighbours_per_mode", "suggest_refine_contact", "contact_search_points", "contact_part_samples",
+            "contact_cache_parts")
     data = s.model_dump()
     return {k: data[k] for k in keys if k in data}
 

@@ -36,11 +36,18 @@ def _met(ok: bool | None) -> str:
     return "not measured" if ok is None else ("met" if ok else "**missed**")
 
 
-def _variant(engine: dict[str, Any], body: str = "json", contact: bool = True) -> dict[str, Any] | None:
+def _variant(engine: dict[str, Any], body: str = "json", contact: bool | None = None
+             ) -> dict[str, Any] | None:
+    """The engine variant of this body and ``refine_contact`` (None: the default request)."""
     for v in engine["results"]["variants"]:
         if v["body"] == body and v["refine_contact"] == contact:
             return v
     return None
+
+
+def _contact(asked: bool | None, applied: bool) -> str:
+    state = "on" if applied else "off"
+    return f"contact default ({state})" if asked is None else f"contact {state}"
 
 
 def _level(levels: list[dict[str, Any]], body: str, c: int) -> dict[str, Any] | None:
@@ -144,7 +151,7 @@ def _machine(res: dict[str, dict[str, Any]]) -> list[str]:
 def _engine(data: dict[str, Any]) -> list[str]:
     r = data["results"]
     variants = r["variants"]
-    head = [f"{v['body']}, contact {'on' if v['refine_contact'] else 'off'}" for v in variants]
+    head = [f"{v['body']}, {_contact(v['refine_contact'], v.get('contact_applied', True))}" for v in variants]
     lines = [
         f"One request of {r['query']['points']} points, k = {r['query']['k']}, on the shipped catalog "
         f"({r['catalog_parts']} parts, {r['index']}); the networks see {r['network_points']} points. "
@@ -211,8 +218,9 @@ def _catalog(data: dict[str, Any]) -> list[str]:
         f"std; copy 0 exact), indexed by `service.indexing.build_index` (kind `{cfg['index_kind']}`). "
         f"Search: one query's {r['n_modes']} mixture means, top {cfg['recall_k']}. Recall@{cfg['recall_k']} "
         f"against exact flat search over the means of {cfg['recall_queries'] + 1} queries. /suggest: the "
-        f"engine's wall time for the benchmark query ({r['query']['body']} body, contact "
-        f"{'on' if r['query']['refine_contact'] else 'off'}) with that index and catalog plugged in.",
+        f"engine's wall time for the benchmark query ({r['query']['body']} body, "
+        f"{_contact(r['query']['refine_contact'], r['query'].get('contact_applied', True))}) with that "
+        "index and catalog plugged in.",
         "",
         "| Parts | Index | Build s | Search p50 / p99 ms | Exact search p50 ms | Recall@k | "
         "/suggest p50 / p99 ms | engine search p50 ms | x shipped |",

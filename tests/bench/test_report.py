@@ -40,7 +40,8 @@ def _results() -> dict[str, dict[str, Any]]:
                                          "end_to_end": 3.8, "resample": 0.1}.items()}
     timings = {k: _stat(v) for k, v in {"prepare": 0.2, "g": 0.9, "search": 0.7, "contact": 0.4,
                                           "total": 2.5}.items()}
-    variant = {"body": "json", "refine_contact": True, "stages": stages, "engine_timings": timings,
+    variant = {"body": "json", "refine_contact": None, "contact_applied": False, "stages": stages,
+               "engine_timings": timings,
                "body_bytes": 30000, "answer_bytes": 6000, "suggestions": 10, "top_part": "chair-0035/1"}
     engine = {"query": {"source": "x.json", "points": 1000, "k": 10}, "network_points": 512,
               "catalog_parts": 7315, "index": "IndexFlatL2", "settings": {}, "variants": [variant]}
@@ -48,7 +49,8 @@ def _results() -> dict[str, dict[str, Any]]:
                        _level("json", 64, 340, 90.0, 250.0, errors=12), _level("base64", 1, 220, 4.5, 6.0)]}
     row = {"search": _stat(0.5), "exact_search": _stat(0.6), "recall_k": 64, "recall_means": 512,
            "engine_timings": {"search": _stat(0.5)}, "top_part": "chair-0035/1"}
-    catalog = {"query": {"body": "json", "refine_contact": True}, "n_modes": 8, "rows": [
+    query = {"body": "json", "refine_contact": None, "contact_applied": False}
+    catalog = {"query": query, "n_modes": 8, "rows": [
         {**row, "parts": 7315, "kind": "shipped", "index": {"type": "IndexFlatL2", "params": {}},
          "build_seconds": None, "recall_at_k": 1.0, "engine": {"suggest": _stat(2.0)}},
         {**row, "parts": 1_000_000, "kind": "replicated", "build_seconds": 12.5, "recall_at_k": 0.93,
@@ -103,6 +105,7 @@ def test_rendered_tables_hold_the_numbers() -> None:
     assert "| 32 | 30.0 | 350 | 11.7x |" in text
     assert "same top part: **yes**" in text
     assert "| **end to end, in process** | 3.80 / 7.60 |" in text
+    assert "| Stage | json, contact default (off) |" in text
 
 
 def test_report_replaces_only_the_generated_section(tmp_path: Path) -> None:
