@@ -6,6 +6,9 @@ process. With several uvicorn workers each process reports its own numbers.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 from prometheus_client import (
     CollectorRegistry,
     Counter,
@@ -15,6 +18,8 @@ from prometheus_client import (
     generate_latest,
 )
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+from service.errors import ServiceError
 
 # Request latencies run from sub-millisecond probes to multi-second batches and mesh uploads.
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
@@ -46,8 +51,14 @@ class Metrics:
         self.scoring = Histogram("complementme_scoring_duration_seconds",
                                  "Mixture re-scoring and ranking time per engine call.",
                                  buckets=_STAGE_BUCKETS, registry=r)
-        self.batch_size = Histogram("complementme_batch_size", "Queries per engine call.",
+        self.batch_size = Histogram("complementme_batch_size", "Queries per engine call (micro-batches "
+                                    "of concurrent requests, /suggest/batch requests, single /place calls).",
                                     buckets=_SIZE_BUCKETS, registry=r)
+        self.queue_wait = Histogram("complementme_batch_queue_wait_seconds",
+                                    "Seconds a request's queries waited in the micro-batcher's queue.",
+                                    buckets=_STAGE_BUCKETS, registry=r)
+        self.queued = Gauge("complementme_batch_queued_queries",
+                            "Queries waiting in the micro-batcher's queue now.", registry=r)
         self.candidates = Histogram("complementme_candidates", "Catalog parts re-scored per query.",
                                     buckets=_SIZE_BUCKETS, registry=r)
         self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.", registry=r)
@@ -71,6 +82,14 @@ class Metrics:
         self.batch_size.observe(batch_size)
         for c in candidates:
             self.candidates.observe(c)
+
+    def observe_batch(self, answers: Sequence[Any], size: int) -> None:
+        """Record one micro-batch: its size, and the stages of its engine call (when a query ran)."""
+        done = [a for a in answers if not isinstance(a, ServiceError)]
+        if done:
+            self.observe_engine(done[0].timings, size, [a.candidates for a in done])
+        else:
+            self.batch_size.observe(size)
 
     def set_model(self, model_version: str, parts: int) -> None:
         self.catalog_parts.set(parts)

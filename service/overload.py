@@ -6,7 +6,10 @@ once and at most ``max_queue`` wait for a slot; past that the service answers 50
 ``overloaded`` with a ``Retry-After`` estimated from recent latencies, at once and without
 reading the body. Reads (GET) are not gated. Catalog writes (``POST /parts``, ``DELETE
 /parts/...``) have a gate of their own (``max_inflight_writes``): they wait for each other on the
-database, and must not take the slots of suggestion queries while they do.
+database, and must not take the slots of suggestion queries while they do. ``POST /suggest``
+has one too (``max_inflight_suggest``, many slots): its requests mostly wait in the
+micro-batcher's queue (``service.batching``), whose workers bound the CPU they use, and a batch
+can only grow as large as the requests let in.
 
 Every request also has a deadline (``request_timeout``, queueing included). A request still
 waiting for a slot at its deadline gets 503; one still running gets 504 ``deadline_exceeded``
@@ -93,10 +96,14 @@ class OverloadMiddleware:
     """Gate inference requests and enforce the request deadline (see the module doc)."""
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
-                 max_inflight_writes: int = 2, registry: CollectorRegistry | None = None):
+                 max_inflight_writes: int = 2, registry: CollectorRegistry | None = None,
+                 max_inflight_suggest: int | None = None):
         self.app = app
         self.gate = InferenceGate(max_inflight, max_queue)
         self.write_gate = InferenceGate(max_inflight_writes, max_queue)
+        # None: /suggest shares the inference gate.
+        self.suggest_gate = (InferenceGate(max_inflight_suggest, max_queue)
+                             if max_inflight_suggest is not None else self.gate)
         self.timeout = timeout
         self.rejected = Counter("complementme_overload_rejections", "Requests refused by the overload "
                                 "gate or cut at their deadline, by reason.", ["reason"], registry=registry)
@@ -104,8 +111,9 @@ class OverloadMiddleware:
                                     registry=registry)
         self.queued_gauge = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
                                   registry=registry)
-        self.inflight_gauge.set_function(lambda: self.gate.inflight + self.write_gate.inflight)
-        self.queued_gauge.set_function(lambda: self.gate.waiting + self.write_gate.waiting)
+        gates = {id(g): g for g in (self.gate, self.write_gate, self.suggest_gate)}.values()
+        self.inflight_gauge.set_function(lambda: sum(g.inflight for g in gates))
+        self.queued_gauge.set_function(lambda: sum(g.waiting for g in gates))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -113,7 +121,7 @@ class OverloadMiddleware:
             return
         deadline = time.monotonic() + self.timeout
         gated = scope["method"] in GATED_METHODS
-        gate = self.write_gate if _is_catalog_write(scope) else self.gate
+        gate = self._gate_of(scope)
         if gated and not await self._enter(gate, deadline, send):
             return
         start = time.monotonic()
@@ -146,6 +154,13 @@ class OverloadMiddleware:
         answered = True
         await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
                           f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT); its answer is dropped")
+
+    def _gate_of(self, scope: Scope) -> InferenceGate:
+        if _is_catalog_write(scope):
+            return self.write_gate
+        if scope["method"] == "POST" and scope["path"] == "/suggest":
+            return self.suggest_gate
+        return self.gate
 
     async def _enter(self, gate: InferenceGate, deadline: float, send: Send) -> bool:
         """Take a gate slot for a request; answer 503 and return False when that is not possible."""

@@ -53,6 +53,17 @@ class Settings(BaseSettings):
         "split (always at least one query per run). Per-point activations of a big run leave the "
         "CPU caches: a paper-size PointNet took about 3 ms per 1000-point query alone and 6 ms "
         "per query in runs of four."))
+    batch_max_size: int = Field(default=32, ge=1, le=1024, description=(
+        "Most queries the micro-batcher runs in one engine call: concurrent `/suggest`, "
+        "`/suggest/mesh` and `/suggest/batch` queries queue and run together (one `/suggest/batch` "
+        "request larger than this runs alone)."))
+    batch_max_wait_ms: float = Field(default=2.0, ge=0, le=1000, description=(
+        "Longest time, in milliseconds after the oldest queued query, that the micro-batcher waits "
+        "for requests still being read or parsed before it runs a partial batch. A lone request "
+        "never waits: with nothing on the way the batch runs at once."))
+    batch_workers: int = Field(default=1, ge=1, le=16, description=(
+        "Threads that run the micro-batcher's engine calls (the only threads calling ONNX Runtime "
+        "and FAISS for suggestions, so they do not contend)."))
     neighbours_per_mode: int = Field(default=64, ge=1, le=4096, description=(
         "Catalog parts FAISS returns for each mixture mean (at least the request's k); their "
         "union is re-scored by the exact mixture log-likelihood."))
@@ -166,7 +177,12 @@ class Settings(BaseSettings):
 
     # --- overload ---------------------------------------------------------------------------
     max_inflight: int = Field(default=4, ge=1, description=(
-        "Requests that run inference (every POST and DELETE) handled at once; more wait in a queue."))
+        "Requests that run inference (every POST and DELETE but `POST /suggest` and catalog writes) "
+        "handled at once; more wait in a queue."))
+    max_inflight_suggest: int = Field(default=64, ge=1, description=(
+        "`POST /suggest` requests handled at once, in a gate of their own: they wait in the "
+        "micro-batcher's queue, whose workers bound the CPU they use, so many may be in flight; "
+        "more wait in a queue (`max_queue`)."))
     max_inflight_writes: int = Field(default=2, ge=1, description=(
         "Catalog writes (POST /parts, DELETE /parts/...) handled at once, in a gate of their own so "
         "that suggestion queries never wait behind writes."))

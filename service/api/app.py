@@ -3,7 +3,9 @@
 ``create_app(settings)`` wires routers, error handlers and middleware. Its lifespan loads the
 artifact folder (ONNX sessions, FAISS index, catalog), checks it against the manifest and
 refuses to start with an error naming the bad file; then it runs a warm-up suggestion, after
-which ``/readyz`` answers 200. ``uvicorn --factory service.api.app:create_app`` works too.
+which ``/readyz`` answers 200, and starts the micro-batcher that runs suggestions
+(``service.batching``; closed, after answering what is queued, at shutdown).
+``uvicorn --factory service.api.app:create_app`` works too.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+import anyio
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
@@ -22,6 +25,7 @@ from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
 from service.artifacts import ArtifactError
+from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine
 from service.loading import load_artifacts
 from service.metrics import Metrics
@@ -56,20 +60,30 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.error("refusing to start: %s", exc)
         raise
     engine = SuggestionEngine(artifacts, settings)
-    app.state.metrics.set_model(engine.model_version, len(engine.catalog))
+    metrics: Metrics = app.state.metrics
+    metrics.set_model(engine.model_version, len(engine.catalog))
     app.state.engine = engine
     if settings.warmup:
         engine.warmup()
+    batcher = app.state.batcher = MicroBatcher(
+        engine.suggest_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
+        workers=settings.batch_workers, name="suggest-batcher",
+        stats=BatchStats(wait=metrics.queue_wait.observe, ran=metrics.observe_batch))
+    metrics.queued.set_function(lambda: batcher.queued)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
         app.state.writer = catalog_write.start_catalog_writer(app, engine)
     except StoreError as exc:
         log.error("refusing to start: %s", exc)
+        batcher.close()
         raise
     app.state.ready = True
     try:
         yield
     finally:
         app.state.ready = False
+        # Requests still queued for a batch are answered; later ones get 503 shutting_down.
+        await anyio.to_thread.run_sync(batcher.close, settings.request_timeout)
+        app.state.batcher = None
         if app.state.writer is not None:
             app.state.writer.close()
             app.state.writer = None
@@ -84,6 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.engine = None
+    app.state.batcher = None
     app.state.writer = None
     app.state.ready = False
     install_error_handlers(app)
@@ -102,6 +117,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Added last = outermost: metrics see every response, including a 413 from the body limit.
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
+                       max_inflight_suggest=settings.max_inflight_suggest,
                        registry=app.state.metrics.registry)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes)

@@ -1,4 +1,4 @@
-"""Typed dependencies of the routes: the loaded engine, the settings and the metrics.
+"""Typed dependencies of the routes: the loaded engine, its micro-batcher, the settings, the metrics.
 
 They are ``async`` on purpose: sync dependencies would each cost a threadpool hop per request.
 """
@@ -7,12 +7,17 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from fastapi import Depends, Request
 
-from service.engine import SuggestionEngine
+from service.batching import MicroBatcher
+from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import NotReadyError
 from service.metrics import Metrics
 from service.settings import Settings
+
+# The micro-batcher of suggestion queries: (points, options) in, SuggestResult out.
+SuggestBatcher = MicroBatcher[tuple[np.ndarray, SuggestOptions], SuggestResult]
 
 
 async def get_engine(request: Request) -> SuggestionEngine:
@@ -20,6 +25,13 @@ async def get_engine(request: Request) -> SuggestionEngine:
     if engine is None:
         raise NotReadyError("not_ready", "the artifacts are not loaded yet")
     return engine
+
+
+async def get_batcher(request: Request) -> SuggestBatcher:
+    batcher = getattr(request.app.state, "batcher", None)
+    if batcher is None:
+        raise NotReadyError("not_ready", "the artifacts are not loaded yet")
+    return batcher
 
 
 async def get_app_settings(request: Request) -> Settings:
@@ -30,6 +42,7 @@ async def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+BatcherDep = Annotated[SuggestBatcher, Depends(get_batcher)]
 EngineDep = Annotated[SuggestionEngine, Depends(get_engine)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]

@@ -1,18 +1,23 @@
 """Suggestions and placement: ``POST /suggest``, ``/suggest/mesh``, ``/suggest/batch``, ``/place``.
 
-Handlers are plain ``def``: FastAPI runs them in its threadpool, where ONNX Runtime and FAISS
-release the GIL while they compute.
+The suggestion handlers are ``async``: they decode the request on the event loop (a mesh or a
+whole batch of items in the threadpool), hand the queries to the micro-batcher
+(``service.batching``), whose worker runs them through the engine together with other
+requests' queries, and render the answer. ``/place`` is a plain ``def`` run in the threadpool.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, File, Form, UploadFile
+import numpy as np
+from fastapi import APIRouter, File, Form, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
 
-from service.api.deps import EngineDep, MetricsDep, SettingsDep
+from service.api.batched_route import BatchedRoute, batch_ticket
+from service.api.deps import BatcherDep, EngineDep, MetricsDep, SettingsDep
 from service.api.errors import service_error_body, validation_error
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
@@ -26,10 +31,12 @@ from service.api.schemas import (
     SuggestRequest,
     SuggestResponse,
 )
+from service.engine import SuggestOptions
 from service.errors import InputError, ServiceError
 from service.inputs import mesh_format, points_from_mesh
 
 router = APIRouter(tags=["suggest"])
+batched = APIRouter(tags=["suggest"], route_class=BatchedRoute)  # the routes that go through the batcher
 
 _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "The body is not JSON."},
@@ -49,17 +56,16 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 }}}}}
 
 
-@router.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
-             summary="Suggest complementary parts for a partial assembly given as points")
-def post_suggest(body: SuggestRequest, engine: EngineDep, settings: SettingsDep,
-                 metrics: MetricsDep) -> OrjsonResponse:
+@batched.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
+              summary="Suggest complementary parts for a partial assembly given as points")
+async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
+                       settings: SettingsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
-    result = engine.suggest(points, body.to_options())
-    metrics.observe_engine(result.timings, 1, [result.candidates])
+    result = await batcher.submit((points, body.to_options()), batch_ticket(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
-@router.post("/suggest/mesh", response_model=SuggestResponse, summary=(
+@batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
     "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
     responses={
     413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
@@ -67,8 +73,8 @@ def post_suggest(body: SuggestRequest, engine: EngineDep, settings: SettingsDep,
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
     422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
 })
-def post_suggest_mesh(
-    engine: EngineDep, settings: SettingsDep, metrics: MetricsDep,
+async def post_suggest_mesh(
+    request: Request, engine: EngineDep, batcher: BatcherDep, settings: SettingsDep,
     file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
     options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
                                examples=['{"k": 5, "category": "chair"}']),
@@ -82,45 +88,50 @@ def post_suggest_mesh(
     except ValidationError as exc:
         raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
                                       for e in exc.errors()]) from None
-    points = points_from_mesh(file.file.read(), fmt, n=engine.artifacts.n_points, seed=settings.seed,
-                              name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
-                              max_faces=settings.max_mesh_faces)
-    result = engine.suggest(points, opts.to_options())
-    metrics.observe_engine(result.timings, 1, [result.candidates])
+    data = await file.read()
+    points = await run_in_threadpool(
+        points_from_mesh, data, fmt, n=engine.artifacts.n_points, seed=settings.seed,
+        name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
+        max_faces=settings.max_mesh_faces)
+    result = await batcher.submit((points, opts.to_options()), batch_ticket(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
-@router.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
-             summary="Suggest for many partial assemblies at once (batched inference)")
-def post_suggest_batch(body: BatchRequest, engine: EngineDep, settings: SettingsDep,
-                       metrics: MetricsDep) -> OrjsonResponse:
+@batched.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
+              summary="Suggest for many partial assemblies at once (batched inference)")
+async def post_suggest_batch(body: BatchRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
+                             settings: SettingsDep) -> OrjsonResponse:
     """Each item is validated on its own: a bad item gets an error entry, the others are answered."""
     if not body.items:
         raise InputError("empty_batch", "items is empty; send at least one query")
     if len(body.items) > settings.max_batch_items:
         raise InputError("too_many_items", f"{len(body.items)} items given, at most "
                          f"{settings.max_batch_items} are accepted")
-    results: list[dict[str, Any] | None] = [None] * len(body.items)
-    valid, queries = [], []
-    for i, raw in enumerate(body.items):
-        try:
-            req = SuggestRequest.model_validate(raw)
-            queries.append((req.to_points(settings.max_points), req.to_options()))
-            valid.append(i)
-        except ValidationError as exc:
-            results[i] = {"index": i, "ok": False, "error": validation_error(exc)[1]["error"]}
-        except ServiceError as exc:
-            results[i] = {"index": i, "ok": False, "error": service_error_body(exc)["error"]}
-    answers = engine.suggest_batch(queries) if queries else []
-    done = [a for a in answers if not isinstance(a, ServiceError)]
-    if done:
-        metrics.observe_engine(done[0].timings, len(done), [a.candidates for a in done])
+    results, valid, queries = await run_in_threadpool(_decode_items, body.items, settings.max_points)
+    answers = await batcher.submit_many(queries, batch_ticket(request)) if queries else []
     for i, answer in zip(valid, answers, strict=True):
         if isinstance(answer, ServiceError):
             results[i] = {"index": i, "ok": False, "error": service_error_body(answer)["error"]}
         else:
             results[i] = {"index": i, "ok": True, "result": render_suggest(answer, engine.model_version)}
     return OrjsonResponse({"model_version": engine.model_version, "results": results})
+
+
+def _decode_items(items: list[Any], max_points: int
+                  ) -> tuple[list[dict[str, Any] | None], list[int], list[tuple[np.ndarray, SuggestOptions]]]:
+    """Validate batch items one by one: error entries for the bad, (points, options) for the rest."""
+    results: list[dict[str, Any] | None] = [None] * len(items)
+    valid, queries = [], []
+    for i, raw in enumerate(items):
+        try:
+            req = SuggestRequest.model_validate(raw)
+            queries.append((req.to_points(max_points), req.to_options()))
+            valid.append(i)
+        except ValidationError as exc:
+            results[i] = {"index": i, "ok": False, "error": validation_error(exc)[1]["error"]}
+        except ServiceError as exc:
+            results[i] = {"index": i, "ok": False, "error": service_error_body(exc)["error"]}
+    return results, valid, queries
 
 
 @router.post("/place", response_model=PlaceResponse, responses=_POINT_ERRORS,
@@ -132,3 +143,6 @@ def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
                           refine_contact=body.refine_contact)
     metrics.observe_engine(result.timings, 1, [])
     return OrjsonResponse(render_place(result, engine.model_version))
+
+
+router.include_router(batched)  # after its routes: include_router copies them
