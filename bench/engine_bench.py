@@ -2,7 +2,8 @@
 
 Each repetition runs the path of ``service/api/routes/suggest.py:post_suggest`` in process:
 
-- ``parse``: the body's JSON to Python objects (``json.loads``, as FastAPI's ``request.json()``);
+- ``parse``: the body's JSON to Python objects, as the suggestion routes' ``request.json()`` does
+  (``service/api/batched_route.py``: orjson, the standard library for what orjson refuses);
 - ``validate``: ``SuggestRequest`` validation, ``to_points`` (the list or base64 decode) and
   ``to_options``, as FastAPI's body validation and the handler do;
 - ``suggest``: ``SuggestionEngine.suggest``, whose own per-stage ``timings`` are recorded too
@@ -41,6 +42,7 @@ class EngineBenchConfig:
 
     reps: int = 1000          # timed repetitions per variant
     warmup: int = 50          # untimed repetitions first (caches, allocator, branch predictors)
+    max_seconds: float = 90.0  # a variant stops early past this many seconds (its count is recorded)
     bodies: tuple[str, ...] = BODY_KINDS
     # Contact refinement: None = the request does not say (the service's default,
     # COMPLEMENTME_SUGGEST_REFINE_CONTACT), True / False = the request asks for it / not.
@@ -57,11 +59,19 @@ def load_engine(settings: Settings) -> SuggestionEngine:
     return SuggestionEngine(artifacts, settings)
 
 
+def parse_body(body: bytes) -> Any:
+    """A request body's JSON, parsed as the suggestion routes parse it (orjson, else ``json``)."""
+    try:
+        return orjson.loads(body)
+    except orjson.JSONDecodeError:
+        return json.loads(body)
+
+
 def request_once(engine: SuggestionEngine, body: bytes) -> tuple[dict[str, float], dict[str, float], bytes]:
     """One request through the route's path; returns stage seconds, engine timings and the answer."""
     s = engine.settings
     t0 = time.perf_counter()
-    obj = json.loads(body)
+    obj = parse_body(body)
     t1 = time.perf_counter()
     req = SuggestRequest.model_validate(obj)
     points = req.to_points(s.max_points)
@@ -78,14 +88,18 @@ def request_once(engine: SuggestionEngine, body: bytes) -> tuple[dict[str, float
     return stages, dict(result.timings), answer
 
 
-def run_variant(engine: SuggestionEngine, body: bytes, reps: int, warmup: int) -> dict[str, Any]:
-    """Per-stage summaries (ms) over ``reps`` requests, after ``warmup`` untimed ones."""
+def run_variant(engine: SuggestionEngine, body: bytes, reps: int, warmup: int,
+                max_seconds: float = float("inf")) -> dict[str, Any]:
+    """Per-stage summaries (ms) over ``reps`` requests (fewer past ``max_seconds``), after ``warmup``."""
     for _ in range(warmup):
         request_once(engine, body)
     stages: dict[str, list[float]] = defaultdict(list)
     timings: dict[str, list[float]] = defaultdict(list)
     answer = b""
+    deadline = time.perf_counter() + max_seconds
     for _ in range(reps):
+        if time.perf_counter() > deadline:
+            break
         st, tm, answer = request_once(engine, body)
         for key, value in st.items():
             stages[key].append(value)
@@ -110,7 +124,7 @@ def run_engine_bench(engine: SuggestionEngine, query: BenchQuery, cfg: EngineBen
         for contact in cfg.contact:
             log.info("engine: %s body, refine_contact %s, %d reps", kind, contact, cfg.reps)
             body = query.body(kind) if contact is None else query.body(kind, refine_contact=contact)
-            res = run_variant(engine, body, cfg.reps, cfg.warmup)
+            res = run_variant(engine, body, cfg.reps, cfg.warmup, cfg.max_seconds)
             variants.append({"body": kind, "refine_contact": contact,
                              "contact_applied": default if contact is None else contact, **res})
     return {
