@@ -69,13 +69,59 @@ def check_answer(url: str, body: bytes, timeout: float = 30.0) -> dict[str, Any]
     return r.json()
 
 
-def load_levels(url: str, bodies: dict[str, Path], concurrency: tuple[int, ...], load: LoadSettings
-                ) -> list[dict[str, Any]]:
+BATCH_PREFIX = "complementme_batch"  # the service's micro-batching histograms in /metrics
+
+
+def batch_counters(metrics_url: str) -> dict[str, float]:
+    """Sums and counts of the service's ``complementme_batch*`` histograms ({} without /metrics)."""
+    try:
+        r = httpx.get(metrics_url, timeout=10.0)
+    except httpx.HTTPError:
+        return {}
+    return parse_batch_counters(r.text) if r.status_code == 200 else {}
+
+
+def parse_batch_counters(text: str) -> dict[str, float]:
+    """``_sum`` and ``_count`` samples of ``complementme_batch*`` histograms in Prometheus text, summed
+    over labels."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out: dict[str, float] = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name.startswith(BATCH_PREFIX) and s.name.endswith(("_sum", "_count")):
+                out[s.name] = out.get(s.name, 0.0) + float(s.value)
+    return out
+
+
+def batch_means(deltas: dict[str, float]) -> dict[str, float]:
+    """Mean of each histogram over one run, from the differences of its ``_sum`` and ``_count``.
+
+    ``complementme_batch_size`` gives queries per engine call; queue wait is reported in ms.
+    """
+    out: dict[str, float] = {}
+    for name, total in deltas.items():
+        if not name.endswith("_sum"):
+            continue
+        base = name[: -len("_sum")]
+        count = deltas.get(base + "_count", 0.0)
+        if count > 0:
+            mean = total / count
+            if base.endswith("_seconds"):
+                base, mean = base[: -len("_seconds")] + "_ms", 1000 * mean
+            out[base.removeprefix("complementme_")] = mean
+    return out
+
+
+def load_levels(url: str, bodies: dict[str, Path], concurrency: tuple[int, ...], load: LoadSettings,
+                metrics_url: str | None = None) -> list[dict[str, Any]]:
     """wrk at every (body kind, concurrency) pair against ``url``.
 
     After every wrk run one more request is sent and awaited: it is answered once the requests
-    wrk abandoned have left the server's queue (the gate is first come, first served).
+    wrk abandoned have left the server's queue (the gate is first come, first served). With
+    ``metrics_url``, the mean micro-batch size and queue wait of each measured run are recorded.
     """
+    probe = (lambda: batch_counters(metrics_url)) if metrics_url else None
     rows = []
     for kind, path in bodies.items():
         body = path.read_bytes()
@@ -86,7 +132,10 @@ def load_levels(url: str, bodies: dict[str, Path], concurrency: tuple[int, ...],
         for c in concurrency:
             log.info("http: %s body, concurrency %d, %.0f s (+%.0f s warm-up)", kind, c, load.duration,
                      load.warmup)
-            rows.append({"body": kind, **run_wrk(url, path, c, load, drain=drain)})
+            row = run_wrk(url, path, c, load, drain=drain, probe=probe)
+            if "counter_deltas" in row:
+                row["server_means"] = batch_means(row.pop("counter_deltas"))
+            rows.append({"body": kind, **row})
     return rows
 
 
@@ -95,7 +144,8 @@ def run_http_bench(query: BenchQuery, cfg: HttpBenchConfig, cache: Path) -> dict
     bodies = write_bodies(query, cache, cfg.bodies)
     with our_service(cache, dict(cfg.server_env)) as server:
         answer = check_answer(server.url + "/suggest", bodies[cfg.bodies[0]].read_bytes())
-        levels = load_levels(server.url + "/suggest", bodies, cfg.concurrency, cfg.load)
+        levels = load_levels(server.url + "/suggest", bodies, cfg.concurrency, cfg.load,
+                             metrics_url=server.url + "/metrics")
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},
         "top_part": answer["suggestions"][0]["part_id"] if answer["suggestions"] else None,

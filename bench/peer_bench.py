@@ -89,7 +89,8 @@ def run_peer_bench(query: BenchQuery, cfg: PeerBenchConfig, cache: Path) -> dict
         peer_levels = load_levels(peer.url + "/suggest", bodies, cfg.concurrency, cfg.load)
     with our_service(cache, dict(cfg.server_env)) as ours:
         our_answer = check_answer(ours.url + "/suggest", body, timeout=cfg.load.timeout)
-        our_levels = load_levels(ours.url + "/suggest", bodies, cfg.concurrency, cfg.load)
+        our_levels = load_levels(ours.url + "/suggest", bodies, cfg.concurrency, cfg.load,
+                                 metrics_url=ours.url + "/metrics")
     peer_top = [s["part_id"] for s in peer_answer["suggestions"]]
     our_top = [s["part_id"] for s in our_answer["suggestions"]]
     return {

@@ -32,6 +32,12 @@ def _errors(row: dict[str, Any]) -> str:
     return f"{row['errors']}" + (f" ({', '.join(kinds)})" if kinds else "")
 
 
+def _mean(row: dict[str, Any], key: str, digits: int) -> str:
+    """A server-side mean of one load level (micro-batching metrics), "-" when not recorded."""
+    value = (row.get("server_means") or {}).get(key)
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
 def _met(ok: bool | None) -> str:
     return "not measured" if ok is None else ("met" if ok else "**missed**")
 
@@ -188,13 +194,15 @@ def _http(data: dict[str, Any]) -> list[str]:
         "all answers (with errors, the fast 503s are among them). Errors: non-2xx answers (by status), "
         "timeouts, socket errors.",
         "",
-        "| Body | Concurrency | Answers | req/s (2xx) | p50 ms | p90 ms | p99 ms | Errors |",
-        "|---|---|---|---|---|---|---|---|",
+        "| Body | Concurrency | Answers | req/s (2xx) | p50 ms | p90 ms | p99 ms | Errors "
+        "| Mean batch | Mean queue wait ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["levels"]:
         lines.append(f"| {row['body']} | {row['connections']} | {row['requests']} | "
                      f"{row['throughput_rps']:.0f} | {_ms(row['p50_ms'])} | {_ms(row['p90_ms'])} | "
-                     f"{_ms(row['p99_ms'])} | {_errors(row)} |")
+                     f"{_ms(row['p99_ms'])} | {_errors(row)} | {_mean(row, 'batch_size', 1)} | "
+                     f"{_mean(row, 'batch_queue_wait_ms', 2)} |")
     return lines
 
 

@@ -88,21 +88,28 @@ def parse_wrk_output(stdout: str) -> dict[str, Any]:
 
 
 def run_wrk(url: str, body_file: Path, connections: int, load: LoadSettings,
-            drain: Callable[[], object] | None = None) -> dict[str, Any]:
+            drain: Callable[[], object] | None = None,
+            probe: Callable[[], dict[str, float]] | None = None) -> dict[str, Any]:
     """One measured load level (after its warm-up); returns ``parse_wrk_output``'s summary.
 
     ``drain`` runs after each wrk run: wrk closes its connections with requests in flight, which
     the server still finishes (and which still hold its inference slots), so the next run would
-    otherwise start against a busy server and see its queue full.
+    otherwise start against a busy server and see its queue full. ``probe`` reads server
+    counters just before and just after the measured run; their differences are returned as
+    ``counter_deltas``.
     """
     if load.warmup > 0:
         _run(wrk_command(url, body_file, connections, load.warmup, load.threads, load.timeout), load)
         if drain is not None:
             drain()
+    before = probe() if probe is not None else {}
     out = _run(wrk_command(url, body_file, connections, load.duration, load.threads, load.timeout), load)
+    after = probe() if probe is not None else {}
     if drain is not None:
         drain()
     res = parse_wrk_output(out)
+    if probe is not None:
+        res["counter_deltas"] = {k: v - before.get(k, 0.0) for k, v in after.items()}
     log.info("wrk c=%d: %.0f req/s, p50 %s ms, p99 %s ms, %d errors %s", connections, res["throughput_rps"],
              res["p50_ms"], res["p99_ms"], res["errors"], res["statuses"])
     return {"connections": connections, **res}

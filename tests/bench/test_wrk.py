@@ -12,6 +12,7 @@ from typing import ClassVar
 
 import pytest
 
+from bench.http_bench import batch_means, parse_batch_counters
 from bench.server import free_port, running_server
 from bench.wrk import LoadSettings, parse_wrk_output, run_wrk
 
@@ -99,3 +100,34 @@ def test_running_server_waits_for_ready_and_reports_early_exit(tmp_path: Path) -
     with pytest.raises(RuntimeError, match=r"(?s)exited with status 3.*boom"), \
             running_server(failing, port=free_port(), ready_path="/", log_path=tmp_path / "log2"):
         pass
+
+
+METRICS = """# HELP complementme_batch_size Queries per engine call.
+# TYPE complementme_batch_size histogram
+complementme_batch_size_bucket{le="1.0"} 3.0
+complementme_batch_size_bucket{le="+Inf"} 5.0
+complementme_batch_size_count 5.0
+complementme_batch_size_sum 20.0
+# HELP complementme_batch_queue_wait_seconds Seconds in the queue.
+# TYPE complementme_batch_queue_wait_seconds histogram
+complementme_batch_queue_wait_seconds_count{route="/suggest"} 10.0
+complementme_batch_queue_wait_seconds_sum{route="/suggest"} 0.05
+complementme_batch_queue_wait_seconds_count{route="/suggest/batch"} 10.0
+complementme_batch_queue_wait_seconds_sum{route="/suggest/batch"} 0.15
+# HELP complementme_http_requests_total Requests.
+# TYPE complementme_http_requests_total counter
+complementme_http_requests_total{status="200"} 7.0
+"""
+
+
+def test_batch_means_from_metrics_differences() -> None:
+    before = parse_batch_counters(METRICS)
+    assert before == {"complementme_batch_size_count": 5.0, "complementme_batch_size_sum": 20.0,
+                      "complementme_batch_queue_wait_seconds_count": 20.0,
+                      "complementme_batch_queue_wait_seconds_sum": pytest.approx(0.2)}
+    after = {**before, "complementme_batch_size_count": 9.0, "complementme_batch_size_sum": 60.0,
+             "complementme_batch_queue_wait_seconds_count": 30.0,
+             "complementme_batch_queue_wait_seconds_sum": 0.3}
+    means = batch_means({k: v - before[k] for k, v in after.items()})
+    assert means == {"batch_size": 10.0, "batch_queue_wait_ms": pytest.approx(10.0)}
+    assert batch_means({"complementme_batch_size_sum": 0.0, "complementme_batch_size_count": 0.0}) == {}
