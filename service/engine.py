@@ -405,12 +405,29 @@ class SuggestionEngine:
         faiss.omp_set_num_threads(self.settings.faiss_threads)
         if allowed is None:
             return self.index.search(x, nn)[1]
+        if not isinstance(self.index, faiss.IndexFlat):
+            # An approximate index probes the lists (or graph nodes) nearest the query, and few of
+            # them may hold parts that pass a narrow filter: search those parts exactly instead.
+            rows = np.flatnonzero(allowed)
+            if len(rows) <= self.settings.exact_search_max_filtered:
+                return self._exact_subset(x, nn, rows)
         packed = np.packbits(allowed, bitorder="little")
         sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
         params = _search_parameters(self.index, sel)
         if params is None:  # an index type without selector support: filter afterwards
             return self.index.search(x, min(len(self.catalog), 4 * nn))[1]
         return self.index.search(x, nn, params=params)[1]
+
+    def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
+        """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""
+        out = np.full((len(x), nn), -1, dtype=np.int64)
+        if len(rows) == 0:
+            return out
+        k = min(nn, len(rows))
+        sub = np.ascontiguousarray(self.catalog.embeddings[rows], dtype=np.float32)
+        _, found = faiss.knn(x, sub, k, metric=self.index.metric_type)
+        out[:, :k] = np.where(found >= 0, rows[np.maximum(found, 0)], -1)
+        return out
 
     def _rank(self, q: _Query, cand: np.ndarray, weights: np.ndarray, means: np.ndarray,
               sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:

@@ -28,6 +28,7 @@ from service.artifacts import (
     read_manifest,
 )
 from service.catalog import Catalog, load_catalog
+from service.indexing import configure_search, params_from_entry
 from service.models import Networks
 
 log = logging.getLogger(__name__)
@@ -108,8 +109,14 @@ def _static_dim(sess: ort.InferenceSession, output: str, axis: int) -> int | Non
     return None
 
 
-def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: int) -> faiss.Index:
-    """Read the FAISS index and check it holds ``count`` vectors of size ``dim``."""
+def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: int,
+               params: dict[str, Any] | None = None) -> faiss.Index:
+    """Read the FAISS index, check it holds ``count`` vectors of size ``dim``, and configure it.
+
+    ``params`` is the manifest's ``"index"`` entry: its type must be the file's, and its search
+    parameters (``nprobe``, ``efSearch``; ``service.indexing``) are applied. Older manifests
+    (a flat index, no search parameters) load as before.
+    """
     if not path.is_file():
         raise ArtifactError(f"artifact file missing: {path}")
     try:
@@ -123,6 +130,15 @@ def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: i
                             f"part_count={count}")
     if not index.is_trained:
         raise ArtifactError(f"{path}: index is not trained")
+    if params is not None:
+        entry = params_from_entry(params)
+        if entry.get("type") not in (None, type(index).__name__):
+            raise ArtifactError(f"{path}: index is a {type(index).__name__}, but manifest.json says "
+                                f"{entry['type']}")
+        try:
+            configure_search(index, entry)
+        except ValueError as exc:
+            raise ArtifactError(f"{path}: {exc} (manifest.json index entry)") from exc
     faiss.omp_set_num_threads(threads)
     faiss.cvar.distance_compute_blas_threshold = blas_threshold
     return index
@@ -199,7 +215,9 @@ def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 
         if dim is not None and dim != expected:
             raise ArtifactError(f"{folder / GRAPH_FILES[graph]}: output {output!r} has size {dim} on axis "
                                 f"{axis}, but manifest.json says {expected}")
-    index = load_index(folder / INDEX_FILE, D, P, faiss_threads, faiss_blas_threshold)
+    entry = manifest.get("index")
+    index = load_index(folder / INDEX_FILE, D, P, faiss_threads, faiss_blas_threshold,
+                       entry if isinstance(entry, dict) else None)
     catalog = load_catalog(folder / CATALOG_JSON, folder / CATALOG_ARRAYS, P, D)
     nets = Networks(**sessions, max_points_per_run=max_points_per_run)
     _check_run(folder, nets, catalog, manifest)

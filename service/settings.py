@@ -67,6 +67,10 @@ class Settings(BaseSettings):
     neighbours_per_mode: int = Field(default=64, ge=1, le=4096, description=(
         "Catalog parts FAISS returns for each mixture mean (at least the request's k); their "
         "union is re-scored by the exact mixture log-likelihood."))
+    exact_search_max_filtered: int = Field(default=20_000, ge=0, description=(
+        "With an approximate index (IVF or HNSW, chosen for large catalogs), a filtered query whose "
+        "filter (categories, styles, exclusions) leaves at most this many parts searches them "
+        "exactly instead: the index's probes may hold few of them."))
     seed: int = Field(default=0, description=(
         "Seed of the deterministic resampling of inputs to the model's point count and of "
         "mesh surface sampling."))

@@ -40,6 +40,7 @@ from service.artifacts import (
     MANIFEST,
     write_manifest,
 )
+from service.indexing import IndexKind, build_index, index_entry
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained
 from training.config import config_to_dict
@@ -74,6 +75,13 @@ class ExportOptions:
     # error (about 5e-4 relative) is far below what placement or display can show.
     feature_dtype: str = "float16"
     vertex_dtype: str = "float16"
+    # The FAISS index: exact (flat) for catalogs of at most index_flat_max parts; above, "auto"
+    # builds IVF-Flat ("ivf" or "hnsw" force a kind) whose search breadth is raised until
+    # recall@index_recall_k against exact search reaches index_target_recall (docs/performance.md).
+    index_flat_max: int = 50_000
+    index_kind: IndexKind = "auto"
+    index_target_recall: float = 0.95
+    index_recall_k: int = 64
     opset: int = 17
     # Parts per onnxruntime call when encoding the catalog.
     chunk: int = 256
@@ -251,8 +259,11 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "embeddings": embeddings, "part_features": part_features.astype(opts.feature_dtype),
         "points": preview, **meshes})
 
-    index = faiss.IndexFlatL2(embeddings.shape[1])
-    index.add(embeddings)
+    # Exact (flat) up to index_flat_max parts; above, IVF tuned to the recall target on jittered
+    # catalog embeddings, its parameters recorded in the manifest (service.indexing).
+    index, index_params = build_index(embeddings, flat_max=opts.index_flat_max, kind=opts.index_kind,
+                                      target_recall=opts.index_target_recall, recall_k=opts.index_recall_k,
+                                      seed=opts.seed)
     faiss.write_index(index, str(folder / INDEX_FILE))
 
     state = trained.state
@@ -267,7 +278,7 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "query_feature_dim": trained.placement.query_dim,
         "part_feature_dim": trained.placement.part_dim,
         "catalog_points": opts.catalog_points,
-        "index": {"type": "IndexFlatL2", "params": {"metric": "l2", "dim": int(embeddings.shape[1])}},
+        "index": index_entry(index_params),
         "model_config": config_to_dict(cfg.model),
         "dataset": {"seed": ds.info.get("seed"), "hash": ds.info.get("hash") or ds.content_hash(),
                     "path": str(data_dir), "shapes": ds.n_shapes},

@@ -189,7 +189,8 @@ def test_frames_round_trip_generally(client: TestClient, query: AssemblyQuery, c
 @pytest.mark.parametrize("refine", [False, True])
 def test_place_matches_suggest(client: TestClient, query: AssemblyQuery, refine: bool) -> None:
     """/place and /suggest agree, with contact refinement on in both or off in both."""
-    answer = suggest(client, points=query.points.tolist(), k=5, **({"refine_contact": True} if refine else {}))
+    flag = {"refine_contact": True} if refine else {}
+    answer = suggest(client, points=query.points.tolist(), k=5, **flag)
     ids = ranking(answer)
     response = client.post("/place", json={"points_base64": points_to_base64(query.points), "part_ids": ids,
                                            **({} if refine else {"refine_contact": False})})

@@ -9,7 +9,10 @@ from typing import Literal
 import faiss
 import numpy as np
 import pytest
+from service_testkit import make_settings
 
+from service.artifacts import ArtifactError, read_manifest, write_manifest
+from service.engine import SuggestionEngine, SuggestOptions
 from service.indexing import (
     build_index,
     configure_search,
@@ -19,6 +22,7 @@ from service.indexing import (
     params_from_entry,
     recall_at_k,
 )
+from service.loading import load_artifacts
 
 
 def _clustered(n: int, d: int = 16, seed: int = 0) -> np.ndarray:
@@ -104,3 +108,52 @@ def test_bad_embeddings_are_refused() -> None:
 def test_recall_counts_missing_labels_as_misses() -> None:
     exact = np.array([[0, 1, 2, 3]])
     assert recall_at_k(np.array([[3, 2, -1, -1]]), exact) == 0.5
+
+
+# ------------------------------------------------------------------ loading an exported index
+
+
+def _copy_with_index(src: Path, dst: Path, index: faiss.Index, entry: dict[str, object]) -> Path:
+    """The artifact folder with another index file and manifest ``"index"`` entry."""
+    dst.mkdir()
+    for f in src.iterdir():
+        if f.name not in ("index.faiss", "manifest.json"):
+            (dst / f.name).symlink_to(f.resolve())
+    faiss.write_index(index, str(dst / "index.faiss"))
+    manifest = read_manifest(src, verify_checksums=False)
+    manifest = {k: v for k, v in manifest.items() if k not in ("files", "format_version")}
+    write_manifest(dst, {**manifest, "index": entry})
+    return dst
+
+
+def test_an_ivf_index_loads_with_its_recorded_search_breadth(artifacts: Path, tmp_path: Path) -> None:
+    emb = np.load(artifacts / "catalog.npz")["embeddings"]
+    index, params = build_index(emb, flat_max=1000, recall_k=64, tuning_queries=300)
+    assert params["type"] == "IndexIVFFlat" and params["recall"] >= 0.95
+    folder = _copy_with_index(artifacts, tmp_path / "ivf", index, index_entry(params))
+    loaded = load_artifacts(folder)
+    assert faiss.extract_index_ivf(loaded.index).nprobe == params["nprobe"]
+    settings = make_settings(folder, verify_checksums=False)
+    engine = SuggestionEngine(loaded, settings)
+    exact = SuggestionEngine(load_artifacts(artifacts, verify_checksums=False), settings)
+    cat = engine.catalog
+    parts = np.flatnonzero(cat.shape_of == cat.shape_of[0])
+    points = np.concatenate([cat.part_points(int(i)) + cat.translations[i] for i in parts])
+    a = engine.suggest(points, SuggestOptions(k=10))
+    b = exact.suggest(points, SuggestOptions(k=10))
+    shared = {s.part_id for s in a.suggestions} & {s.part_id for s in b.suggestions}
+    assert len(shared) >= 8, "an approximate index at recall 0.95 keeps most of the exact top 10"
+    # A filter still returns only allowed parts (exact search over the few that pass it).
+    category = cat.categories[-1]
+    filtered = engine.suggest(points, SuggestOptions(k=10, categories=(category,)))
+    assert filtered.suggestions and all(s.category == category for s in filtered.suggestions)
+
+
+def test_a_manifest_naming_another_index_type_is_refused(artifacts: Path, tmp_path: Path) -> None:
+    emb = np.load(artifacts / "catalog.npz")["embeddings"]
+    index, _ = build_index(emb, kind="flat")
+    folder = _copy_with_index(artifacts, tmp_path / "wrong", index,
+                              {"type": "IndexIVFFlat", "params": {"nlist": 64, "nprobe": 8}})
+    with pytest.raises(ArtifactError, match=r"IndexFlatL2.*IndexIVFFlat") as info:
+        load_artifacts(folder)
+    assert str(folder / "index.faiss") in str(info.value)

@@ -161,6 +161,19 @@ def test_export_refuses_to_exceed_the_size_limit(tiny_run: Path, tmp_path: Path)
     assert not list(tmp_path.glob(".exported.export-*")), "temporary folder left behind"
 
 
+def test_a_catalog_past_index_flat_max_gets_a_tuned_index(tiny_run: Path, tmp_path: Path):
+    """Above the threshold the export builds IVF, records its search breadth, and the service uses it."""
+    from service.loading import load_artifacts
+
+    out = tmp_path / "exported"
+    manifest = export_run(tiny_run, out, options=ExportOptions(index_flat_max=1, index_recall_k=8))
+    entry = manifest["index"]
+    assert entry["type"] == "IndexIVFFlat"
+    assert entry["params"]["recall_k"] == 8 and entry["params"]["nprobe"] >= 1
+    loaded = load_artifacts(out)
+    assert faiss.extract_index_ivf(loaded.index).nprobe == entry["params"]["nprobe"]
+
+
 def test_duplicates_are_same_geometry_only(toy_dataset_factory):
     ds = toy_dataset_factory(3, seed=4, cached_points=1024, copies_of_first=2)
     n = ds.n_components
