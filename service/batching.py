@@ -18,8 +18,9 @@ engine. Requests ``submit`` their queries from the event loop and await the answ
 * each query's outcome is its own: the engine returns a ``ServiceError`` per bad query, and
   only that query's request fails with it (an unexpected exception fails the jobs of its batch);
 * a job whose request gave up (cancelled: client gone, or cut at twice its deadline) is
-  skipped; ``close`` refuses new jobs (503 ``shutting_down``), runs those already queued and
-  joins the workers.
+  skipped, and so is one still queued at its deadline (``DeadlineError``, 504);
+* ``close`` refuses new jobs (503 ``shutting_down``), runs those already queued and joins the
+  workers.
 
 Metrics: queries per engine call and seconds each job waited in the queue.
 """
@@ -36,7 +37,7 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
-from service.errors import NotReadyError, ServiceError
+from service.errors import DeadlineError, NotReadyError, ServiceError
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +70,7 @@ class _Job(Generic[Q, R]):
     queries: list[Q]
     future: asyncio.Future[list[R | ServiceError]]
     loop: asyncio.AbstractEventLoop
+    deadline: float | None = None   # time.monotonic() past which nobody wants the answer
     queued: float = field(default_factory=time.monotonic)
 
 
@@ -127,17 +129,22 @@ class MicroBatcher(Generic[Q, R]):
             self._arriving -= 1
             self._cond.notify_all()
 
-    async def submit(self, query: Q, ticket: Ticket | None = None) -> R:
+    async def submit(self, query: Q, ticket: Ticket | None = None, deadline: float | None = None) -> R:
         """Run one query in the next batch; its ``ServiceError`` is raised here."""
-        answer = (await self.submit_many([query], ticket))[0]
+        answer = (await self.submit_many([query], ticket, deadline))[0]
         if isinstance(answer, ServiceError):
             raise answer
         return answer
 
-    async def submit_many(self, queries: list[Q], ticket: Ticket | None = None) -> list[R | ServiceError]:
-        """Run several queries (one request's) in the same batch; one answer or error each."""
+    async def submit_many(self, queries: list[Q], ticket: Ticket | None = None,
+                          deadline: float | None = None) -> list[R | ServiceError]:
+        """Run several queries (one request's) in the same batch; one answer or error each.
+
+        A job still queued at its ``deadline`` (``time.monotonic()``) is not run: it fails with
+        ``DeadlineError`` (the overload middleware has answered 504 by then).
+        """
         loop = asyncio.get_running_loop()
-        job: _Job[Q, R] = _Job(list(queries), loop.create_future(), loop)
+        job: _Job[Q, R] = _Job(list(queries), loop.create_future(), loop, deadline)
         with self._cond:
             self._retire(ticket)
             if self._closing:
@@ -216,7 +223,13 @@ class MicroBatcher(Generic[Q, R]):
 
     def _run(self, batch: list[_Job[Q, R]]) -> None:
         start = time.monotonic()
-        live = [j for j in batch if not j.future.cancelled()]
+        live = []
+        for job in batch:
+            if job.deadline is not None and start > job.deadline:
+                _resolve(job, DeadlineError("deadline_exceeded", "the request's deadline passed while "
+                                            "it waited for the engine"))
+            elif not job.future.cancelled():
+                live.append(job)
         if not live:
             return
         for job in live:

@@ -77,3 +77,9 @@ class StorageFullError(ServiceError):
 
     status = 507
 
+
+
+class DeadlineError(ServiceError):
+    """The request's deadline passed before its work started (it waited in a queue too long)."""
+
+    status = 504

@@ -120,6 +120,8 @@ class OverloadMiddleware:
             await self.app(scope, receive, send)
             return
         deadline = time.monotonic() + self.timeout
+        # Queues further in (the micro-batcher) drop work whose answer would be dropped anyway.
+        scope.setdefault("state", {})["deadline"] = deadline
         gated = scope["method"] in GATED_METHODS
         gate = self._gate_of(scope)
         if gated and not await self._enter(gate, deadline, send):

@@ -59,3 +59,8 @@ class BatchedRoute(APIRoute):
 def batch_ticket(request: Request) -> Ticket | None:
     """The announcement ``BatchedRoute`` made for this request, if any."""
     return getattr(request.state, "batch_ticket", None)
+
+
+def request_deadline(request: Request) -> float | None:
+    """The request's deadline (``time.monotonic()``) set by the overload middleware, if any."""
+    return getattr(request.state, "deadline", None)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import re
 import threading
+import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -22,7 +23,7 @@ from service_testkit import AssemblyQuery, assembly_query, make_settings, multi_
 from service.api import create_app
 from service.batching import MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
-from service.errors import InputError, NotReadyError, ServiceError
+from service.errors import DeadlineError, InputError, NotReadyError, ServiceError
 from service.inputs import points_to_base64
 
 Query = tuple[np.ndarray, SuggestOptions]
@@ -201,6 +202,32 @@ def test_a_cancelled_request_is_skipped(engine: SuggestionEngine, query: Assembl
     finally:
         batcher.close()
     assert run.sizes == [1, 1] and len(kept.suggestions) == 4
+
+
+def test_a_job_past_its_deadline_is_not_run(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    run = Gated(engine)
+    batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=32, max_wait=0.0)
+
+    async def main() -> list[Any]:
+        run.hold.clear()
+        first = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=2))))
+        await asyncio.to_thread(run.entered.wait, 60)
+        past = time.monotonic() - 1.0  # already expired when the worker gets to it
+        late = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=3)), deadline=past))
+        fine = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=4)),
+                                                    deadline=time.monotonic() + 3600))
+        await asyncio.sleep(0)
+        run.hold.set()
+        return list(await asyncio.gather(first, late, fine, return_exceptions=True))
+
+    try:
+        first, late, fine = asyncio.run(main())
+        assert isinstance(first, SuggestResult)
+    finally:
+        batcher.close()
+    assert run.sizes == [1, 1], "the expired job never reached the engine"
+    assert isinstance(late, DeadlineError) and late.status == 504
+    assert isinstance(fine, SuggestResult) and len(fine.suggestions) == 4
 
 
 def test_close_answers_what_is_queued_and_refuses_the_rest(engine: SuggestionEngine,

@@ -16,7 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from service.api.batched_route import BatchedRoute, batch_ticket
+from service.api.batched_route import BatchedRoute, batch_ticket, request_deadline
 from service.api.deps import BatcherDep, EngineDep, MetricsDep, SettingsDep
 from service.api.errors import service_error_body, validation_error
 from service.api.render import render_place, render_suggest
@@ -61,7 +61,8 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
                        settings: SettingsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
-    result = await batcher.submit((points, body.to_options()), batch_ticket(request))
+    result = await batcher.submit((points, body.to_options()), batch_ticket(request),
+                                  request_deadline(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
@@ -93,7 +94,8 @@ async def post_suggest_mesh(
         points_from_mesh, data, fmt, n=engine.artifacts.n_points, seed=settings.seed,
         name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
         max_faces=settings.max_mesh_faces)
-    result = await batcher.submit((points, opts.to_options()), batch_ticket(request))
+    result = await batcher.submit((points, opts.to_options()), batch_ticket(request),
+                                  request_deadline(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
@@ -108,7 +110,8 @@ async def post_suggest_batch(body: BatchRequest, request: Request, engine: Engin
         raise InputError("too_many_items", f"{len(body.items)} items given, at most "
                          f"{settings.max_batch_items} are accepted")
     results, valid, queries = await run_in_threadpool(_decode_items, body.items, settings.max_points)
-    answers = await batcher.submit_many(queries, batch_ticket(request)) if queries else []
+    answers = (await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
+               if queries else [])
     for i, answer in zip(valid, answers, strict=True):
         if isinstance(answer, ServiceError):
             results[i] = {"index": i, "ok": False, "error": service_error_body(answer)["error"]}
