@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 import anyio
+import numpy as np
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
@@ -26,7 +27,8 @@ from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
 from service.artifacts import ArtifactError
 from service.batching import BatchStats, MicroBatcher
-from service.engine import SuggestionEngine
+from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.errors import ServiceError
 from service.loading import load_artifacts
 from service.metrics import Metrics
 from service.overload import OverloadMiddleware
@@ -65,8 +67,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.engine = engine
     if settings.warmup:
         engine.warmup()
+    def run_batch(items: list[tuple[np.ndarray, SuggestOptions]]) -> list[SuggestResult | ServiceError]:
+        # The served engine, not the one loaded here: catalog writes publish new snapshots.
+        return app.state.engine.suggest_batch(items)
+
     batcher = app.state.batcher = MicroBatcher(
-        engine.suggest_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
+        run_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
         workers=settings.batch_workers, name="suggest-batcher",
         stats=BatchStats(wait=metrics.queue_wait.observe, ran=metrics.observe_batch))
     metrics.queued.set_function(lambda: batcher.queued)
