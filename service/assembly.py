@@ -381,7 +381,7 @@ class Assembler:
             result = self.engine.suggest(self._query(parts, self.settings.seed + len(nodes)), SuggestOptions(
                 k=min(self.settings.assemble_candidates, self.settings.max_k), categories=cats,
                 styles=options.styles, exclude_shapes=options.exclude_shapes,
-                preferences=prefs, refine_contact=False))
+                preferences=prefs, refine_contact=False, complement_check=False))  # own checks, step 3
             suggest_time += time.perf_counter() - t
             eligible, reason = self._eligible(result, parts)
             if not eligible:

@@ -8,9 +8,12 @@ One request (or a batch of them) goes through these steps, each one batched:
 3. FAISS: the nearest catalog parts of every mean, all K means (of all queries sharing the same
    filter) in one search;
 4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
-   parts collapsed (catalog ``duplicate_of``), the top k kept;
+   parts collapsed (catalog ``duplicate_of``), the top ones kept (k, or ``complement_candidates``
+   when the complement check runs);
 5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
-   features from catalog.npz;
+   features from catalog.npz; then the complement check (``service.complement``): parts that h
+   places mostly onto the query's own surface, i.e. parts the query already has, move behind
+   the others, and the top k stay;
 6. contact refinement (``service.contact``; for suggestions only when asked, or when the setting
    ``suggest_refine_contact`` turns it on by default: it costs about ten times the rest of the
    request): each placed part nudged by at most ``contact_max_offset`` so it touches the
@@ -33,6 +36,7 @@ from typing import Any
 import faiss
 import numpy as np
 
+from service.complement import covered_share, demote_covered
 from service.contact import ContactParams, PartContacts
 from service.errors import InputError, ServiceError
 from service.frames import Frame
@@ -58,6 +62,8 @@ class SuggestOptions:
     frame: Frame = field(default_factory=Frame)
     refine_contact: bool | None = None       # nudge placements into contact (service.contact);
                                              # None: the setting suggest_refine_contact
+    complement_check: bool | None = None     # demote parts the query already has (service.complement);
+                                             # None: the setting suggest_complement_check
     styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
     preferences: Preferences = field(default_factory=Preferences)  # mode weights, exclusions, gallery
 
@@ -232,6 +238,16 @@ class SuggestionEngine:
                              f"styles: {', '.join(sorted(known))}")
         return np.isin(per_part, list(styles))
 
+    def _checks_complement(self, options: SuggestOptions) -> bool:
+        """Whether a suggestion query's candidates go through the complement check."""
+        if options.complement_check is None:
+            return self.settings.suggest_complement_check
+        return options.complement_check
+
+    def _shortlist(self, q: _Query) -> int:
+        """Ranked candidates kept for placement: k, or more when the complement check will reorder them."""
+        return max(q.k, self.settings.complement_candidates) if self._checks_complement(q.options) else q.k
+
     def _refines(self, options: SuggestOptions) -> bool:
         """Whether a suggestion query's placements get contact refinement."""
         if options.refine_contact is None:
@@ -293,20 +309,25 @@ class SuggestionEngine:
                         if len(parts) else np.zeros((0, 3), np.float32))
         timings["h_head"] = time.perf_counter() - t
         t = time.perf_counter()
-        offsets = np.zeros((len(parts), 3))
+        placed = []
         for b, q in enumerate(queries):
-            sel = rows == b
-            if self._refines(q.options) and sel.any():
-                offsets[sel] = self.contact_offsets(q.full, parts[sel], translations[sel])
+            idx, scores, modes, _ = ranked[b]
+            tr = translations[rows == b]
+            order = self._complement_order(q, idx, tr)
+            placed.append((idx[order], scores[order], modes[order], tr[order]))
+        timings["complement"] = time.perf_counter() - t
+        t = time.perf_counter()
+        offsets = [np.zeros((len(p[0]), 3)) for p in placed]
+        for b, q in enumerate(queries):
+            if self._refines(q.options) and len(placed[b][0]):
+                offsets[b] = self.contact_offsets(q.full, placed[b][0], placed[b][3])
         timings["contact"] = time.perf_counter() - t
 
         out: dict[int, SuggestResult | ServiceError] = dict(errors)
-        start = 0
         for b, q in enumerate(queries):
-            idx, scores, modes, n_cand = ranked[b]
-            tr = translations[start:start + len(idx)]
-            off = offsets[start:start + len(idx)]
-            start += len(idx)
+            idx, scores, modes, tr = placed[b]
+            off = offsets[b]
+            n_cand = ranked[b][3]
             out[q.item] = SuggestResult(
                 suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame),
                 mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
@@ -459,8 +480,17 @@ class SuggestionEngine:
             keep = np.arange(len(cand))
         if prefs.diversity:
             keep = keep[diverse_order(mode[keep], w, self.settings.diversity_min_mode_weight)]
-        keep = keep[:q.k]
+        keep = keep[:self._shortlist(q)]
         return cand[keep], ll[keep], mode[keep], n_scored
+
+    def _complement_order(self, q: _Query, idx: np.ndarray, translations: np.ndarray) -> np.ndarray:
+        """The top k of a query's ranked, placed candidates (indices), covered parts demoted."""
+        if not self._checks_complement(q.options) or len(idx) == 0:
+            return np.arange(min(len(idx), q.k))
+        s = self.settings
+        samples = self.catalog.points[idx, :s.complement_part_samples].astype(np.float32)
+        share = covered_share(q.points, samples, translations.astype(np.float32), s.complement_cover_distance)
+        return demote_covered(share, s.complement_cover_share)[:q.k]
 
     def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -89,6 +89,22 @@ class Settings(BaseSettings):
         "request does not send `refine_contact`. Off by default: for k = 10 it costs about ten "
         "times the rest of a suggestion (tens of milliseconds against a few); `/place` and "
         "`/assemble` refine unless told not to."))
+    suggest_complement_check: bool = Field(default=True, description=(
+        "Complement check of suggestions when a request does not send `complement_check`: the "
+        "best-ranked candidates are placed by the placement network and those lying mostly on the "
+        "query's own surface (parts the query already has) move behind the others."))
+    complement_candidates: int = Field(default=40, ge=1, le=1000, description=(
+        "Best-ranked candidates (after duplicate collapse) the complement check places and tests; "
+        "at least the request's k."))
+    complement_part_samples: int = Field(default=64, ge=1, le=4096, description=(
+        "Catalog point samples per candidate the complement check measures (at most the "
+        "catalog's points per part)."))
+    complement_cover_distance: float = Field(default=0.08, gt=0, le=1, description=(
+        "A placed candidate's sample is on the query's surface when a query point lies within "
+        "this distance (object radius units)."))
+    complement_cover_share: float = Field(default=0.5, gt=0, le=1, description=(
+        "Candidates with at least this share of their samples on the query's surface count as "
+        "already present and are demoted."))
     contact_search_points: int = Field(default=128, ge=8, le=4096, description=(
         "Samples per side (part, assembly) measured at each candidate offset of the refinement."))
     contact_part_samples: int = Field(default=512, ge=32, le=20_000, description=(

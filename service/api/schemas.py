@@ -79,6 +79,10 @@ class SuggestOptionsIn(_Strict):
         "query without sinking into it; the move is reported as contact_offset. Omitted: "
         "COMPLEMENTME_SUGGEST_REFINE_CONTACT (false unless configured; refinement costs about ten "
         "times the rest of a suggestion)."))
+    complement_check: Flag | None = Field(default=None, description=(
+        "Place the best-ranked candidates and move those lying mostly on the query's own surface "
+        "(parts it already has) behind the others. Omitted: COMPLEMENTME_SUGGEST_COMPLEMENT_CHECK "
+        "(true unless configured)."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
@@ -91,7 +95,8 @@ class SuggestOptionsIn(_Strict):
                               exclude_shapes=tuple(self.exclude_shapes),
                               collapse_duplicates=self.collapse_duplicates,
                               frame=self.frame.to_frame() if self.frame else Frame(),
-                              refine_contact=self.refine_contact, styles=tuple(styles),
+                              refine_contact=self.refine_contact, complement_check=self.complement_check,
+                              styles=tuple(styles),
                               preferences=self.preferences())
 
 

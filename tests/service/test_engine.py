@@ -17,8 +17,10 @@ from service.settings import Settings
 
 @pytest.fixture(scope="module")
 def exhaustive(engine: SuggestionEngine, settings: Settings) -> SuggestionEngine:
-    """The same artifacts with FAISS asked for every part: candidates = the whole catalog."""
-    update = {"neighbours_per_mode": len(engine.catalog), "max_k": len(engine.catalog)}
+    """The same artifacts with FAISS asked for every part: candidates = the whole catalog, ranked
+    by likelihood alone (no complement check, which brute force does not model)."""
+    update = {"neighbours_per_mode": len(engine.catalog), "max_k": len(engine.catalog),
+              "suggest_complement_check": False}
     return SuggestionEngine(engine.artifacts, settings.model_copy(update=update))
 
 

@@ -1,0 +1,44 @@
+"""The complement check: a suggestion should add something the partial assembly lacks.
+
+g ranks parts by how likely they are to complete the query, and it often ranks highest a part
+the query already has: a second back for a chair that has one, another hull for a boat without
+its mast (measured on the first shipped model: the top suggestion repeated a present part in
+over half of the held-out "all but one part" queries). Geometry tells those apart without any
+label: placed where h puts it, a part the query already has lies mostly on the query's own
+surface, while a missing part lies mostly where the query has no points.
+
+``covered_share`` measures that: the share of a placed part's samples within ``distance`` of
+the query's points. The engine places its best-ranked candidates with h (which it does anyway
+for the returned ones) and moves the covered ones, in their order, behind the others
+(``demote_covered``). Nothing is dropped: a request for k parts still gets k parts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def covered_share(query: np.ndarray, part_points: np.ndarray, translations: np.ndarray,
+                  distance: float) -> np.ndarray:
+    """Share of each placed part's samples lying within ``distance`` of the query's points.
+
+    Shapes:
+        query: (N, 3) canonical points; part_points: (M, S, 3) centred samples;
+        translations: (M, 3) -> (M,) float64 in [0, 1].
+    """
+    m, s = part_points.shape[:2]
+    if m == 0 or s == 0 or len(query) == 0:
+        return np.zeros(m)
+    placed = (part_points + translations[:, None, :]).reshape(-1, 3)
+    d, _ = cKDTree(query).query(placed, k=1, distance_upper_bound=distance)
+    return np.isfinite(d).reshape(m, s).mean(axis=1)
+
+
+def demote_covered(share: np.ndarray, max_share: float) -> np.ndarray:
+    """Order (indices into ``share``) that keeps rank order but puts covered parts last.
+
+    A part is covered when at least ``max_share`` of its samples lie on the query's surface.
+    """
+    covered = share >= max_share
+    return np.concatenate([np.flatnonzero(~covered), np.flatnonzero(covered)])

@@ -1,0 +1,101 @@
+"""The complement check: parts lying on the query's own surface go behind the parts it lacks."""
+
+from __future__ import annotations
+
+import numpy as np
+from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
+
+from service.complement import covered_share, demote_covered
+from service.engine import SuggestionEngine, SuggestOptions
+from service.frames import Frame
+
+
+def _square(n: int = 40, y: float = 0.0) -> np.ndarray:
+    """A grid of n x n points on a unit square at height y (spacing 1 / (n - 1))."""
+    u = np.linspace(-0.5, 0.5, n)
+    x, z = np.meshgrid(u, u)
+    return np.stack([x.ravel(), np.full(x.size, y), z.ravel()], axis=1).astype(np.float32)
+
+
+def test_covered_share_counts_samples_near_the_query() -> None:
+    query = _square()
+    part = _square(10)[None] * np.float32(0.5)  # a smaller square, centred
+    on = covered_share(query, part, np.zeros((1, 3), np.float32), distance=0.05)
+    away = covered_share(query, part, np.array([[0, 1.0, 0]], np.float32), distance=0.05)
+    # Shifted by half its width past the query's edge: the half still over the query is covered
+    # (distance 0.05 reaches beyond the edge by one row of the 10-point grid).
+    half = covered_share(query, part, np.array([[0.5, 0.01, 0]], np.float32), distance=0.05)
+    assert on[0] == 1.0 and away[0] == 0.0
+    assert 0.5 <= half[0] <= 0.6
+
+
+def test_covered_share_of_nothing() -> None:
+    assert covered_share(_square(), np.zeros((0, 8, 3), np.float32), np.zeros((0, 3)), 0.1).shape == (0,)
+    assert covered_share(np.zeros((0, 3)), np.zeros((2, 8, 3)), np.zeros((2, 3)), 0.1).tolist() == [0, 0]
+
+
+def test_demote_covered_keeps_order_within_each_side() -> None:
+    share = np.array([0.9, 0.1, 0.5, 0.0, 0.49, 1.0])
+    assert demote_covered(share, 0.5).tolist() == [1, 3, 4, 0, 2, 5]
+    assert demote_covered(share, 1.01).tolist() == list(range(6))
+
+
+def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> np.ndarray:
+    s, cat = engine.settings, engine.catalog
+    pts = engine.prepare(query.points, Frame())
+    idx = np.array([x.part_index for x in result.suggestions])
+    tr = np.stack([x.translation for x in result.suggestions]).astype(np.float32)  # canonical frame
+    return covered_share(pts, cat.points[idx, :s.complement_part_samples].astype(np.float32), tr,
+                         s.complement_cover_distance)
+
+
+def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    k = 20
+    checked = engine.suggest(query.points, SuggestOptions(k=k, complement_check=True))
+    plain = engine.suggest(query.points, SuggestOptions(k=engine.settings.complement_candidates,
+                                                        complement_check=False))
+    share = _canonical_share(engine, query, checked)
+    covered = share >= engine.settings.complement_cover_share
+    # No covered part ahead of an uncovered one, and the checked list is drawn from the plain
+    # top candidates in their likelihood order on each side.
+    assert not np.any(covered[:-1] & ~covered[1:])
+    plain_ids = [x.part_id for x in plain.suggestions]
+    checked_ids = [x.part_id for x in checked.suggestions]
+    assert len(checked_ids) == k and set(checked_ids) <= set(plain_ids)
+    for side in (covered, ~covered):
+        ranks = [plain_ids.index(p) for p, c in zip(checked_ids, side, strict=True) if c]
+        assert ranks == sorted(ranks)
+    # Scores are likelihoods: without the check they only go down.
+    scores = [x.score for x in plain.suggestions]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_complement_check_off_is_likelihood_order(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+    off = engine.suggest(query.points, SuggestOptions(k=10, complement_check=False))
+    longer = engine.suggest(query.points, SuggestOptions(k=30, complement_check=False))
+    assert [x.part_id for x in off.suggestions] == [x.part_id for x in longer.suggestions][:10]
+
+
+def test_api_option_reaches_the_engine(client, query: AssemblyQuery) -> None:
+    body = {"points": query.points.tolist(), "k": 10}
+    on = client.post("/suggest", json=body).json()["suggestions"]
+    off = client.post("/suggest", json={**body, "complement_check": False}).json()["suggestions"]
+    bad = client.post("/suggest", json={**body, "complement_check": "yes"})
+    assert bad.status_code == 422 and "error" in bad.json()
+    assert len(on) == len(off) == 10
+    scores = [s["score"] for s in off]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_check_changes_some_rankings(engine: SuggestionEngine) -> None:
+    """On real held-out-style queries the check is not a no-op: some query has a part it already has
+    among its plain top 10, and the check moves it back."""
+    cat = engine.catalog
+    changed = 0
+    for shape in multi_part_shapes(cat, 8):
+        last = [r["part_id"] for r in cat.records if r["shape_id"] == shape][-1]
+        q = assembly_query(cat, shape, last, engine.artifacts.n_points)
+        on = engine.suggest(q.points, SuggestOptions(k=10, complement_check=True))
+        off = engine.suggest(q.points, SuggestOptions(k=10, complement_check=False))
+        changed += [x.part_id for x in on.suggestions] != [x.part_id for x in off.suggestions]
+    assert changed > 0
