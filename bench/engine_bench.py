@@ -7,7 +7,8 @@ Each repetition runs the path of ``service/api/routes/suggest.py:post_suggest`` 
 - ``validate``: ``SuggestRequest`` validation, ``to_points`` (the list or base64 decode) and
   ``to_options``, as FastAPI's body validation and the handler do;
 - ``suggest``: ``SuggestionEngine.suggest``, whose own per-stage ``timings`` are recorded too
-  (prepare = canonical frame + resample, g, h_query, search, score, h_head, contact, total);
+  (prepare = canonical frame + resample, g, h_query, search, score, h_head, complement, contact,
+  total);
 - ``serialise``: ``render_suggest`` and orjson, as ``OrjsonResponse`` renders the answer.
 
 ``resample`` (canonical frame + resampling to the networks' N points) is also timed on its own,

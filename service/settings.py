@@ -93,10 +93,10 @@ class Settings(BaseSettings):
         "Complement check of suggestions when a request does not send `complement_check`: the "
         "best-ranked candidates are placed by the placement network and those lying mostly on the "
         "query's own surface (parts the query already has) move behind the others."))
-    complement_candidates: int = Field(default=40, ge=1, le=1000, description=(
+    complement_candidates: int = Field(default=64, ge=1, le=1000, description=(
         "Best-ranked candidates (after duplicate collapse) the complement check places and tests; "
         "at least the request's k."))
-    complement_part_samples: int = Field(default=64, ge=1, le=4096, description=(
+    complement_part_samples: int = Field(default=16, ge=1, le=4096, description=(
         "Catalog point samples per candidate the complement check measures (at most the "
         "catalog's points per part)."))
     complement_cover_distance: float = Field(default=0.08, gt=0, le=1, description=(
