@@ -38,8 +38,9 @@ def evaluate_command(
     plausibility_queries: int = typer.Option(50, "--plausibility-queries",
                                              help="All-but-one queries per category whose top-1 is "
                                                   "placed and checked for contact."),
-    methods: str = typer.Option("random,ck10,fixed,ours", "--methods",
-                                help="Comma-separated subset of random, ck10, fixed, ours."),
+    methods: str = typer.Option("random,ck10,fixed,likelihood,ours", "--methods",
+                                help="Comma-separated subset of random, ck10, fixed, likelihood (Ours "
+                                     "without the complement check), ours."),
     pool: str = typer.Option("category", "--pool", help="Candidate pool: 'category' (other shapes of the "
                                                          "query's category) or 'all' (other shapes)."),
     collapse_duplicates: bool = typer.Option(True, "--collapse-duplicates/--keep-duplicates",

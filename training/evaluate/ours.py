@@ -4,6 +4,8 @@ Everything goes through ``service.engine.SuggestionEngine`` on the loaded artifa
 exactly what ships: the ONNX graphs in onnxruntime, the FAISS index, the catalog and the engine's
 filters, scoring and duplicate collapse.
 
+* "Ours" runs the engine with the service's settings, complement check included; "Ours
+  (likelihood only)" is the same engine without it, the paper's ranking (an ablation).
 * Rankings for the tables ask the engine itself to exclude the query's shape
   (``exclude_shapes``) and to keep the pool's category (``categories``), with the shipped
   duplicate collapse; the protocol's ``finalize_ranking`` then re-checks the pool.
@@ -35,13 +37,17 @@ class EngineMethod:
     name = "Ours"
     per_part_scores = True
 
-    def __init__(self, engine: SuggestionEngine):
+    def __init__(self, engine: SuggestionEngine, name: str = "Ours"):
+        self.name = name
         self.engine = engine
         self.catalog = engine.catalog
         version = engine.model_version
+        check = (", then the complement check (parts h places mostly onto the query's own points go last)"
+                 if engine.settings.suggest_complement_check else
+                 ", without the complement check (the paper's ranking)")
         self.description = (f"the shipped joint model (artifact {version}) through the service's suggestion "
                             "engine: g in onnxruntime, FAISS shortlist of each mode's neighbours, exact "
-                            "mixture log-likelihood, duplicate collapse")
+                            f"mixture log-likelihood, duplicate collapse{check}")
         self._mixture_cache: tuple[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     def _categories(self, pool: np.ndarray) -> tuple[str, ...]:

@@ -72,9 +72,11 @@ log = logging.getLogger(__name__)
 RESULTS_FILE = "results.json"
 QUERIES_FILE = "queries.json"
 BENCHMARK_VERSION = 1
-METHOD_KEYS = ("random", "ck10", "fixed", "ours")
-# Table order, as in the paper: baselines first.
-METHOD_NAMES = {"random": "Random", "ck10": "CK10", "fixed": "Ours (fixed embedding)", "ours": "Ours"}
+METHOD_KEYS = ("random", "ck10", "fixed", "likelihood", "ours")
+# Table order, as in the paper: baselines first. "likelihood" is Ours without the complement
+# check (service.complement): the paper's ranking by the mixture log-likelihood alone.
+METHOD_NAMES = {"random": "Random", "ck10": "CK10", "fixed": "Ours (fixed embedding)",
+                "likelihood": "Ours (likelihood only)", "ours": "Ours"}
 
 
 @dataclass
@@ -238,6 +240,9 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
                            n_pairs=s.descriptor_pairs)
         elif key == "fixed":
             m, fixed_info = _build_fixed(s, artifacts, index)
+        elif key == "likelihood":
+            m = EngineMethod(SuggestionEngine(artifacts, engine.settings.model_copy(
+                update={"suggest_complement_check": False})), name=METHOD_NAMES[key])
         else:
             m = ours
         methods[METHOD_NAMES[key]] = m
