@@ -441,7 +441,8 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     b = json.loads((root / "b" / "results.json").read_text())
     assert a["tables"] == b["tables"]          # seeded: the same numbers again
     assert b["fixed_embedding"]["cached"] and not a["fixed_embedding"]["cached"]
-    assert set(a["method_order"]) == {"Random", "CK10", "Ours (fixed embedding)", "Ours"}
+    assert set(a["method_order"]) == {"Random", "CK10", "Ours (fixed embedding)", "Ours (likelihood only)",
+                                      "Ours"}
     for key in ("functional_map", "hausdorff", "style_map_all_but_one", "style_map_single", "recall@1",
                 "recall@10", "median_percentile_rank", "placement_error", "plausibility"):
         assert key in a["tables"], key
