@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The shipped model, end to end: data (if missing), training within a wall-clock budget, export.
 #
-#   training/recipes/shipped.sh                 # defaults below
-#   MINUTES=45 OUT=exported training/recipes/shipped.sh
+#   training/recipes/shipped.sh                 # defaults below (60 minutes of training)
+#   MINUTES=60 OUT=exported training/recipes/shipped.sh
 #
 # Training stops after MINUTES of this invocation (or at the preset's step cap) and leaves a
 # checkpoint; if it is interrupted, `python -m training train --resume --run "$RUN" --minutes M`
@@ -15,7 +15,7 @@ RAW=${RAW:-data/raw}
 DATA=${DATA:-data/processed}
 RUN=${RUN:-runs/shipped}
 OUT=${OUT:-exported}
-MINUTES=${MINUTES:-45}
+MINUTES=${MINUTES:-60}
 SEED=${SEED:-0}
 
 if [ ! -f "$DATA/dataset.json" ]; then
