@@ -492,3 +492,51 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert res["tables"]["hausdorff"]["Ours"]["mean"] > 0.0
     assert res["tables"]["placement_error"]["test"]["mean"] >= 0.0
     assert "Table 1" in (tmp_path / "b.md").read_text()
+
+
+def test_summary_names_where_a_baseline_does_better() -> None:
+    from training.evaluate.report import summary_lines
+
+    cats = ["chair", "lamp"]
+    results = {"categories": cats, "tables": {
+        "functional_map": {"Random": {"chair": 0.2, "lamp": 0.2, "mean": 0.2},
+                           "CK10": {"chair": 0.5, "lamp": 0.9, "mean": 0.7},
+                           "Ours (likelihood only)": {"chair": 0.1, "lamp": 0.1, "mean": 0.1},
+                           "Ours": {"chair": 0.95, "lamp": 0.85, "mean": 0.9}},
+        "hausdorff": {"CK10": {"chair": 0.3, "lamp": 0.3, "mean": 0.3},
+                      "Ours": {"chair": 0.1, "lamp": 0.2, "mean": 0.15}},
+        "placement_error": {"train": {"mean": 0.03}, "test": {"chair": 0.05, "lamp": 0.09, "mean": 0.07}}}}
+    text = "\n".join(summary_lines(results))
+    assert "| Functional mAP@5 (Table 1) | 0.900 | 0.81 | 0.90 (met) | CK10 0.700 |" in text
+    assert "| Hausdorff distance (Table 2) | 0.150 | 0.16 | 0.12 (not met) | CK10 0.300 |" in text
+    assert "| Placement test error of h (Table 4) | 0.070 | 0.12 | 0.06 (not met) |  |" in text
+    # Only CK10 on lamp beats Ours; Ours' own ablation is not a baseline.
+    assert "CK10 does better than Ours on lamp (0.900 vs 0.850)." in text
+    assert text.count("does better") == 1
+
+
+def test_render_only_replaces_the_notes(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from training.cli import app
+
+    out = tmp_path / "out"
+    out.mkdir()
+    results = {"categories": ["chair"], "tables": {}, "settings": {"seed": 0, "queries_per_category": 1,
+               "placement_queries_per_category": 1, "dense_points": 8, "contact": {"tolerance": 0.02,
+               "samples": 8}, "retrieval": {"pool_scope": "category", "collapse_duplicates": True}},
+               "artifact": {"model_version": "v1", "format_version": 1, "part_count": 1, "n_points": 8},
+               "methods": {}, "method_order": [], "date": "2026-12-01", "command": "", "timing_seconds": {},
+               "queries": {}, "pool": {}}
+    (out / "results.json").write_text(json.dumps(results))
+    notes = tmp_path / "notes.md"
+    notes.write_text("Lamps are hard because of their thin tubes.")
+    runner = CliRunner()
+    ok = runner.invoke(app, ["evaluate", "--out", str(out), "--report", str(tmp_path / "b.md"),
+                             "--notes", str(notes), "--render-only"])
+    assert ok.exit_code == 0, ok.output
+    report = (tmp_path / "b.md").read_text()
+    assert "## Analysis" in report and "thin tubes" in report
+    assert json.loads((out / "results.json").read_text())["notes"].startswith("Lamps")
+    missing = runner.invoke(app, ["evaluate", "--out", str(tmp_path / "none"), "--render-only"])
+    assert missing.exit_code == 2 and "no results" in missing.output

@@ -58,6 +58,12 @@ def evaluate_command(
     threads: int = typer.Option(0, "--threads", help="Torch threads (0 = torch's default)."),
     details: bool = typer.Option(False, "--details", help="Also write every query's record (queries.json)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+    notes: Optional[Path] = typer.Option(None, "--notes",  # noqa: UP045
+                                         help="Markdown file rendered as the report's Analysis section "
+                                              "(kept in results.json)."),
+    render_only: bool = typer.Option(False, "--render-only",
+                                     help="Re-render the report and charts from <out>/results.json "
+                                          "(with --notes, replacing its notes) without running anything."),
 ) -> None:
     """Benchmark the shipped model against Random, CK10 and a fixed embedding (paper Tables 1-4)."""
     from training.evaluate.evaluation import ContactSettings, RetrievalSettings
@@ -66,12 +72,27 @@ def evaluate_command(
 
     out_dir = out or (QUICK_OUT if quick else Path("docs/benchmark"))
     report_path = report or (out_dir / "benchmark.md" if quick else Path("docs/benchmark.md"))
+    notes_text = None
+    if notes is not None:
+        if not notes.is_file():
+            typer.echo(f"error: --notes {notes}: no such file", err=True)
+            raise typer.Exit(code=2)
+        notes_text = notes.read_text()
+    if render_only:
+        from training.evaluate.run import rerender
+
+        try:
+            rerender(out_dir, report_path, notes_text)
+        except (ValueError, FileNotFoundError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=2) from exc
+        return
     settings = BenchmarkSettings(
         artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
         queries_per_category=queries, placement_queries_per_category=placement_queries,
         plausibility_queries_per_category=plausibility_queries, dense_points=dense_points,
         methods=tuple(m.strip() for m in methods.split(",") if m.strip()), ck10_shapes=ck10_shapes,
-        threads=threads, details=details, progress=progress,
+        threads=threads, details=details, progress=progress, notes=notes_text,
         command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]),
         retrieval=RetrievalSettings(pool_scope=pool, collapse_duplicates=collapse_duplicates),
         contact=ContactSettings(tolerance=contact_tolerance, samples=contact_samples),

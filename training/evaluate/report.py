@@ -157,6 +157,48 @@ def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str
     plt.close(fig)
 
 
+# The paper's means (Tables 1, 2 and 4, "Ours (Joint)") and the project's targets (issue 5).
+PAPER_MEANS = {"functional_map": 0.81, "hausdorff": 0.16, "placement_error": 0.12}
+TARGETS = {"functional_map": 0.90, "hausdorff": 0.12, "placement_error": 0.06}
+SUMMARY_METRICS = (("functional_map", "Functional mAP@5 (Table 1)", True),
+                   ("hausdorff", "Hausdorff distance (Table 2)", False),
+                   ("placement_error", "Placement test error of h (Table 4)", False))
+
+
+def summary_lines(results: dict[str, Any], ours: str = "Ours") -> list[str]:
+    """Where Ours stands: its means against the paper's and the targets, and every (metric,
+    category) where a baseline does better (generated, so it cannot drift from the tables)."""
+    tables, cats = results["tables"], results["categories"]
+    lines = ["| Metric | Ours | Paper (Ours, Joint) | Target | Best baseline |", "|---|---|---|---|---|"]
+    behind: list[str] = []
+    for key, title, higher in SUMMARY_METRICS:
+        rows = tables.get(key)
+        if not rows:
+            continue
+        if key == "placement_error":
+            mine, others = rows["test"].get("mean"), {}
+        else:
+            if ours not in rows:
+                continue
+            mine = rows[ours].get("mean")
+            others = {m: r for m, r in rows.items() if not m.startswith(ours)}
+        best = ""
+        if others:
+            pick = (max if higher else min)(others, key=lambda m: others[m].get("mean") or 0.0)
+            best = f"{pick} {_fmt(others[pick].get('mean'))}"
+            for m, r in others.items():
+                worse = [c for c in [*cats, "mean"] if _number(r.get(c)) and _number(rows[ours].get(c))
+                         and (r[c] > rows[ours][c] if higher else r[c] < rows[ours][c])]
+                if worse:
+                    behind.append(f"- {title}: {m} does better than Ours on " + ", ".join(
+                        f"{c} ({_fmt(r[c])} vs {_fmt(rows[ours][c])})" for c in worse) + ".")
+        met = _number(mine) and (mine >= TARGETS[key] if higher else mine <= TARGETS[key])
+        lines.append(f"| {title} | {_fmt(mine)} | {PAPER_MEANS[key]:.2f} | {TARGETS[key]:.2f} "
+                     f"({'met' if met else 'not met'}) | {best} |")
+    lines += ["", *(behind or ["- No baseline does better than Ours on any category of these metrics."])]
+    return lines
+
+
 def _rel(path: Path, start: Path) -> str:
     return Path(os.path.relpath(path, start)).as_posix()
 
@@ -192,6 +234,10 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
           f"- Run time: {results['timing_seconds'].get('total', 0):.0f} s "
           f"({', '.join(f'{k} {v:.0f} s' for k, v in results['timing_seconds'].items() if k != 'total')}).",
           ""]
+    L += ["## Summary", "", *summary_lines(results), ""]
+    notes = results.get("notes")
+    if notes:
+        L += ["## Analysis", "", str(notes).strip(), ""]
     L += ["## Protocol", "", PROTOCOL.format(
         n_points=art["n_points"], dense=s["dense_points"], scope=s["retrieval"]["pool_scope"],
         collapse="on" if s["retrieval"]["collapse_duplicates"] else "off").strip(), ""]

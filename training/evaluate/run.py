@@ -102,6 +102,7 @@ class BenchmarkSettings:
     details: bool = False                     # also write every query's record (queries.json)
     progress: bool = True
     command: str = ""                         # the command line, for the report
+    notes: str | None = None                  # Markdown of the report's Analysis section
     retrieval: RetrievalSettings = field(default_factory=RetrievalSettings)
     contact: ContactSettings = field(default_factory=ContactSettings)
     fixed: FixedSettings = field(default_factory=FixedSettings)
@@ -314,6 +315,7 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
         "pool": {c: int(np.sum(catalog.category_of == catalog.categories.index(c))) for c in cats},
         "tables": tables,
         "fixed_embedding": fixed_info,
+        "notes": s.notes,
         # The service's contact refinement, as the "contact-refined" rows ran it.
         "service_contact": {"contact_max_offset": engine.settings.contact_max_offset,
                             "contact_tolerance": engine.settings.contact_tolerance},
@@ -330,6 +332,22 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     write_report(results, Path(s.report), out)
     log.info("benchmark done in %.1f s: %s, %s", timing["total"], out / RESULTS_FILE, s.report)
     return results
+
+
+def rerender(out: Path, report: Path, notes: str | None = None) -> None:
+    """Write the report and charts again from ``out/results.json``; ``notes`` (if given) replace its
+    notes, and are saved back into the results file."""
+    from training.evaluate.report import write_report
+
+    path = Path(out) / RESULTS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no results to render (run the benchmark first)")
+    results = json.loads(path.read_text())
+    if notes is not None:
+        results["notes"] = notes
+        results["settings"]["notes"] = notes
+        write_json_atomic(path, results)
+    write_report(results, Path(report), Path(out))
 
 
 def _check_split(run: Path | None, index: ShapeIndex) -> None:
