@@ -78,8 +78,8 @@ class ReplicatedCatalog(Catalog):
 
     Replicas of a real part keep its duplicate group (they are geometrically identical, which is
     what the catalog's near-duplicate groups mean), so duplicate collapse shows distinct parts.
-    ``points``, ``mesh_vertices`` and friends stay the base catalog's arrays; ``part_points`` and
-    ``mesh`` map a row back to its real part.
+    ``points``, ``mesh_vertices`` and friends stay the base catalog's arrays; ``part_points``,
+    ``part_samples`` and ``mesh`` map a row back to its real part.
 
     Shapes (n parts):
         embeddings: (n, D) float32; part_features: (n, Fp) float32 (tiled, real memory).
@@ -122,3 +122,6 @@ class ReplicatedCatalog(Catalog):
 
     def part_points(self, i: int) -> np.ndarray:
         return self.base.part_points(int(i) % len(self.base))
+
+    def part_samples(self, rows: np.ndarray, n: int) -> np.ndarray:
+        return self.base.part_samples(np.asarray(rows, dtype=np.int64) % len(self.base), n)

@@ -116,6 +116,14 @@ class Catalog:
         """Centred point samples of part ``i`` as ``(S, 3) float32``."""
         return self.points[i].astype(np.float32)
 
+    def part_samples(self, rows: np.ndarray, n: int) -> np.ndarray:
+        """The first ``n`` centred samples (a random subset: they are drawn at random) of many parts.
+
+        Shapes:
+            rows: (M,) -> (M, min(n, S), 3) float32.
+        """
+        return self.points[np.asarray(rows, dtype=np.int64), :n].astype(np.float32)
+
 
 def _duplicate_roots(duplicate_of: list[int | None]) -> np.ndarray:
     """Follow ``duplicate_of`` links to each part's root, so chains collapse into one group."""

@@ -426,12 +426,14 @@ class SuggestionEngine:
         faiss.omp_set_num_threads(self.settings.faiss_threads)
         if allowed is None:
             return self.index.search(x, nn)[1]
-        if not isinstance(self.index, faiss.IndexFlat):
+        rows = np.flatnonzero(allowed)
+        if len(rows) <= self.settings.exact_search_max_filtered and (
+                len(rows) < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
             # An approximate index probes the lists (or graph nodes) nearest the query, and few of
-            # them may hold parts that pass a narrow filter: search those parts exactly instead.
-            rows = np.flatnonzero(allowed)
-            if len(rows) <= self.settings.exact_search_max_filtered:
-                return self._exact_subset(x, nn, rows)
+            # them may hold parts that pass a narrow filter; a flat index with a selector checks
+            # every part one by one (1.1 ms for a category of the shipped catalog, against 0.1 ms
+            # for the same search over that category's rows): search those parts exactly instead.
+            return self._exact_subset(x, nn, rows)
         packed = np.packbits(allowed, bitorder="little")
         sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
         params = _search_parameters(self.index, sel)
@@ -488,7 +490,7 @@ class SuggestionEngine:
         if not self._checks_complement(q.options) or len(idx) == 0:
             return np.arange(min(len(idx), q.k))
         s = self.settings
-        samples = self.catalog.points[idx, :s.complement_part_samples].astype(np.float32)
+        samples = self.catalog.part_samples(idx, s.complement_part_samples)
         share = covered_share(q.points, samples, translations.astype(np.float32), s.complement_cover_distance)
         return demote_covered(share, s.complement_cover_share)[:q.k]
 

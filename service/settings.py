@@ -68,9 +68,10 @@ class Settings(BaseSettings):
         "Catalog parts FAISS returns for each mixture mean (at least the request's k); their "
         "union is re-scored by the exact mixture log-likelihood."))
     exact_search_max_filtered: int = Field(default=20_000, ge=0, description=(
-        "With an approximate index (IVF or HNSW, chosen for large catalogs), a filtered query whose "
-        "filter (categories, styles, exclusions) leaves at most this many parts searches them "
-        "exactly instead: the index's probes may hold few of them."))
+        "A filtered query whose filter (categories, styles, exclusions) leaves at most this many "
+        "parts searches them exactly: with an approximate index (IVF or HNSW, chosen for large "
+        "catalogs) always, since its probes may hold few of them; with a flat index when they are "
+        "under half the catalog, since that beats a selector scan of every part."))
     seed: int = Field(default=0, description=(
         "Seed of the deterministic resampling of inputs to the model's point count and of "
         "mesh surface sampling."))

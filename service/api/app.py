@@ -10,6 +10,7 @@ which ``/readyz`` answers 200, and starts the micro-batcher that runs suggestion
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -82,6 +83,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.error("refusing to start: %s", exc)
         batcher.close()
         raise
+    # Move everything loaded so far (catalog records, sessions, the app) out of the collector's
+    # reach: a full collection walked those ~160k objects in 60-90 ms, the p99 of JSON requests.
+    gc.collect()
+    gc.freeze()
     app.state.ready = True
     try:
         yield
