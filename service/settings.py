@@ -124,7 +124,7 @@ class Settings(BaseSettings):
     assemble_candidates: int = Field(default=60, ge=1, description=(
         "Suggestions `/assemble` considers at each step (at most `max_k`): enough that the "
         "complementary kinds are among them when g's favourites are all already placed."))
-    assemble_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
+    assemble_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "`/assemble` stops when no candidate's mode has at least this weight phi_k."))
     assemble_max_distance: float = Field(default=4.0, gt=0, description=(
         "`/assemble` stops when no candidate lies within this distance of its mode's mean, in "
@@ -143,7 +143,7 @@ class Settings(BaseSettings):
         "placed part's box, with at least this times its volume and another profile across its "
         "longest axis, is a new part (a hull around its deck); any other candidate there is a "
         "duplicate (a tyre on a hub, a longer rod on a shorter one, crossing or nested boxes)."))
-    assemble_cover_distance: float = Field(default=0.08, ge=0, description=(
+    assemble_cover_distance: float = Field(default=0.05, ge=0, description=(
         "`/assemble` skips a candidate when at least `assemble_cover_share` of its placed samples "
         "lie within this distance of the placed parts' samples: it adds little new surface."))
     assemble_cover_share: float = Field(default=0.5, ge=0, le=1, description=(

@@ -45,12 +45,15 @@ def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> 
     pts = engine.prepare(query.points, Frame())
     idx = np.array([x.part_index for x in result.suggestions])
     tr = np.stack([x.translation for x in result.suggestions]).astype(np.float32)  # canonical frame
-    return covered_share(pts, cat.points[idx, :s.complement_part_samples].astype(np.float32), tr,
+    return covered_share(pts, cat.part_samples(idx, s.complement_part_samples), tr,
                          s.complement_cover_distance)
 
 
 def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, query: AssemblyQuery) -> None:
     k = 20
+    # A shortlist within max_k, so that the plain ranking below can hold all of it.
+    engine = SuggestionEngine(engine.artifacts, engine.settings.model_copy(
+        update={"complement_candidates": min(40, engine.settings.max_k)}))
     checked = engine.suggest(query.points, SuggestOptions(k=k, complement_check=True))
     plain = engine.suggest(query.points, SuggestOptions(k=engine.settings.complement_candidates,
                                                         complement_check=False))

@@ -206,15 +206,16 @@ def test_suggest_refines_only_when_asked_or_configured(engine: SuggestionEngine,
                                                        query: AssemblyQuery) -> None:
     """Refinement of suggestions is opt-in (it costs ten times the rest); the setting flips it."""
     pts = query.points.tolist()
-    plain = client.post("/suggest", json={"points": pts, "k": 5}).json()
-    asked = client.post("/suggest", json={"points": pts, "k": 5, "refine_contact": True}).json()
+    k = 20  # enough suggestions that some are not in contact as h places them
+    plain = client.post("/suggest", json={"points": pts, "k": k}).json()
+    asked = client.post("/suggest", json={"points": pts, "k": k, "refine_contact": True}).json()
     assert all(s["contact_offset"] == [0.0, 0.0, 0.0] for s in plain["suggestions"])
     assert any(s["contact_offset"] != [0.0, 0.0, 0.0] for s in asked["suggestions"])
-    default = engine.suggest(query.points, SuggestOptions(k=5))
+    default = engine.suggest(query.points, SuggestOptions(k=k))
     assert all(np.all(s.contact_offset == 0) for s in default.suggestions)
     on_by_default = SuggestionEngine(engine.artifacts, engine.settings.model_copy(
         update={"suggest_refine_contact": True}))
-    refined = on_by_default.suggest(query.points, SuggestOptions(k=5))
+    refined = on_by_default.suggest(query.points, SuggestOptions(k=k))
     np.testing.assert_allclose([s.contact_offset for s in refined.suggestions],
                                [s["contact_offset"] for s in asked["suggestions"]], atol=1e-5)
     # /place keeps refining unless told not to (the modeling page and /assemble rely on it).
