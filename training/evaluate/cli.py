@@ -82,7 +82,7 @@ def evaluate_command(
         from training.evaluate.run import rerender
 
         try:
-            rerender(out_dir, report_path, notes_text)
+            rerender(out_dir, report_path, notes_text, notes)
         except (ValueError, FileNotFoundError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from exc

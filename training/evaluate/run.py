@@ -334,9 +334,10 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     return results
 
 
-def rerender(out: Path, report: Path, notes: str | None = None) -> None:
+def rerender(out: Path, report: Path, notes: str | None = None, notes_file: Path | None = None) -> None:
     """Write the report and charts again from ``out/results.json``; ``notes`` (if given) replace its
-    notes, and are saved back into the results file."""
+    notes, and are saved back into the results file with ``--notes notes_file`` added to the
+    recorded command (which then reproduces the report in one run)."""
     from training.evaluate.report import write_report
 
     path = Path(out) / RESULTS_FILE
@@ -346,6 +347,9 @@ def rerender(out: Path, report: Path, notes: str | None = None) -> None:
     if notes is not None:
         results["notes"] = notes
         results["settings"]["notes"] = notes
+        command = str(results.get("command") or "")
+        if notes_file is not None and command and "--notes" not in command.split():
+            results["command"] = f"{command} --notes {notes_file}"
         write_json_atomic(path, results)
     write_report(results, Path(report), Path(out))
 
