@@ -240,9 +240,7 @@ class SuggestionEngine:
 
     def _checks_complement(self, options: SuggestOptions) -> bool:
         """Whether a suggestion query's candidates go through the complement check."""
-        if options.complement_check is None:
-            return self.settings.suggest_complement_check
-        return options.complement_check
+        return _or_default(options.complement_check, self.settings.suggest_complement_check)
 
     def _shortlist(self, q: _Query) -> int:
         """Ranked candidates kept for placement: k, or more when the complement check will reorder them."""
@@ -250,9 +248,7 @@ class SuggestionEngine:
 
     def _refines(self, options: SuggestOptions) -> bool:
         """Whether a suggestion query's placements get contact refinement."""
-        if options.refine_contact is None:
-            return self.settings.suggest_refine_contact
-        return options.refine_contact
+        return _or_default(options.refine_contact, self.settings.suggest_refine_contact)
 
     # ---------------------------------------------------------------- public API
     def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
@@ -516,6 +512,11 @@ class SuggestionEngine:
                 duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
                 contact_offset=off_caller[r]))
         return out
+
+
+def _or_default(asked: bool | None, setting: bool) -> bool:
+    """A request's flag, or the service's setting when the request did not say."""
+    return setting if asked is None else asked
 
 
 def _search_parameters(index: faiss.Index, sel: faiss.IDSelector) -> faiss.SearchParameters | None:

@@ -136,7 +136,10 @@ def quick_settings(base: BenchmarkSettings) -> BenchmarkSettings:
 
 
 def settings_to_dict(s: BenchmarkSettings) -> dict[str, Any]:
-    return json.loads(json.dumps(dataclasses.asdict(s), default=str))
+    """Every setting but the notes, which results.json keeps once, at its top level."""
+    d = dataclasses.asdict(s)
+    d.pop("notes")
+    return json.loads(json.dumps(d, default=str))
 
 
 def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tuple[Method, dict[str, Any]]:
@@ -346,7 +349,6 @@ def rerender(out: Path, report: Path, notes: str | None = None, notes_file: Path
     results = json.loads(path.read_text())
     if notes is not None:
         results["notes"] = notes
-        results["settings"]["notes"] = notes
         command = str(results.get("command") or "")
         if notes_file is not None and command and "--notes" not in command.split():
             results["command"] = f"{command} --notes {notes_file}"
