@@ -16,8 +16,10 @@ import typer
 
 log = logging.getLogger(__name__)
 
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
-def _quiet_libraries() -> None:
+
+def quiet_libraries() -> None:
     """Keep per-request and loader chatter of libraries out of the CLI's INFO log."""
     for name in ("httpx", "httpcore", "faiss.loader"):
         logging.getLogger(name).setLevel(logging.WARNING)
@@ -94,7 +96,7 @@ def register_service_commands(app: typer.Typer) -> None:
         import uvicorn
         from pydantic import ValidationError
 
-        _quiet_libraries()
+        quiet_libraries()
         from service.settings import ENV_PREFIX, get_settings
 
         # Options become environment settings so that every worker process reads the same ones.
@@ -110,8 +112,18 @@ def register_service_commands(app: typer.Typer) -> None:
             typer.echo(f"error: invalid {ENV_PREFIX}* setting:\n{exc}", err=True)
             raise typer.Exit(2) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
-        uvicorn.run("service.api.app:create_app", factory=True, host=s.host, port=s.port, workers=s.workers,
-                    log_level=s.log_level, timeout_graceful_shutdown=10)
+        if s.workers == 1:
+            uvicorn.run("service.api.app:create_app", factory=True, host=s.host, port=s.port,
+                        log_level=s.log_level, timeout_graceful_shutdown=10)
+            return
+        from service.workers import Supervisor
+
+        try:
+            status = Supervisor(s.host, s.port, s.workers, log_level=s.log_level).run()
+        except OSError as exc:
+            typer.echo(f"error: cannot listen on {s.host}:{s.port}: {exc}", err=True)
+            raise typer.Exit(1) from None
+        raise typer.Exit(status)
 
     @app.command()
     def suggest(
@@ -131,7 +143,7 @@ def register_service_commands(app: typer.Typer) -> None:
         """Ask a running service for suggestions for one file and print a ranked table."""
         import orjson
 
-        _quiet_libraries()
+        quiet_libraries()
         from service.client import ClientError, ComplementMeClient, suggest_file
 
         options = _options(k, category, exclude_shape, _frame_options(up_axis, center, radius, fit, file))
@@ -161,7 +173,7 @@ def register_service_commands(app: typer.Typer) -> None:
         """
         from tqdm import tqdm
 
-        _quiet_libraries()
+        quiet_libraries()
         from service.client import ComplementMeClient, query_files, run_batch
 
         files = query_files(folder)

@@ -1,12 +1,19 @@
-"""Prometheus metrics of one server process, in a registry of its own.
+"""Prometheus metrics of the server, in a registry of its own.
 
 A registry per app (not prometheus-client's global one) lets tests build many apps in one
-process. With several uvicorn workers each process reports its own numbers.
+process. With several worker processes (``service/workers.py``) prometheus-client runs in its
+multiprocess mode: the supervisor sets ``PROMETHEUS_MULTIPROC_DIR`` before the workers start, each
+worker writes its samples to files there, and a scrape of any worker sums them all (counters and
+histograms over every worker that ever ran, gauges over the live ones). Gauges read from a
+function (queue lengths) cannot be shared that way; in multiprocess mode each worker copies them
+into its files every ``LIVE_REFRESH_SECONDS`` and before it answers a scrape.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import asyncio
+import os
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from prometheus_client import (
@@ -18,6 +25,7 @@ from prometheus_client import (
     generate_latest,
 )
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from prometheus_client.multiprocess import MultiProcessCollector
 
 from service.errors import ServiceError
 
@@ -27,6 +35,8 @@ _STAGE_BUCKETS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05,
 _SIZE_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
+LIVE_REFRESH_SECONDS = 1.0
 
 # The *_created series double the output for no use on a scrape target like this one.
 disable_created_metrics()
@@ -36,7 +46,12 @@ class Metrics:
     """The service's counters, histograms and gauges."""
 
     def __init__(self) -> None:
+        # prometheus-client picks its value store when first imported; the supervisor sets the
+        # variable before any worker imports it.
+        self.multiprocess = bool(os.environ.get(MULTIPROC_ENV))
         self.registry = CollectorRegistry(auto_describe=True)
+        self._live: list[tuple[Gauge, Callable[[], float]]] = []
+        self._model_version: str | None = None
         r = self.registry
         self.requests = Counter("complementme_http_requests", "HTTP requests by method, route and status.",
                                 ["method", "route", "status"], registry=r)
@@ -58,12 +73,41 @@ class Metrics:
                                     "Seconds a request's queries waited in the micro-batcher's queue.",
                                     buckets=_STAGE_BUCKETS, registry=r)
         self.queued = Gauge("complementme_batch_queued_queries",
-                            "Queries waiting in the micro-batcher's queue now.", registry=r)
+                            "Queries waiting in the micro-batcher's queue now.", multiprocess_mode="livesum",
+                            registry=r)
         self.candidates = Histogram("complementme_candidates", "Catalog parts re-scored per query.",
                                     buckets=_SIZE_BUCKETS, registry=r)
-        self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.", registry=r)
+        self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.",
+                                   multiprocess_mode="livemostrecent", registry=r)
         self.model_info = Gauge("complementme_model_info", "The loaded model version (value 1).",
-                                ["model_version"], registry=r)
+                                ["model_version"], multiprocess_mode="livemax", registry=r)
+        # The overload gate's (service/overload.py).
+        self.rejections = Counter("complementme_overload_rejections", "Requests refused by the overload "
+                                  "gate or cut at their deadline, by reason.", ["reason"], registry=r)
+        self.inflight_requests = Gauge("complementme_inflight_requests", "Gated requests running now.",
+                                       multiprocess_mode="livesum", registry=r)
+        self.queued_requests = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
+                                     multiprocess_mode="livesum", registry=r)
+
+    def watch(self, gauge: Gauge, read: Callable[[], float]) -> None:
+        """Report ``read()`` as the gauge's value: at each scrape, or (multiprocess mode) as of the
+        last ``refresh_live``."""
+        if self.multiprocess:
+            self._live.append((gauge, read))
+            gauge.set(read())
+        else:
+            gauge.set_function(read)
+
+    async def refresh_live_forever(self) -> None:
+        """``refresh_live`` every ``LIVE_REFRESH_SECONDS`` (a task of each worker's lifespan)."""
+        while True:
+            self.refresh_live()
+            await asyncio.sleep(LIVE_REFRESH_SECONDS)
+
+    def refresh_live(self) -> None:
+        """Copy the watched gauges' current values into this process's multiprocess files."""
+        for gauge, read in self._live:
+            gauge.set(read())
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         labels = (method, route, str(status))
@@ -93,8 +137,20 @@ class Metrics:
 
     def set_model(self, model_version: str, parts: int) -> None:
         self.catalog_parts.set(parts)
-        self.model_info.clear()
+        # A multiprocess file keeps every label it was given: an old version is set to 0 before it
+        # is dropped, so that it reads as "not loaded" there too.
+        if self._model_version not in (None, model_version):
+            self.model_info.labels(self._model_version).set(0)
+            if not self.multiprocess:  # prometheus-client cannot drop a label from its files
+                self.model_info.remove(self._model_version)
         self.model_info.labels(model_version).set(1)
+        self._model_version = model_version
 
     def render(self) -> bytes:
-        return generate_latest(self.registry)
+        """The text exposition of this process, or of every worker in multiprocess mode."""
+        if not self.multiprocess:
+            return generate_latest(self.registry)
+        self.refresh_live()
+        merged = CollectorRegistry()
+        MultiProcessCollector(merged)
+        return generate_latest(merged)

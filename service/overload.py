@@ -30,10 +30,10 @@ import time
 from typing import Any
 
 import orjson
-from prometheus_client import CollectorRegistry, Counter, Gauge
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import error_body
+from service.metrics import Metrics
 
 GATED_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 
@@ -96,7 +96,7 @@ class OverloadMiddleware:
     """Gate inference requests and enforce the request deadline (see the module doc)."""
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
-                 max_inflight_writes: int = 2, registry: CollectorRegistry | None = None,
+                 max_inflight_writes: int = 2, metrics: Metrics | None = None,
                  max_inflight_suggest: int | None = None):
         self.app = app
         self.gate = InferenceGate(max_inflight, max_queue)
@@ -105,15 +105,11 @@ class OverloadMiddleware:
         self.suggest_gate = (InferenceGate(max_inflight_suggest, max_queue)
                              if max_inflight_suggest is not None else self.gate)
         self.timeout = timeout
-        self.rejected = Counter("complementme_overload_rejections", "Requests refused by the overload "
-                                "gate or cut at their deadline, by reason.", ["reason"], registry=registry)
-        self.inflight_gauge = Gauge("complementme_inflight_requests", "Gated requests running now.",
-                                    registry=registry)
-        self.queued_gauge = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
-                                  registry=registry)
+        self.metrics = metrics or Metrics()
+        self.rejected = self.metrics.rejections
         gates = {id(g): g for g in (self.gate, self.write_gate, self.suggest_gate)}.values()
-        self.inflight_gauge.set_function(lambda: sum(g.inflight for g in gates))
-        self.queued_gauge.set_function(lambda: sum(g.waiting for g in gates))
+        self.metrics.watch(self.metrics.inflight_requests, lambda: sum(g.inflight for g in gates))
+        self.metrics.watch(self.metrics.queued_requests, lambda: sum(g.waiting for g in gates))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

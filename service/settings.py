@@ -34,7 +34,9 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535, description=(
         "Port `complementme serve` listens on (0: any free port)."))
     workers: int = Field(default=1, ge=1, le=64, description=(
-        "Uvicorn worker processes; each loads its own copy of the artifacts."))
+        "Server processes of `complementme serve`; each loads its own copy of the artifacts (about "
+        "280 MB) and has a socket of its own on the port, so the kernel spreads connections over "
+        "them. One per core for throughput (`service/workers.py`); `/metrics` sums them all."))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", description="Log level of the server.")
     verify_checksums: bool = Field(default=True, description=(

@@ -10,7 +10,7 @@ import logging
 
 import typer
 
-from service.cli import register_service_commands
+from service.cli import LOG_FORMAT, register_service_commands
 from training.catalog_cli import catalog_app
 from training.data.cli import data_app
 
@@ -23,7 +23,7 @@ register_service_commands(app)
 @app.callback()
 def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+                        format=LOG_FORMAT)
 
 
 # Training commands (train, export, evaluate) are registered below.

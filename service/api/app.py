@@ -10,6 +10,7 @@ which ``/readyz`` answers 200, and starts the micro-batcher that runs suggestion
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import logging
 from collections.abc import AsyncIterator
@@ -76,7 +77,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         run_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
         workers=settings.batch_workers, name="suggest-batcher",
         stats=BatchStats(wait=metrics.queue_wait.observe, ran=metrics.observe_batch))
-    metrics.queued.set_function(lambda: batcher.queued)
+    metrics.watch(metrics.queued, lambda: batcher.queued)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
         app.state.writer = catalog_write.start_catalog_writer(app, engine)
     except StoreError as exc:
@@ -87,11 +88,14 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # reach: a full collection walked those ~160k objects in 60-90 ms, the p99 of JSON requests.
     gc.collect()
     gc.freeze()
+    refresher = asyncio.create_task(metrics.refresh_live_forever()) if metrics.multiprocess else None
     app.state.ready = True
     try:
         yield
     finally:
         app.state.ready = False
+        if refresher is not None:
+            refresher.cancel()
         # Requests still queued for a batch are answered; later ones get 503 shutting_down.
         await anyio.to_thread.run_sync(batcher.close, settings.request_timeout)
         app.state.batcher = None
@@ -129,7 +133,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
                        max_inflight_suggest=settings.max_inflight_suggest,
-                       registry=app.state.metrics.registry)
+                       metrics=app.state.metrics)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes)
     if settings.cors_origins:  # browsers only; none by default
