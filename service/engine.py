@@ -44,6 +44,7 @@ from service.geometry import resample_points
 from service.inputs import check_points
 from service.loading import Artifacts
 from service.mixture import mixture_log_likelihood
+from service.neighbours import BruteForceNeighbours
 from service.preferences import Preferences, diverse_order
 from service.settings import Settings
 
@@ -157,6 +158,7 @@ class SuggestionEngine:
         self.catalog = artifacts.catalog
         self.networks = artifacts.networks
         self.index = artifacts.index
+        self.brute_force = self._brute_force_search()
         self.contacts = PartContacts(
             ContactParams(max_offset=settings.contact_max_offset, tolerance=settings.contact_tolerance,
                           search_points=settings.contact_search_points, seed=settings.seed),
@@ -387,7 +389,8 @@ class SuggestionEngine:
 
     # ---------------------------------------------------------------- steps 3-6
     def _search(self, queries: list[_Query], means: np.ndarray) -> list[np.ndarray]:
-        """Candidate catalog rows per query: FAISS neighbours of all its modes' means.
+        """Candidate catalog rows per query: the nearest parts to any of its modes' means (numpy
+        brute force for small flat catalogs, else FAISS).
 
         Queries sharing a filter share one search call (all their K means at once).
 
@@ -405,6 +408,11 @@ class SuggestionEngine:
             want = max(self.settings.neighbours_per_mode, *(queries[b].k for b in members))
             nn = min(len(self.catalog), want)
             flat = np.ascontiguousarray(means[members].reshape(-1, means.shape[2]), dtype=np.float32)
+            if self.brute_force is not None:
+                unions = self.brute_force.neighbour_union(flat, K, nn, allowed)
+                for b, ids in zip(members, unions, strict=True):
+                    found[b] = ids
+                continue
             labels = self._faiss_search(flat, nn, allowed)
             for j, b in enumerate(members):
                 ids = labels[j * K:(j + 1) * K].ravel()
@@ -413,6 +421,14 @@ class SuggestionEngine:
                     ids = ids[allowed[ids]]  # also covers indexes that ignore selectors
                 found[b] = ids
         return found
+
+    def _brute_force_search(self) -> BruteForceNeighbours | None:
+        """numpy brute force in place of a flat index, for catalogs up to ``brute_force_max_parts``."""
+        exhaustive = type(self.index) in (faiss.IndexFlatL2, faiss.IndexFlatIP, faiss.IndexFlat)
+        if not exhaustive or len(self.catalog) > self.settings.brute_force_max_parts:
+            return None
+        return BruteForceNeighbours(self.catalog.embeddings,
+                                    inner_product=self.index.metric_type == faiss.METRIC_INNER_PRODUCT)
 
     def _faiss_search(self, x: np.ndarray, nn: int, allowed: np.ndarray | None) -> np.ndarray:
         """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""

@@ -20,6 +20,7 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from threadpoolctl import threadpool_limits
 
 from service import __version__
 from service.api.errors import install_error_handlers
@@ -54,6 +55,7 @@ Every error is `{"error": {"code": ..., "message": ...}}`.
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    threadpool_limits(limits=settings.blas_threads, user_api="blas")  # process-wide, like FAISS's
     try:
         artifacts = load_artifacts(settings.artifacts, onnx_threads=settings.onnx_threads,
                                    faiss_threads=settings.faiss_threads,

@@ -1,0 +1,74 @@
+"""numpy brute force gives the parts a FAISS flat index gives (service/neighbours.py)."""
+
+from __future__ import annotations
+
+import faiss
+import numpy as np
+import pytest
+from service_testkit import AssemblyQuery
+
+from service.engine import SuggestionEngine, SuggestOptions
+from service.neighbours import BruteForceNeighbours
+from service.settings import Settings
+
+
+def _faiss_union(emb: np.ndarray, means: np.ndarray, modes: int, nn: int, metric: int,
+                 allowed: np.ndarray | None = None) -> list[set[int]]:
+    rows = np.arange(len(emb)) if allowed is None else np.flatnonzero(allowed)
+    index = faiss.IndexFlat(emb.shape[1], metric)
+    index.add(emb[rows])
+    _, labels = index.search(means, min(nn, len(rows)))
+    return [set(rows[labels[q * modes:(q + 1) * modes].ravel()].tolist()) for q in range(len(means) // modes)]
+
+
+@pytest.mark.parametrize("metric", [faiss.METRIC_L2, faiss.METRIC_INNER_PRODUCT])
+def test_same_parts_as_a_flat_faiss_index(metric: int) -> None:
+    rng = np.random.default_rng(1)
+    emb = rng.normal(size=(3000, 50)).astype(np.float32)
+    means = rng.normal(size=(5 * 8, 50)).astype(np.float32)
+    got = BruteForceNeighbours(emb, inner_product=metric == faiss.METRIC_INNER_PRODUCT).neighbour_union(
+        means, 8, 64)
+    want = _faiss_union(emb, means, 8, 64, metric)
+    assert [set(g.tolist()) for g in got] == want
+    assert all(np.all(np.diff(g) > 0) for g in got)  # sorted, distinct
+
+
+def test_a_filter_is_respected_and_matches_faiss_on_the_allowed_rows() -> None:
+    rng = np.random.default_rng(2)
+    emb = rng.normal(size=(2000, 16)).astype(np.float32)
+    means = rng.normal(size=(3 * 4, 16)).astype(np.float32)
+    allowed = rng.random(2000) < 0.3
+    got = BruteForceNeighbours(emb).neighbour_union(means, 4, 32, allowed)
+    assert [set(g.tolist()) for g in got] == _faiss_union(emb, means, 4, 32, faiss.METRIC_L2, allowed)
+    assert all(allowed[g].all() for g in got)
+
+
+def test_fewer_allowed_parts_than_asked_gives_all_of_them() -> None:
+    rng = np.random.default_rng(3)
+    emb = rng.normal(size=(500, 8)).astype(np.float32)
+    allowed = np.zeros(500, bool)
+    allowed[[3, 70, 444]] = True
+    means = rng.normal(size=(2, 8)).astype(np.float32)
+    got = BruteForceNeighbours(emb).neighbour_union(means, 2, 64, allowed)
+    assert [g.tolist() for g in got] == [[3, 70, 444]]
+    none = BruteForceNeighbours(emb).neighbour_union(np.zeros((4, 8), np.float32), 2, 64, np.zeros(500, bool))
+    assert [g.tolist() for g in none] == [[], []]
+
+
+def test_parts_tied_with_the_last_neighbour_are_all_kept() -> None:
+    emb = np.zeros((10, 3), np.float32)
+    emb[:, 0] = [0, 1, 1, 1, 2, 3, 4, 5, 6, 7]  # three parts at distance 1 from the origin
+    got = BruteForceNeighbours(emb).neighbour_union(np.zeros((1, 3), np.float32), 1, 2)
+    assert got[0].tolist() == [0, 1, 2, 3]
+
+
+def test_the_engine_suggests_the_same_parts_with_either_search(
+        engine: SuggestionEngine, settings: Settings, query: AssemblyQuery) -> None:
+    assert engine.brute_force is not None, "the shipped catalog is small enough for brute force"
+    with_faiss = SuggestionEngine(engine.artifacts, settings.model_copy(update={"brute_force_max_parts": 0}))
+    assert with_faiss.brute_force is None
+    for options in (SuggestOptions(k=20), SuggestOptions(k=10, categories=("chair", "table")),
+                    SuggestOptions(k=10, exclude_shapes=(query.shape_id,))):
+        a, b = (e.suggest_batch([(query.points, options)])[0] for e in (engine, with_faiss))
+        assert [s.part_id for s in a.suggestions] == [s.part_id for s in b.suggestions]
+        assert a.candidates == b.candidates
