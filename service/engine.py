@@ -502,6 +502,7 @@ class SuggestionEngine:
         if not self._checks_complement(q.options) or len(idx) == 0:
             return np.arange(min(len(idx), q.k))
         s = self.settings
+        faiss.omp_set_num_threads(s.faiss_threads)  # per calling thread (see _faiss_search)
         samples = self.catalog.part_samples(idx, s.complement_part_samples)
         share = covered_share(q.points, samples, translations.astype(np.float32), s.complement_cover_distance)
         return demote_covered(share, s.complement_cover_share)[:q.k]
