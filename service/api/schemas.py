@@ -11,12 +11,12 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validator
 
 from service.engine import SuggestOptions
 from service.errors import InputError
 from service.frames import Frame
-from service.inputs import points_from_base64, points_from_list, points_to_base64
+from service.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
 from service.preferences import Preferences
 
 # Request numbers and flags are strict: JSON `false` or `"1"` is not a coordinate, a count or a
@@ -26,6 +26,8 @@ Number = Annotated[float, Field(strict=True)]
 Count = Annotated[int, Field(strict=True)]
 Flag = Annotated[bool, Field(strict=True)]
 Vec3 = tuple[float, float, float]
+# JSON points: checked and converted in one pass (``points_from_json``), documented as numbers.
+PointRows = Annotated[Any, PlainValidator(points_from_json, json_schema_input_type=list[list[float]])]
 
 # A small valid query for the examples: a ring of 16 points (a chair seat's rim, say).
 _RING: list[Any] = [[round(0.5 * math.cos(a), 4), 0.0, round(0.5 * math.sin(a), 4)]
@@ -103,7 +105,7 @@ class SuggestOptionsIn(_Strict):
 class PointsIn(_Strict):
     """A partial assembly as points: a JSON list, or base64 float32 (faster) - exactly one of them."""
 
-    points: list[list[Number]] | None = Field(default=None, description=(
+    points: PointRows | None = Field(default=None, description=(
         "[[x, y, z], ...] in the request's frame."))
     points_base64: str | None = Field(default=None, description=(
         "Base64 of little-endian float32 x, y, z triples (12 bytes per point)."))
@@ -123,6 +125,8 @@ class PointsIn(_Strict):
         if len(self.points) > max_points:
             raise InputError("too_many_points", f"{len(self.points)} points given, at most {max_points} "
                              "are accepted")
+        if isinstance(self.points, np.ndarray):
+            return self.points
         return points_from_list(self.points)
 
 

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from service.errors import InputError, UnsupportedMediaError
-from service.inputs import check_points, mesh_format, points_from_base64, points_from_list, points_to_base64
+from service.inputs import (
+    check_points,
+    mesh_format,
+    points_from_base64,
+    points_from_json,
+    points_from_list,
+    points_to_base64,
+)
 
 
 def _code(fn, *args) -> str:
@@ -68,3 +75,33 @@ def test_base64_may_be_wrapped() -> None:
     text = points_to_base64(pts)
     wrapped = "\n".join(text[i:i + 76] for i in range(0, len(text), 76))
     np.testing.assert_array_equal(points_from_base64(wrapped, 100), pts)
+
+
+def test_json_points_become_float64_triples() -> None:
+    values = np.random.default_rng(0).normal(size=(50, 3)).tolist()
+    values[3] = [0, 1, 2]  # integers are numbers, and exact 0 and 1 are coordinates
+    got = points_from_json(values)
+    assert isinstance(got, np.ndarray) and got.dtype == np.float64
+    np.testing.assert_array_equal(got, np.asarray(values, dtype=np.float64))
+
+
+@pytest.mark.parametrize(("bad", "named"), [
+    (True, "the boolean true"), (False, "the boolean false"), ("1.5", "the string '1.5'"),
+    (None, "null"), ([1.0], "a list"), ({"x": 1}, "an object"), (10**400, "too large"),
+])
+def test_json_points_that_are_not_numbers_are_named(bad: object, named: str) -> None:
+    values: list = [[0.5, 0.5, 0.5] for _ in range(20)]
+    values[7] = [0.0, bad, 1.0]
+    with pytest.raises(ValueError, match=r"points\[7\]\[1\]") as info:
+        points_from_json(values)
+    assert named in str(info.value)
+
+
+def test_json_points_of_the_wrong_shape_are_left_to_points_from_list() -> None:
+    for values, code in (([], "empty_points"), ([[1, 2]], "bad_shape"), ([[1, 2, 3], [4, 5]], "bad_shape"),
+                         ([[1, 2, 3, 4]], "bad_shape"), ([[1, 2, 3], 4], "bad_shape")):
+        passed = points_from_json(values)
+        assert passed is values
+        assert _code(points_from_list, passed) == code
+    with pytest.raises(ValueError, match="list of"):
+        points_from_json("1 2 3")
