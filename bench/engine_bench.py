@@ -31,7 +31,7 @@ from bench.stats import summarize_seconds
 from service.api.render import render_suggest
 from service.api.schemas import SuggestRequest
 from service.engine import SuggestionEngine
-from service.loading import load_artifacts
+from service.loading import load_served_artifacts
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -52,12 +52,7 @@ class EngineBenchConfig:
 
 def load_engine(settings: Settings) -> SuggestionEngine:
     """The engine as the server's lifespan builds it (``service/api/app.py``), without warm-up."""
-    artifacts = load_artifacts(settings.artifacts, onnx_threads=settings.onnx_threads,
-                               faiss_threads=settings.faiss_threads,
-                               faiss_blas_threshold=settings.faiss_blas_threshold,
-                               verify_checksums=settings.verify_checksums,
-                               max_points_per_run=settings.max_points_per_run)
-    return SuggestionEngine(artifacts, settings)
+    return SuggestionEngine(load_served_artifacts(settings), settings)
 
 
 def parse_body(body: bytes) -> Any:

@@ -2,8 +2,10 @@
 
 For each body kind (JSON list of points, base64 float32) and each concurrency level, wrk keeps
 that many connections busy for a fixed time after a warm-up: throughput, p50, p99 and errors.
-The server runs with the service's defaults (one worker) plus the environment given in
-``server_env`` (access logging off by default: it would be the bench measuring its log file).
+The server runs with the service's defaults plus the environment given in ``server_env``: by
+default one worker process per usable core (how the service is meant to be run on a machine of
+its own; ``service/workers.py``) and access logging off (it would be the bench measuring its log
+file).
 """
 
 from __future__ import annotations
@@ -17,13 +19,14 @@ from typing import Any
 
 import httpx
 
+from bench.machine import usable_cores
 from bench.query import BODY_KINDS, BenchQuery
 from bench.server import Server, complementme_command, free_port, running_server
 from bench.wrk import LoadSettings, run_wrk
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SERVER_ENV = {"COMPLEMENTME_LOG_LEVEL": "warning"}
+DEFAULT_SERVER_ENV = {"COMPLEMENTME_LOG_LEVEL": "warning", "COMPLEMENTME_WORKERS": str(usable_cores())}
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,7 @@ def describe_machine(artifacts: Path) -> dict[str, Any]:
         "cpu_model": cpu_model(cpuinfo),
         "cpu_flags": cpu_flags(cpuinfo),
         "cores": os.cpu_count(),
-        "usable_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "usable_cores": usable_cores(),
         "ram_gib": mem_total_gib(_read("/proc/meminfo")),
         "load_average_at_start": [round(x, 2) for x in load] if load else None,
         "kernel": platform.release(),
@@ -94,6 +94,11 @@ def describe_machine(artifacts: Path) -> dict[str, Any]:
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": command_line(),
     }
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its affinity mask; all cores where there is none)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def command_line() -> str:

@@ -1,6 +1,7 @@
 """Open an artifact folder once, check every file against the manifest, refuse bad folders.
 
-``load_artifacts`` is what the server's lifespan calls: it opens the five ONNX graphs with
+``load_served_artifacts`` (``load_artifacts`` with the server's settings) is what the server's
+lifespan calls: it opens the five ONNX graphs with
 explicit session options, the FAISS index and the catalog, checks names, dimensions and counts
 against ``manifest.json`` and each other, runs every graph once on catalog data, and raises
 ``ArtifactError`` naming the offending file at the first problem.
@@ -16,6 +17,7 @@ from typing import Any
 import faiss
 import numpy as np
 import onnxruntime as ort
+from threadpoolctl import threadpool_limits
 
 from service.artifacts import (
     CATALOG_ARRAYS,
@@ -30,6 +32,7 @@ from service.artifacts import (
 from service.catalog import Catalog, load_catalog
 from service.indexing import configure_search, params_from_entry
 from service.models import Networks
+from service.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -194,11 +197,25 @@ def _check_run(folder: Path, nets: Networks, catalog: Catalog, manifest: dict[st
                         graph, folder / CATALOG_ARRAYS, rel)
 
 
+def load_served_artifacts(settings: Settings) -> Artifacts:
+    """The artifacts as the server loads them: its thread counts, checks and run sizes."""
+    s = settings
+    return load_artifacts(s.artifacts, onnx_threads=s.onnx_threads, faiss_threads=s.faiss_threads,
+                          faiss_blas_threshold=s.faiss_blas_threshold, blas_threads=s.blas_threads,
+                          verify_checksums=s.verify_checksums, max_points_per_run=s.max_points_per_run)
+
+
 def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 1,
-                   faiss_blas_threshold: int = 20, verify_checksums: bool = True,
-                   max_points_per_run: int = 1024) -> Artifacts:
-    """Load and check an artifact folder; ``ArtifactError`` names the first bad file."""
+                   faiss_blas_threshold: int = 20, blas_threads: int | None = None,
+                   verify_checksums: bool = True, max_points_per_run: int = 1024) -> Artifacts:
+    """Load and check an artifact folder; ``ArtifactError`` names the first bad file.
+
+    ``blas_threads`` limits numpy's BLAS for the whole process, as FAISS's settings are (None:
+    leave it as it is).
+    """
     folder = Path(folder)
+    if blas_threads is not None:
+        threadpool_limits(limits=blas_threads, user_api="blas")
     if not folder.is_dir():
         raise ArtifactError(f"artifact folder not found: {folder}")
     manifest = read_manifest(folder, verify_checksums=verify_checksums)

@@ -20,7 +20,6 @@ import anyio
 import numpy as np
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
-from threadpoolctl import threadpool_limits
 
 from service import __version__
 from service.api.errors import install_error_handlers
@@ -32,7 +31,7 @@ from service.artifacts import ArtifactError
 from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
-from service.loading import load_artifacts
+from service.loading import load_served_artifacts
 from service.metrics import Metrics
 from service.overload import OverloadMiddleware
 from service.settings import Settings, get_settings
@@ -55,13 +54,8 @@ Every error is `{"error": {"code": ..., "message": ...}}`.
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
-    threadpool_limits(limits=settings.blas_threads, user_api="blas")  # process-wide, like FAISS's
     try:
-        artifacts = load_artifacts(settings.artifacts, onnx_threads=settings.onnx_threads,
-                                   faiss_threads=settings.faiss_threads,
-                                   faiss_blas_threshold=settings.faiss_blas_threshold,
-                                   verify_checksums=settings.verify_checksums,
-                                   max_points_per_run=settings.max_points_per_run)
+        artifacts = load_served_artifacts(settings)
     except ArtifactError as exc:
         log.error("refusing to start: %s", exc)
         raise
