@@ -84,6 +84,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # reach: a full collection walked those ~160k objects in 60-90 ms, the p99 of JSON requests.
     gc.collect()
     gc.freeze()
+    # A JSON request holds ~1000 coordinate lists while it waits for its batch; at Python's
+    # default threshold the collector ran more than once per request and walked the lists of
+    # every request in flight (see the gc_threshold setting).
+    gc.set_threshold(settings.gc_threshold, *gc.get_threshold()[1:])
     refresher = asyncio.create_task(metrics.refresh_live_forever()) if metrics.multiprocess else None
     app.state.ready = True
     try:
