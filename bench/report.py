@@ -187,8 +187,10 @@ def _engine(data: dict[str, Any]) -> list[str]:
 def _http(data: dict[str, Any]) -> list[str]:
     r = data["results"]
     load = data["config"]["load"]
+    workers = (data["config"].get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
     lines = [
-        f"wrk on loopback against `complementme serve` (1 worker), {load['duration']:.0f} s per row after "
+        f"wrk on loopback against `complementme serve` ({workers} worker processes), "
+        f"{load['duration']:.0f} s per row after "
         f"{load['warmup']:.0f} s of warm-up, {load['threads']} wrk thread; server environment "
         f"`{data['config'].get('server_env')}`. req/s counts 2xx answers; latency percentiles are over "
         "all answers (with errors, the fast 503s are among them). Errors: non-2xx answers (by status), "
