@@ -74,7 +74,7 @@ def test_targets_are_judged_from_the_numbers() -> None:
     rows = {t: (m, ok) for t, m, ok in targets(_results())}
     assert rows["Engine p50 < 3 ms (1000 points, k = 10, shipped catalog)"] == ("2.50 ms", True)
     assert rows["HTTP at concurrency 1: p50 < 6 ms"][1] is True
-    assert rows["Concurrency 32: >= 300 req/s, p99 < 100 ms, no errors"][1] is True
+    assert rows["Concurrency 32 (JSON body): >= 300 req/s, p99 < 100 ms, no errors"][1] is True
     assert rows[">= 10x the peer baseline's throughput at concurrency 32"] == ("11.7x", True)
     assert rows["1M parts: /suggest p50 at most 2x the shipped catalog's"][1] is True  # 3.0 vs 2.0 ms
     m, ok = rows["1M parts: recall@64 >= 0.95 against exact search"]
