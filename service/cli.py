@@ -112,11 +112,12 @@ def register_service_commands(app: typer.Typer) -> None:
             typer.echo(f"error: invalid {ENV_PREFIX}* setting:\n{exc}", err=True)
             raise typer.Exit(2) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
+        from service.workers import APP_FACTORY, GRACEFUL_SECONDS, Supervisor
+
         if s.workers == 1:
-            uvicorn.run("service.api.app:create_app", factory=True, host=s.host, port=s.port,
-                        log_level=s.log_level, timeout_graceful_shutdown=10)
+            uvicorn.run(APP_FACTORY, factory=True, host=s.host, port=s.port, log_level=s.log_level,
+                        timeout_graceful_shutdown=GRACEFUL_SECONDS)
             return
-        from service.workers import Supervisor
 
         try:
             status = Supervisor(s.host, s.port, s.workers, log_level=s.log_level).run()

@@ -62,7 +62,8 @@ class Metrics:
                                    "ONNX Runtime time per engine call, by graph.", ["graph"],
                                    buckets=_STAGE_BUCKETS, registry=r)
         self.search = Histogram("complementme_search_duration_seconds",
-                                "FAISS search time per engine call.", buckets=_STAGE_BUCKETS, registry=r)
+                                "Nearest-part search time per engine call (numpy brute force or FAISS).",
+                                buckets=_STAGE_BUCKETS, registry=r)
         self.scoring = Histogram("complementme_scoring_duration_seconds",
                                  "Mixture re-scoring and ranking time per engine call.",
                                  buckets=_STAGE_BUCKETS, registry=r)

@@ -34,7 +34,8 @@ from service.metrics import MULTIPROC_ENV
 
 log = logging.getLogger(__name__)
 
-APP_FACTORY = "service.api.app:create_app"
+APP_FACTORY = "service.api.app:create_app"  # what uvicorn serves, with one worker or many
+GRACEFUL_SECONDS = 10  # uvicorn's grace for requests in flight at a stop
 STARTUP_FAILURE = 3  # a worker's exit status when it stopped before serving
 _PARENT_POLL_SECONDS = 1.0
 
@@ -64,7 +65,7 @@ class WorkerConfig:
     port: int
     log_level: str  # uvicorn's
     root_log_level: int  # the CLI's (INFO, or DEBUG with --verbose)
-    graceful_seconds: int = 10
+    graceful_seconds: int = GRACEFUL_SECONDS
 
 
 def run_worker(config: WorkerConfig, parent_pid: int) -> None:
@@ -99,7 +100,7 @@ class Supervisor:
     """Run ``workers`` server processes on ``host:port`` until SIGINT or SIGTERM."""
 
     def __init__(self, host: str, port: int, workers: int, log_level: str = "info",
-                 graceful_seconds: int = 10):
+                 graceful_seconds: int = GRACEFUL_SECONDS):
         self.host, self.port, self.workers = host, port, workers
         self.log_level, self.graceful_seconds = log_level, graceful_seconds
         self._context = multiprocessing.get_context("spawn")
