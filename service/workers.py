@@ -1,16 +1,15 @@
-"""Several server processes on one port, each with its own listening socket (``SO_REUSEPORT``).
+"""Several server processes on one port: a supervisor that accepts, workers that serve.
 
-uvicorn's own ``--workers`` shares one listening socket among its processes. Under keep-alive
-load the process that wakes first accepts a whole burst of connections and keeps them: with two
-workers and 32 connections one process ran at 100 % of a core and the other idled (217 req/s,
-against 200 with one worker). With a socket per process the kernel spreads new connections over
-the listening processes by a hash of their addresses (the same two workers: 394 req/s).
+The supervisor owns the listening socket and hands every new connection to the worker with the
+fewest open connections (``service/balancer.py``: the kernel's own spreading left one worker
+with twice the other's connections, and its queue set the tail latency).
 
 ``Supervisor`` starts the workers, restarts one that dies after it started serving, stops all of
 them on SIGINT or SIGTERM, and stops with an error when a worker fails during start-up (a broken
 artifact folder fails the same way every time). The workers share one Prometheus multiprocess
 directory, so a scrape of ``/metrics`` on any of them reports all of them (``service/metrics.py``).
-A worker whose supervisor disappears (SIGKILL, OOM) stops by itself instead of serving on alone.
+A worker whose supervisor disappears (SIGKILL, OOM) sees its channel close and stops by itself
+instead of serving on alone.
 """
 
 from __future__ import annotations
@@ -30,27 +29,27 @@ from multiprocessing.context import SpawnProcess
 from pathlib import Path
 from types import FrameType
 
+from uvicorn.server import STARTUP_FAILURE  # a worker's exit status when it stopped before serving
+
+from service.balancer import ConnectionBalancer, HandedServer, channel_pair
 from service.metrics import MULTIPROC_ENV
 
 log = logging.getLogger(__name__)
 
 APP_FACTORY = "service.api.app:create_app"  # what uvicorn serves, with one worker or many
 GRACEFUL_SECONDS = 10  # uvicorn's grace for requests in flight at a stop
-STARTUP_FAILURE = 3  # a worker's exit status when it stopped before serving
-_PARENT_POLL_SECONDS = 1.0
+BACKLOG = 2048  # uvicorn's default listen backlog
+_POLL_SECONDS = 0.5  # how often the supervisor looks for dead workers and stop signals
 
 
-def listening_socket(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to ``host:port`` with ``SO_REUSEPORT``, so that every worker can bind it.
-
-    Raises ``OSError`` when another program holds the port without ``SO_REUSEPORT``.
-    """
+def listening_socket(host: str, port: int, backlog: int = BACKLOG) -> socket.socket:
+    """The supervisor's TCP socket, listening on ``host:port``; ``OSError`` when the port is taken."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         sock.bind((host, port))
+        sock.listen(backlog)
     except OSError:
         sock.close()
         raise
@@ -61,43 +60,30 @@ def listening_socket(host: str, port: int) -> socket.socket:
 class WorkerConfig:
     """What a worker process needs to serve (picklable: workers are spawned)."""
 
-    host: str
-    port: int
     log_level: str  # uvicorn's
     root_log_level: int  # the CLI's (INFO, or DEBUG with --verbose)
     graceful_seconds: int = GRACEFUL_SECONDS
 
 
-def run_worker(config: WorkerConfig, parent_pid: int) -> None:
-    """The body of one worker process: its own socket on the shared port, then uvicorn."""
+def run_worker(config: WorkerConfig, channel: socket.socket) -> None:
+    """The body of one worker process: uvicorn serving the connections ``channel`` brings."""
     import uvicorn
 
     from service.cli import LOG_FORMAT, quiet_libraries
 
     logging.basicConfig(level=config.root_log_level, format=LOG_FORMAT)
     quiet_libraries()
-    _stop_when_orphaned(parent_pid)
-    sock = listening_socket(config.host, config.port)
-    server = uvicorn.Server(uvicorn.Config(APP_FACTORY, factory=True, log_level=config.log_level,
-                                           timeout_graceful_shutdown=config.graceful_seconds))
-    server.run(sockets=[sock])
+    server = HandedServer(uvicorn.Config(APP_FACTORY, factory=True, log_level=config.log_level,
+                                         timeout_graceful_shutdown=config.graceful_seconds), channel)
+    server.run()
     if not server.started:
         sys.exit(STARTUP_FAILURE)
 
 
-def _stop_when_orphaned(parent_pid: int) -> None:
-    """SIGTERM this process (uvicorn's graceful stop) once its supervisor is gone."""
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(_PARENT_POLL_SECONDS)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
 class Supervisor:
     """Run ``workers`` server processes on ``host:port`` until SIGINT or SIGTERM."""
+
+    _balancer: ConnectionBalancer  # made in ``run``, with the listening socket
 
     def __init__(self, host: str, port: int, workers: int, log_level: str = "info",
                  graceful_seconds: int = GRACEFUL_SECONDS):
@@ -109,27 +95,29 @@ class Supervisor:
 
     def run(self) -> int:
         """Serve until told to stop; the exit status (0, or 1 when a worker failed to start)."""
-        # Binding here first resolves port 0 and fails at once, with a clear error, on a taken port.
-        reserved = listening_socket(self.host, self.port)
-        port = int(reserved.getsockname()[1])
+        # Listening before the workers start fails at once, with a clear error, on a taken port.
+        listener = listening_socket(self.host, self.port)
+        port = int(listener.getsockname()[1])
+        self._balancer = ConnectionBalancer(listener)
         metrics_dir, own_dir = self._metrics_dir()
-        config = WorkerConfig(self.host, port, self.log_level, logging.getLogger().getEffectiveLevel(),
-                              self.graceful_seconds)
+        config = WorkerConfig(self.log_level, logging.getLogger().getEffectiveLevel(), self.graceful_seconds)
         previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         status = 0
         try:
             log.info("supervisor %d: %d workers on http://%s:%d (metrics in %s)", os.getpid(),
                      self.workers, self.host, port, metrics_dir)
-            self._processes = [self._start(config) for _ in range(self.workers)]
-            while not self._stop.wait(0.5):
+            self._processes = [self._start(config, slot) for slot in range(self.workers)]
+            while not self._stop.is_set():
+                self._balancer.poll(_POLL_SECONDS)
                 status = self._replace_dead(config)
                 if status:
                     break
         finally:
+            self._balancer.close()
+            listener.close()  # clients still in the backlog are refused, not left waiting
             self._stop_all()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-            reserved.close()
             if own_dir:
                 shutil.rmtree(metrics_dir, ignore_errors=True)
         return status
@@ -149,10 +137,12 @@ class Supervisor:
         os.environ[MULTIPROC_ENV] = str(path)  # inherited by the spawned workers
         return path, True
 
-    def _start(self, config: WorkerConfig) -> SpawnProcess:
-        process = self._context.Process(target=run_worker, args=(config, os.getpid()),
-                                        name="complementme-worker")
+    def _start(self, config: WorkerConfig, slot: int) -> SpawnProcess:
+        ours, theirs = channel_pair()
+        process = self._context.Process(target=run_worker, args=(config, theirs), name="complementme-worker")
         process.start()
+        theirs.close()  # the worker holds its end now: its exit closes the channel
+        self._balancer.add(slot, ours)
         log.info("supervisor: started worker %d", process.pid)
         return process
 
@@ -170,7 +160,7 @@ class Supervisor:
                 return 1
             log.warning("supervisor: worker %d exited with status %s; starting another", process.pid,
                         process.exitcode)
-            self._processes[i] = self._start(config)
+            self._processes[i] = self._start(config, i)
         return 0
 
     def _stop_all(self) -> None:

@@ -1,4 +1,5 @@
-"""``complementme serve --workers 2``: one port, a socket per worker, one /metrics view, supervision.
+"""``complementme serve --workers 2``: one port, connections dealt to the workers, one /metrics view,
+supervision.
 
 Each test runs the real CLI on the real artifacts in a process of its own.
 """
@@ -105,6 +106,23 @@ def _healthz_count(url: str) -> float:
     return total
 
 
+def _established_on(port: int, pids: list[int]) -> dict[int, int]:
+    """Established TCP connections on local ``port`` held by each of ``pids`` (from /proc)."""
+    inodes: set[str] = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as rows:
+            next(rows)
+            for row in rows:
+                fields = row.split()
+                if int(fields[1].rsplit(":", 1)[1], 16) == port and fields[3] == "01":
+                    inodes.add(fields[9])
+    held = {}
+    for pid in pids:
+        links = [os.readlink(f) for f in Path(f"/proc/{pid}/fd").iterdir() if f.is_symlink()]
+        held[pid] = sum(1 for link in links if link.startswith("socket:[") and link[8:-1] in inodes)
+    return held
+
+
 def _wait_until(check, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -129,7 +147,7 @@ def test_connections_spread_over_the_workers_and_metrics_sum_them(served: tuple[
                                                                   query: AssemblyQuery) -> None:
     server, metrics_dir = served
     before = _healthz_count(server.url)
-    for _ in range(40):  # a new connection each time: the kernel picks a worker per connection
+    for _ in range(40):  # a new connection each time: the supervisor deals them out
         assert httpx.get(server.url + "/healthz", timeout=10).status_code == 200
     # Every scrape, whichever worker answers it, counts all 40.
     for _ in range(5):
@@ -141,6 +159,19 @@ def test_connections_spread_over_the_workers_and_metrics_sum_them(served: tuple[
     assert all(a.status_code == 200 for a in answers)
     # Every worker serves the same model, so the ranking does not depend on which one answered.
     assert len({tuple(s["part_id"] for s in a.json()["suggestions"]) for a in answers}) == 1
+
+
+def test_keep_alive_connections_are_split_evenly(served: tuple[Served, Path]) -> None:
+    server, _ = served
+    clients = [httpx.Client(base_url=server.url, timeout=10) for _ in range(8)]
+    try:
+        for client in clients:  # each client keeps its one connection open
+            assert client.get("/healthz").status_code == 200
+        held = _established_on(server.port, server.workers())
+        assert sorted(held.values()) == [4, 4], held
+    finally:
+        for client in clients:
+            client.close()
 
 
 def test_a_killed_worker_is_replaced_and_its_counts_kept(served: tuple[Served, Path]) -> None:
