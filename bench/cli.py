@@ -119,24 +119,12 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
     _save(results_dir, "catalog", cfg.as_dict(), run_catalog_bench(engine, _query(query), cfg, cache))
 
 
-def check_peer_inputs(run_dir: Path) -> None:
-    """Fail before any benchmark runs when the peer's torch checkpoint is missing."""
-    from training.checkpoint import checkpoint_path
-
-    path = checkpoint_path(run_dir)
-    if not path.is_file():
-        raise typer.BadParameter(f"the peer baseline loads the torch checkpoint {path}, which does not exist "
-                                 "(runs/ is not committed: train with training/recipes/shipped.sh, or give "
-                                 "--run-dir)", param_hint="--run-dir")
-
-
-def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any, run_dir: Path,
+def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any,
             server_env: list[str] | None) -> None:
     from bench.peer_bench import PeerBenchConfig, run_peer_bench
     from service.settings import get_settings
 
-    check_peer_inputs(run_dir)
-    cfg = PeerBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load, run_dir=run_dir,
+    cfg = PeerBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load,
                           artifacts=get_settings().artifacts, server_env=_env_pairs(server_env))
     _save(results_dir, "peer", cfg.as_dict(), run_peer_bench(_query(query), cfg, cache))
 
@@ -201,12 +189,11 @@ def peer(
     warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per level (default 3)."),
     wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
     timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
-    run_dir: Path = typer.Option(REPO / "runs" / "shipped", help="Run folder of the peer's checkpoint."),
     server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for our server (repeatable)."),
 ) -> None:
     """d. The peer baseline (torch eager, plain FastAPI) against our service, same load, same run."""
     load = _load(quick, duration, warmup_seconds, wrk_threads, timeout)
-    do_peer(results_dir, query, cache_dir, concurrency, load, run_dir, server_env)
+    do_peer(results_dir, query, cache_dir, concurrency, load, server_env)
 
 
 @app.command()
@@ -225,10 +212,9 @@ def run_all(
     sizes: str | None = typer.Option(None, help="Catalog sizes (default 10000,100000,1000000)."),
 ) -> None:
     """engine, http, catalog and peer with their defaults, then the report."""
-    check_peer_inputs(REPO / "runs" / "shipped")
     load = _load(quick, duration, None, 1, 30.0)
     do_engine(results_dir, query, quick, None, None)
     do_http(results_dir, query, quick, cache_dir, "1,8,32,64", load, None)
     do_catalog(results_dir, query, quick, cache_dir, sizes, 0.05, "auto", None, None, None, None)
-    do_peer(results_dir, query, cache_dir, "1,32", load, REPO / "runs" / "shipped", None)
+    do_peer(results_dir, query, cache_dir, "1,32", load, None)
     do_report(results_dir, doc)

@@ -32,24 +32,22 @@ class PeerBenchConfig:
 
     concurrency: tuple[int, ...] = (1, 32)
     load: LoadSettings = field(default_factory=LoadSettings)
-    run_dir: Path = REPO / "runs" / "shipped"       # the torch checkpoint the peer loads
-    artifacts: Path = REPO / "exported"             # catalog the peer reads (embeddings, points)
+    artifacts: Path = REPO / "exported"             # the model (graphs) and catalog both serve
     server_env: tuple[tuple[str, str], ...] = tuple(DEFAULT_SERVER_ENV.items())
 
     def as_dict(self) -> dict[str, Any]:
         return {"concurrency": list(self.concurrency), "load": self.load.as_dict(),
-                "run_dir": str(self.run_dir), "artifacts": str(self.artifacts),
+                "artifacts": str(self.artifacts),
                 "server_env": dict(self.server_env), "body": "json"}
 
 
 @contextmanager
-def peer_service(cache: Path, run_dir: Path, artifacts: Path, start_timeout: float = 180.0
-                 ) -> Iterator[Server]:
+def peer_service(cache: Path, artifacts: Path, start_timeout: float = 180.0) -> Iterator[Server]:
     """The peer app under uvicorn (1 worker, no access log) on a free port, ready when the block starts."""
     port = free_port()
     cmd = [sys.executable, "-m", "uvicorn", "bench.peer.app:app", "--host", "127.0.0.1", "--port", str(port),
            "--workers", "1", "--log-level", "warning", "--no-access-log"]
-    env = {"PEER_RUN_DIR": str(run_dir), "PEER_ARTIFACTS": str(artifacts)}
+    env = {"PEER_ARTIFACTS": str(artifacts)}
     with running_server(cmd, port=port, ready_path="/healthz", log_path=cache / "peer.log", env=env,
                         cwd=REPO, start_timeout=start_timeout) as server:
         yield server
@@ -84,7 +82,7 @@ def run_peer_bench(query: BenchQuery, cfg: PeerBenchConfig, cache: Path) -> dict
     """The peer, then our service, under the same load; the ratios and the top-part check."""
     bodies = write_bodies(query, cache, ("json",))
     body = bodies["json"].read_bytes()
-    with peer_service(cache, cfg.run_dir, cfg.artifacts) as peer:
+    with peer_service(cache, cfg.artifacts) as peer:
         peer_answer = check_answer(peer.url + "/suggest", body, timeout=cfg.load.timeout)
         peer_levels = load_levels(peer.url + "/suggest", bodies, cfg.concurrency, cfg.load)
     with our_service(cache, dict(cfg.server_env)) as ours:

@@ -98,7 +98,7 @@ def targets(res: dict[str, dict[str, Any]]) -> list[tuple[str, str, bool | None]
     else:
         rows.append(("HTTP at concurrency 1: p50 < 6 ms", "-", None))
     c32 = _level(http["results"]["levels"], "json", 32) if http else None
-    if c32 is not None:
+    if http is not None and c32 is not None:
         ok = (c32["throughput_rps"] >= 300 and c32["p99_ms"] is not None and c32["p99_ms"] < 100
               and c32["errors"] == 0)
         text = f"{c32['throughput_rps']:.0f} req/s, p99 {_ms(c32['p99_ms'])} ms, {c32['errors']} errors"

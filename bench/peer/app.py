@@ -4,7 +4,9 @@ What it does per request, on purpose the straightforward way:
 
 - a plain ``def`` FastAPI handler with a pydantic body (a JSON list of points);
 - the points subsampled to the training point count (seeded, as the service does);
-- g in torch eager (the checkpoint's networks, rebuilt with ``training.checkpoint.load_trained``);
+- g in torch eager: the shipped networks in torch, their weights read back from the exported
+  graphs (``training.from_onnx``; the training checkpoint is not committed, and this way the peer
+  serves exactly the function the service serves);
 - nearest catalog parts of each mixture mean by brute-force numpy over the catalog embeddings
   (the same ``catalog.npz`` embeddings the service's index holds), their union scored by the
   mixture log-likelihood in numpy, the top k kept;
@@ -13,8 +15,8 @@ What it does per request, on purpose the straightforward way:
 - the answer returned as a dict through FastAPI's default JSON response.
 
 No duplicate collapse and no contact refinement: those are this project's features, and leaving
-them out only makes the peer faster. Run with ``uvicorn bench.peer.app:app`` (1 worker); the run
-folder and artifact folder come from ``PEER_RUN_DIR`` and ``PEER_ARTIFACTS``.
+them out only makes the peer faster. Run with ``uvicorn bench.peer.app:app`` (1 worker); the
+artifact folder comes from ``PEER_ARTIFACTS`` (default ``exported/``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import torch
 from fastapi import FastAPI, HTTPException
 from pydantic import BaseModel, Field
 
-from training.checkpoint import load_trained
+from training.from_onnx import load_exported_networks
 from training.models import PlacementNet, RetrievalNet
 
 REPO = Path(__file__).resolve().parents[2]
@@ -61,15 +63,16 @@ class PeerModel:
     seed: int
 
 
-def load_peer(run_dir: Path, artifacts: Path, neighbours: int = 64, seed: int = 0) -> PeerModel:
-    """Rebuild g and h from the run's torch checkpoint and read the catalog arrays."""
-    trained = load_trained(run_dir)
+def load_peer(artifacts: Path, neighbours: int = 64, seed: int = 0) -> PeerModel:
+    """Rebuild g and h in torch from the artifact folder's graphs and read its catalog arrays."""
+    pair, placement, _ = load_exported_networks(artifacts)
+    manifest = json.loads((artifacts / "manifest.json").read_text())
     with np.load(artifacts / "catalog.npz") as data:
         embeddings = data["embeddings"].astype(np.float32)
         points = torch.from_numpy(data["points"].astype(np.float32))
     records = json.loads((artifacts / "catalog.json").read_text())
     records = records["parts"] if isinstance(records, dict) else records
-    return PeerModel(g=trained.pair.g, h=trained.placement, n_points=trained.config.n_points,
+    return PeerModel(g=pair.g, h=placement, n_points=int(manifest["n_points"]),
                      embeddings=embeddings, part_points=points, part_ids=[r["part_id"] for r in records],
                      neighbours=neighbours, seed=seed)
 
@@ -108,9 +111,8 @@ def suggest(model: PeerModel, points: np.ndarray, k: int) -> list[dict[str, Any]
 
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-    run_dir = Path(os.environ.get("PEER_RUN_DIR", REPO / "runs" / "shipped"))
     artifacts = Path(os.environ.get("PEER_ARTIFACTS", REPO / "exported"))
-    app.state.model = load_peer(run_dir, artifacts)
+    app.state.model = load_peer(artifacts)
     yield
 
 

@@ -1,0 +1,59 @@
+"""Torch networks read back from an exported folder compute what the trained ones did."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import onnx
+import pytest
+import torch
+
+from service.artifacts import GRAPH_FILES, MANIFEST
+from training.checkpoint import load_trained
+from training.export import export_run, graph_modules
+from training.from_onnx import check_parity, load_exported_networks, load_graph_weights
+
+
+@pytest.fixture(scope="module")
+def exported(tiny_run: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("from_onnx") / "exported"
+    export_run(tiny_run, out)
+    return out
+
+
+def test_read_back_networks_match_the_trained_ones(exported: Path, tiny_run: Path) -> None:
+    trained = load_trained(tiny_run)
+    pair, placement, cfg = load_exported_networks(exported)
+    assert cfg == trained.config.model
+    gen = torch.Generator().manual_seed(1)
+    query, part = torch.rand(4, 300, 3, generator=gen) - 0.5, torch.rand(4, 200, 3, generator=gen) - 0.5
+    with torch.no_grad():
+        for got, want in zip(pair.g(query), trained.pair.g(query), strict=True):
+            torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(pair.f(part), trained.pair.f(part), atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(placement(query, part), trained.placement(query, part),
+                                   atol=1e-5, rtol=1e-4)
+
+
+def test_a_wrong_weight_fails_the_parity_check(exported: Path, tiny_run: Path) -> None:
+    trained = load_trained(tiny_run)
+    module = graph_modules(trained.pair, trained.placement)["g"]
+    path = exported / GRAPH_FILES["g"]
+    load_graph_weights(module, onnx.load(str(path)), str(path))
+    check_parity(module, "g", path, trained.placement)  # read back as exported: the same
+    with torch.no_grad():
+        module.encoder.point_mlp[0].weight.mul_(1.5)
+    with pytest.raises(ValueError, match="torch and onnxruntime differ"):
+        check_parity(module, "g", path, trained.placement)
+
+
+def test_a_manifest_that_does_not_describe_the_graphs_is_refused(exported: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "exported"
+    shutil.copytree(exported, folder)
+    manifest = json.loads((folder / MANIFEST).read_text())
+    manifest["model_config"]["point_layers"] = [*manifest["model_config"]["point_layers"], 32]
+    (folder / MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="unnamed layers in the graph"):
+        load_exported_networks(folder)
