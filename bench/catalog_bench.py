@@ -4,8 +4,9 @@ For each size: the replicated embeddings (``bench.replicate``), the index the se
 build for them (``service.indexing.build_index``; built once and cached under ``bench/.cache``),
 its build time and parameters, the search latency for one query's K mixture means, recall@64
 against exact flat search over the mixture means of held-out queries, and the whole engine's
-/suggest latency with that index and a catalog of that size plugged in. The shipped catalog
-(its own exported index) is measured the same way as the baseline row.
+/suggest latency with that index and a catalog of that size plugged in, the sizes' requests
+interleaved (``time_engines``). The shipped catalog (its own exported index) is measured the
+same way as the baseline row.
 """
 
 from __future__ import annotations
@@ -133,10 +134,10 @@ def cached_index(x: np.ndarray, cfg: CatalogBenchConfig, cache: Path
     return index, params, seconds, False
 
 
-def measure_size(engine: SuggestionEngine, x: np.ndarray, index: faiss.Index, means: np.ndarray, K: int,
-                 body: bytes, cfg: CatalogBenchConfig, catalog: Any) -> dict[str, Any]:
-    """Search latency, recall@k and whole-engine latency of one catalog size and its index."""
-    faiss.omp_set_num_threads(engine.settings.faiss_threads)
+def measure_index(x: np.ndarray, index: faiss.Index, means: np.ndarray, K: int,
+                  cfg: CatalogBenchConfig, faiss_threads: int) -> dict[str, Any]:
+    """Search latency of one query's K means, the same with exact search, and recall@k."""
+    faiss.omp_set_num_threads(faiss_threads)
     k = min(cfg.recall_k, len(x))
     one = np.ascontiguousarray(means[:K])  # the benchmark query's K means
     search = time_calls(lambda: index.search(one, k), cfg.search_reps, cfg.warmup, cfg.max_seconds)
@@ -146,52 +147,64 @@ def measure_size(engine: SuggestionEngine, x: np.ndarray, index: faiss.Index, me
     exact_dist, _ = exact.search(means, k)
     found = index.search(means, k)[1]
     recall = recall_at_k(x, means, found, exact_dist)
-    exact.reset()  # free its copy of the vectors before the engine runs
-    plugged = dataclasses.replace(engine.artifacts, index=index, catalog=catalog)
-    big = SuggestionEngine(plugged, engine.settings)
-    timings: dict[str, list[float]] = {}
-    stages: dict[str, list[float]] = {}
-    answer = b""
+    exact.reset()  # free its copy of the vectors before the next size
+    return {"search": summarize_seconds(search), "exact_search": summarize_seconds(exact_search),
+            "recall_at_k": recall, "recall_k": k, "recall_means": len(means)}
 
-    def once() -> None:
-        nonlocal answer
-        st, tm, answer = request_once(big, body)
-        for key, v in st.items():
-            stages.setdefault(key, []).append(v)
-        for key, v in tm.items():
-            timings.setdefault(key, []).append(v)
 
-    time_calls(once, cfg.warmup, 0, cfg.max_seconds)
-    stages.clear()
-    timings.clear()
-    time_calls(once, cfg.engine_reps, 0, cfg.max_seconds)
-    top = json.loads(answer)["suggestions"]
-    return {
-        "search": summarize_seconds(search),
-        "exact_search": summarize_seconds(exact_search),
-        "recall_at_k": recall,
-        "recall_k": k,
-        "recall_means": len(means),
-        "engine": {key: summarize_seconds(v) for key, v in stages.items()},
-        "engine_timings": {key: summarize_seconds(v) for key, v in timings.items()},
-        "top_part": top[0]["part_id"] if top else None,
-    }
+def time_engines(engines: list[SuggestionEngine], body: bytes, cfg: CatalogBenchConfig
+                 ) -> list[dict[str, Any]]:
+    """Whole-request latency of every engine, interleaved: one request each per round.
+
+    The targets compare sizes with each other; timed one size after another, a few seconds of a
+    busier machine moved one size's p50 by 1.5x and the ratio with it (2.65 ms for the shipped
+    catalog in one run, 1.46 in the next). Interleaved, every size sees the same machine; the
+    first engine of a round rotates so that none always runs right after another.
+    """
+    stages: list[dict[str, list[float]]] = [{} for _ in engines]
+    timings: list[dict[str, list[float]]] = [{} for _ in engines]
+    answers = [b""] * len(engines)
+
+    def one_round(r: int, record: bool) -> None:
+        for offset in range(len(engines)):
+            i = (r + offset) % len(engines)
+            st, tm, answers[i] = request_once(engines[i], body)
+            if record:
+                for key, v in st.items():
+                    stages[i].setdefault(key, []).append(v)
+                for key, v in tm.items():
+                    timings[i].setdefault(key, []).append(v)
+
+    for r in range(cfg.warmup):
+        one_round(r, record=False)
+    start = time.perf_counter()
+    for r in range(cfg.engine_reps):
+        one_round(r, record=True)
+        if time.perf_counter() - start > cfg.max_seconds * len(engines):
+            break
+    out = []
+    for i in range(len(engines)):
+        top = json.loads(answers[i])["suggestions"]
+        out.append({"engine": {key: summarize_seconds(v) for key, v in stages[i].items()},
+                    "engine_timings": {key: summarize_seconds(v) for key, v in timings[i].items()},
+                    "top_part": top[0]["part_id"] if top else None})
+    return out
 
 
 def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogBenchConfig,
                       cache: Path) -> dict[str, Any]:
-    """The shipped catalog, then every replicated size, measured the same way."""
+    """The shipped catalog and every replicated size, measured the same way (requests interleaved)."""
     base = engine.catalog
     K = engine.artifacts.n_modes
     clouds = [query.points, *held_out_queries(base, cfg.recall_queries, len(query.points), cfg.seed)]
     means = query_means(engine, clouds)
     body = (query.body(cfg.body) if cfg.refine_contact is None
             else query.body(cfg.body, refine_contact=cfg.refine_contact))
-    rows = []
+    threads = engine.settings.faiss_threads
     log.info("catalog: shipped catalog (%d parts, %s)", len(base), type(engine.index).__name__)
-    shipped = measure_size(engine, base.embeddings, engine.index, means, K, body, cfg, base)
-    rows.append({"parts": len(base), "kind": "shipped", "index": engine.artifacts.manifest.get("index"),
-                 "build_seconds": None, **shipped})
+    rows = [{"parts": len(base), "kind": "shipped", "index": engine.artifacts.manifest.get("index"),
+             "build_seconds": None, **measure_index(base.embeddings, engine.index, means, K, cfg, threads)}]
+    engines = [engine]
     for n in cfg.sizes:
         t = time.perf_counter()
         x = replicate_embeddings(base.embeddings, n, cfg.noise, cfg.seed)
@@ -200,10 +213,16 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
                  "cached" if cached else "built", build_s)
         catalog = ReplicatedCatalog(base, x)
         prep = time.perf_counter() - t
-        res = measure_size(engine, x, index, means, K, body, cfg, catalog)
         rows.append({"parts": n, "kind": "replicated", "index": params, "build_seconds": build_s,
-                     "index_from_cache": cached, "setup_seconds": prep, **res})
-        del index, catalog, x
+                     "index_from_cache": cached, "setup_seconds": prep,
+                     **measure_index(x, index, means, K, cfg, threads)})
+        engines.append(SuggestionEngine(dataclasses.replace(engine.artifacts, index=index, catalog=catalog),
+                                        engine.settings))
+        del x
+    log.info("catalog: %d requests per size, the sizes interleaved", cfg.engine_reps)
+    faiss.omp_set_num_threads(threads)
+    for row, timed in zip(rows, time_engines(engines, body, cfg), strict=True):
+        row.update(timed)
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k, "body": cfg.body,
                   "refine_contact": cfg.refine_contact,

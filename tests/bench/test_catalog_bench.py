@@ -93,3 +93,24 @@ def test_replicated_catalog_rows_are_their_real_parts(shipped_catalog: Catalog) 
     assert cat.group[i] == base.group[5] and cat.group_size[5] >= 2 * base.group_size[5]
     with pytest.raises(IndexError):
         cat.records[n]
+
+
+def test_engines_are_timed_in_interleaved_rounds_each_with_its_own_catalog(shipped_catalog: Catalog) -> None:
+    import dataclasses
+
+    from bench.catalog_bench import CatalogBenchConfig, time_engines
+    from bench.engine_bench import load_engine
+    from bench.query import load_query
+    from service.settings import Settings
+
+    engine = load_engine(Settings(artifacts=Path(DEFAULT_ARTIFACTS), verify_checksums=False))
+    base = engine.catalog
+    bigger = ReplicatedCatalog(base, replicate_embeddings(base.embeddings, 2 * len(base), noise=0.05, seed=0))
+    flat = engine.index.__class__(base.embeddings.shape[1])
+    flat.add(bigger.embeddings)
+    other = type(engine)(dataclasses.replace(engine.artifacts, index=flat, catalog=bigger), engine.settings)
+    rows = time_engines([engine, other], load_query().body("json"),
+                        CatalogBenchConfig(engine_reps=3, warmup=1))
+    assert [r["engine"]["suggest"]["n"] for r in rows] == [3, 3]
+    assert "~" not in rows[0]["top_part"]  # the shipped catalog has no copies
+    assert rows[1]["top_part"] is not None
