@@ -25,9 +25,10 @@ import faiss
 import numpy as np
 
 from bench.engine_bench import contact_default, request_once
-from bench.query import BenchQuery, held_out_queries
+from bench.query import BenchQuery
 from bench.replicate import ReplicatedCatalog, replicate_embeddings
 from bench.stats import summarize_seconds
+from service.catalog import partial_assemblies
 from service.engine import SuggestionEngine
 from service.frames import Frame
 from service.indexing import build_index, configure_search
@@ -44,6 +45,7 @@ class CatalogBenchConfig:
     seed: int = 0
     recall_k: int = 64             # neighbours per mean (the engine's neighbours_per_mode)
     recall_queries: int = 63       # held-out queries (plus the benchmark's own) whose means are searched
+    tuning_shapes: int = 128       # training shapes (one part left out) whose means tune the index
     search_reps: int = 300         # timed searches of one query's K means per size
     engine_reps: int = 300         # timed whole /suggest requests per size
     warmup: int = 20
@@ -106,9 +108,9 @@ def query_means(engine: SuggestionEngine, clouds: list[np.ndarray]) -> np.ndarra
     return np.ascontiguousarray(means.reshape(-1, means.shape[-1]), dtype=np.float32)
 
 
-def cached_index(x: np.ndarray, cfg: CatalogBenchConfig, cache: Path
+def cached_index(x: np.ndarray, tuning: np.ndarray, cfg: CatalogBenchConfig, cache: Path
                  ) -> tuple[faiss.Index, dict[str, Any], float, bool]:
-    """The index ``build_index`` makes for ``x``, from the cache when built before.
+    """The index ``build_index`` makes for ``x`` tuned on ``tuning``, from the cache when built before.
 
     Returns ``(index, params, build_seconds, from_cache)``; the build time is the original one.
     """
@@ -116,7 +118,7 @@ def cached_index(x: np.ndarray, cfg: CatalogBenchConfig, cache: Path
     if cfg.flat_max is not None:
         kwargs["flat_max"] = cfg.flat_max
     key = hashlib.sha256(x.tobytes()).hexdigest()[:16] + "-" + hashlib.sha256(
-        json.dumps(kwargs, sort_keys=True).encode()).hexdigest()[:8]
+        json.dumps(kwargs, sort_keys=True).encode() + tuning.tobytes()).hexdigest()[:8]
     path = cache / f"index-{len(x)}-{key}.faiss"
     meta = path.with_suffix(".json")
     if path.is_file() and meta.is_file():
@@ -125,7 +127,7 @@ def cached_index(x: np.ndarray, cfg: CatalogBenchConfig, cache: Path
         configure_search(index, info["params"])
         return index, info["params"], float(info["build_seconds"]), True
     t = time.perf_counter()
-    index, params = build_index(x, **kwargs)
+    index, params = build_index(x, queries=tuning, **kwargs)
     seconds = time.perf_counter() - t
     cache.mkdir(parents=True, exist_ok=True)
     faiss.write_index(index, str(path))
@@ -196,8 +198,11 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
     """The shipped catalog and every replicated size, measured the same way (requests interleaved)."""
     base = engine.catalog
     K = engine.artifacts.n_modes
-    clouds = [query.points, *held_out_queries(base, cfg.recall_queries, len(query.points), cfg.seed)]
+    clouds = [query.points, *partial_assemblies(base, cfg.recall_queries, len(query.points), cfg.seed)]
     means = query_means(engine, clouds)
+    # The indexes are tuned as the export tunes them: on means of training queries, not the test ones.
+    tuning = query_means(engine, partial_assemblies(base, cfg.tuning_shapes, len(query.points), cfg.seed + 1,
+                                                    split="train"))
     body = (query.body(cfg.body) if cfg.refine_contact is None
             else query.body(cfg.body, refine_contact=cfg.refine_contact))
     threads = engine.settings.faiss_threads
@@ -208,7 +213,7 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
     for n in cfg.sizes:
         t = time.perf_counter()
         x = replicate_embeddings(base.embeddings, n, cfg.noise, cfg.seed)
-        index, params, build_s, cached = cached_index(x, cfg, cache)
+        index, params, build_s, cached = cached_index(x, tuning, cfg, cache)
         log.info("catalog: %d parts, %s (%s, %.1f s)", n, params.get("type"),
                  "cached" if cached else "built", build_s)
         catalog = ReplicatedCatalog(base, x)

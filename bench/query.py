@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import orjson
 
-from service.catalog import Catalog
 from service.geometry import resample_points
 from service.inputs import points_to_base64
 
@@ -63,33 +62,3 @@ def load_query(path: Path = EXAMPLE, n_points: int = 1000, k: int = 10, seed: in
     if len(pts) != n_points:
         pts = resample_points(pts, n_points, seed)
     return BenchQuery(points=np.ascontiguousarray(pts, dtype=np.float32), k=k, source=str(path))
-
-
-def held_out_queries(catalog: Catalog, count: int, n_points: int = 1000, seed: int = 0) -> list[np.ndarray]:
-    """Partial assemblies of held-out shapes: each a test-split shape with one random part left out.
-
-    Points come from the catalog's stored part samples (placed with their translations),
-    resampled to ``n_points``; shapes are drawn without replacement (seeded).
-
-    Shapes:
-        returns ``count`` arrays of (n_points, 3) float32 (fewer if the catalog has fewer shapes).
-    """
-    rng = np.random.default_rng(seed)
-    rows_of: dict[str, list[int]] = {}
-    for i, rec in enumerate(catalog.records):
-        if rec.get("split", "test") == "test":
-            rows_of.setdefault(rec["shape_id"], []).append(i)
-    shapes = sorted(s for s, rows in rows_of.items() if len(rows) >= 2)
-    if not shapes:  # a catalog without a test split: any multi-part shape
-        rows_of = {}
-        for i, rec in enumerate(catalog.records):
-            rows_of.setdefault(rec["shape_id"], []).append(i)
-        shapes = sorted(s for s, rows in rows_of.items() if len(rows) >= 2)
-    picked = rng.permutation(len(shapes))[:count]
-    out = []
-    for j in picked:
-        rows = rows_of[shapes[j]]
-        drop = rows[int(rng.integers(len(rows)))]
-        pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows if i != drop])
-        out.append(resample_points(pts, n_points, int(rng.integers(2**31))).astype(np.float32))
-    return out

@@ -17,6 +17,7 @@ import numpy as np
 
 from service.artifacts import CATALOG_FIELDS, ArtifactError
 from service.errors import InputError, NotFoundError
+from service.geometry import resample_points
 
 log = logging.getLogger(__name__)
 
@@ -232,3 +233,34 @@ def _build_catalog(records: list[dict[str, Any]], a: dict[str, np.ndarray]) -> C
         vertex_first=a["vertex_first"].astype(np.int64, copy=False),
         face_first=a["face_first"].astype(np.int64, copy=False),
     )
+
+
+def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 0,
+                       split: str = "test") -> list[np.ndarray]:
+    """Queries like the service's: shapes of one split, each with one random part left out.
+
+    Points come from the catalog's stored part samples (placed with their translations),
+    resampled to ``n_points``; shapes are drawn without replacement (seeded). A catalog without
+    that split (records carry ``split``; added parts have none) gives any multi-part shapes.
+
+    Shapes:
+        returns ``count`` arrays of (n_points, 3) float32 (fewer if the catalog has fewer shapes).
+    """
+    rng = np.random.default_rng(seed)
+
+    def shapes_with(keep: Any) -> dict[str, list[int]]:
+        rows_of: dict[str, list[int]] = {}
+        for i, rec in enumerate(catalog.records):
+            if keep(rec):
+                rows_of.setdefault(rec["shape_id"], []).append(i)
+        return {s: rows for s, rows in rows_of.items() if len(rows) >= 2}
+
+    rows_of = shapes_with(lambda rec: rec.get("split", split) == split) or shapes_with(lambda rec: True)
+    shapes = sorted(rows_of)
+    out = []
+    for j in rng.permutation(len(shapes))[:count]:
+        rows = rows_of[shapes[j]]
+        drop = rows[int(rng.integers(len(rows)))]
+        pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows if i != drop])
+        out.append(resample_points(pts, n_points, int(rng.integers(2**31))).astype(np.float32))
+    return out

@@ -40,6 +40,7 @@ from service.artifacts import (
     MANIFEST,
     write_manifest,
 )
+from service.catalog import load_catalog, partial_assemblies
 from service.indexing import IndexKind, build_index, index_entry
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained
@@ -82,6 +83,9 @@ class ExportOptions:
     index_kind: IndexKind = "auto"
     index_target_recall: float = 0.95
     index_recall_k: int = 64
+    # The approximate index is tuned on g's mixture means of this many training shapes with one
+    # part left out (the queries it will serve), not on jittered embeddings (service.indexing).
+    index_tuning_shapes: int = 128
     opset: int = 17
     # Parts per onnxruntime call when encoding the catalog.
     chunk: int = 256
@@ -152,6 +156,24 @@ def run_chunked(session: ort.InferenceSession, points: np.ndarray, chunk: int) -
     outs = [session.run(None, {name: np.ascontiguousarray(points[s:s + chunk], np.float32)})[0]
             for s in range(0, len(points), chunk)]
     return np.concatenate(outs)
+
+
+def tuning_means(folder: Path, part_count: int, dim: int, n_points: int, opts: ExportOptions
+                 ) -> np.ndarray | None:
+    """g's mixture means of training shapes with one part left out, from the folder just written.
+
+    None when the catalog has no multi-part shape (the index then tunes on jittered embeddings).
+
+    Shapes:
+        returns (shapes * K, D) float32.
+    """
+    catalog = load_catalog(folder / CATALOG_JSON, folder / CATALOG_ARRAYS, part_count, dim)
+    clouds = partial_assemblies(catalog, opts.index_tuning_shapes, n_points, opts.seed, split="train")
+    if not clouds:
+        return None
+    session = open_session(folder / GRAPH_FILES["g"])
+    means = session.run(["means"], {GRAPH_INPUTS["g"][0]: np.stack(clouds)})[0]
+    return np.ascontiguousarray(means.reshape(-1, means.shape[-1]), dtype=np.float32)
 
 
 def _round_floats(obj: Any, digits: int = 6) -> Any:
@@ -259,11 +281,15 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "embeddings": embeddings, "part_features": part_features.astype(opts.feature_dtype),
         "points": preview, **meshes})
 
-    # Exact (flat) up to index_flat_max parts; above, IVF tuned to the recall target on jittered
-    # catalog embeddings, its parameters recorded in the manifest (service.indexing).
+    # Exact (flat) up to index_flat_max parts; above, IVF tuned to the recall target on g's means
+    # of training queries, its parameters recorded in the manifest (service.indexing).
+    approximate = opts.index_kind in ("ivf", "hnsw") or (opts.index_kind == "auto"
+                                                         and len(records) > opts.index_flat_max)
+    tuning = (tuning_means(folder, len(records), cfg.model.embedding_dim, n_points, opts) if approximate
+              else None)
     index, index_params = build_index(embeddings, flat_max=opts.index_flat_max, kind=opts.index_kind,
                                       target_recall=opts.index_target_recall, recall_k=opts.index_recall_k,
-                                      seed=opts.seed)
+                                      queries=tuning, seed=opts.seed)
     faiss.write_index(index, str(folder / INDEX_FILE))
 
     state = trained.state

@@ -64,6 +64,22 @@ def test_large_catalog_index_reaches_the_recall_target(kind: Literal["ivf", "hns
     assert recall_at_k(loaded.search(q2, 32)[1], exact_search(x, q2, 32)) > 0.9
 
 
+def test_given_tuning_queries_set_the_breadth_that_they_need() -> None:
+    x = _clustered(4000)
+    # Queries far from the catalog (between its clusters) need a wider search than jittered parts.
+    far = jittered_queries(x, 400, 2.0, seed=3)
+    _, near_params = build_index(x, kind="ivf", nlist=64, target_recall=0.95, recall_k=16, tuning_queries=200)
+    index, params = build_index(x, kind="ivf", nlist=64, target_recall=0.95, recall_k=16, queries=far,
+                                tuning_queries=200)
+    assert near_params["tuning_source"] == "jittered_embeddings" and params["tuning_source"] == "given"
+    assert params["tuning_queries"] == 200  # a sample of the 400 given
+    assert params["nprobe"] > near_params["nprobe"]
+    held_out = jittered_queries(x, 200, 2.0, seed=4)
+    assert recall_at_k(index.search(held_out, 16)[1], exact_search(x, held_out, 16)) > 0.9
+    with pytest.raises(ValueError, match="tuning queries"):
+        build_index(x, kind="ivf", nlist=64, queries=far[:, :3])
+
+
 def test_ivf_breadth_is_the_smallest_that_passes() -> None:
     x = _clustered(4000)
     index, params = build_index(x, kind="ivf", nlist=64, target_recall=0.9, recall_k=16, tuning_queries=200)

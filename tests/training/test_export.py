@@ -170,6 +170,9 @@ def test_a_catalog_past_index_flat_max_gets_a_tuned_index(tiny_run: Path, tmp_pa
     entry = manifest["index"]
     assert entry["type"] == "IndexIVFFlat"
     assert entry["params"]["recall_k"] == 8 and entry["params"]["nprobe"] >= 1
+    # Tuned on g's means of training queries (the toy catalog has multi-part training shapes).
+    assert entry["params"]["tuning_source"] == "given"
+    assert entry["params"]["tuning_queries"] > 0
     loaded = load_artifacts(out)
     assert faiss.extract_index_ivf(loaded.index).nprobe == entry["params"]["nprobe"]
 
