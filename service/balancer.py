@@ -78,6 +78,7 @@ class ConnectionBalancer:
         self._selector = selectors.DefaultSelector()
         self._workers: dict[int, _Worker] = {}
         self._listening = False
+        self._accepting = True  # False once stop_accepting was called
         self._turn = 0  # slot of the worker whose turn is next
 
     def add(self, slot: int, channel: socket.socket) -> None:
@@ -105,13 +106,16 @@ class ConnectionBalancer:
         if any(key.data is None for key, _ in events):
             self._accept()
 
+    def stop_accepting(self) -> None:
+        """Stop watching the listener for good (before it is closed); the channels stay open."""
+        self._accepting = False
+        self._update_listening()
+
     def close(self) -> None:
-        """Stop accepting and close every channel (the workers see end of file)."""
+        """Stop accepting and close every channel (workers still running see end of file)."""
+        self.stop_accepting()
         for slot in list(self._workers):
             self.remove(slot)
-        if self._listening:
-            self._selector.unregister(self.listener)
-            self._listening = False
         self._selector.close()
 
     def _read(self, worker: _Worker) -> None:
@@ -166,8 +170,8 @@ class ConnectionBalancer:
         return False
 
     def _update_listening(self) -> None:
-        """Watch the listener exactly while some worker is ready."""
-        want = any(w.ready for w in self._workers.values())
+        """Watch the listener exactly while some worker is ready (and until ``stop_accepting``)."""
+        want = self._accepting and any(w.ready for w in self._workers.values())
         if want and not self._listening:
             self._selector.register(self.listener, selectors.EVENT_READ, None)
         elif not want and self._listening:
@@ -202,7 +206,8 @@ class HandedServer(uvicorn.Server):
         loop = asyncio.get_running_loop()
         self.channel.setblocking(False)
         loop.add_reader(self.channel.fileno(), self._receive, loop)
-        self.servers = [_ChannelListener(self, loop)]  # type: ignore[list-item]  # only close() is called
+        # uvicorn's shutdown calls close() and wait_closed() on its servers: that is all it needs.
+        self.servers = [_ChannelListener(self, loop)]  # type: ignore[list-item]
         self.started = True
         self._send(READY)
         log.info("worker: serving connections handed over by the supervisor")
@@ -249,11 +254,16 @@ class HandedServer(uvicorn.Server):
 
 
 class _ChannelListener:
-    """What uvicorn's shutdown closes in place of a listening server: the channel's reader."""
+    """What uvicorn's shutdown closes and waits for in place of a listening server: the channel's
+    reader, and the handed connections still being set up."""
 
     def __init__(self, server: HandedServer, loop: asyncio.AbstractEventLoop):
         self.server, self.loop = server, loop
 
     def close(self) -> None:
         self.server.stop_receiving(self.loop)
+
+    async def wait_closed(self) -> None:
+        if self.server._connecting:
+            await asyncio.wait(list(self.server._connecting))
 

@@ -1,8 +1,8 @@
 """Several server processes on one port: a supervisor that accepts, workers that serve.
 
-The supervisor owns the listening socket and hands every new connection to the worker with the
-fewest open connections (``service/balancer.py``: the kernel's own spreading left one worker
-with twice the other's connections, and its queue set the tail latency).
+The supervisor owns the listening socket and deals the new connections to the workers in turn
+(``service/balancer.py``: the kernel's own spreading left one worker with twice the other's
+connections, and its queue set the tail latency).
 
 ``Supervisor`` starts the workers, restarts one that dies after it started serving, stops all of
 them on SIGINT or SIGTERM, and stops with an error when a worker fails during start-up (a broken
@@ -113,9 +113,10 @@ class Supervisor:
                 if status:
                     break
         finally:
-            self._balancer.close()
+            self._balancer.stop_accepting()
             listener.close()  # clients still in the backlog are refused, not left waiting
             self._stop_all()
+            self._balancer.close()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
             if own_dir:
@@ -175,3 +176,6 @@ class Supervisor:
                 log.warning("supervisor: worker %d did not stop in time; killing it", process.pid)
                 process.kill()
                 process.join()
+            elif process.exitcode not in (0, -signal.SIGTERM):  # uvicorn re-raises the SIGTERM it handled
+                log.warning("supervisor: worker %d exited with status %s while stopping", process.pid,
+                            process.exitcode)

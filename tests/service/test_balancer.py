@@ -134,3 +134,13 @@ def test_a_replacement_worker_takes_its_turn_again(rig: Rig) -> None:
     rig.connect(4)
     rig.settle()
     assert [len(rig.received(0)), len(rig.received(1))] == [2, 2]
+
+
+def test_after_stop_accepting_connections_wait_even_for_a_ready_worker(rig: Rig) -> None:
+    rig.add_worker(0)
+    rig.settle()
+    rig.balancer.stop_accepting()
+    rig.workers[0].send(READY)  # a late message must not start accepting again
+    rig.connect(1)
+    rig.settle()
+    assert rig.received(0) == []

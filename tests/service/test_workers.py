@@ -207,6 +207,10 @@ def test_sigterm_stops_every_process_and_removes_the_metrics_folder(artifacts: P
     assert server.proc.wait(timeout=60) == 0
     assert not any(_alive(pid) for pid in workers)
     assert not Path(folder.group(1)).exists()
+    # Each worker stopped cleanly: uvicorn's graceful shutdown ran to the app's own shutdown.
+    log = server.log.read_text()
+    assert "Traceback" not in log and "while stopping" not in log, log[-3000:]
+    assert log.count("Application shutdown complete") == 2, log[-3000:]
 
 
 def test_a_worker_that_cannot_start_stops_the_supervisor(tmp_path: Path) -> None:
