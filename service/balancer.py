@@ -213,8 +213,9 @@ class HandedServer(uvicorn.Server):
         log.info("worker: serving connections handed over by the supervisor")
 
     def _protocol(self) -> asyncio.Protocol:
-        return self.config.http_protocol_class(config=self.config, server_state=self.server_state,  # type: ignore[call-arg]
-                                    app_state=self.lifespan.state)
+        protocol_class = self.config.http_protocol_class
+        return protocol_class(config=self.config, server_state=self.server_state,  # type: ignore[call-arg]
+                              app_state=self.lifespan.state)
 
     def _receive(self, loop: asyncio.AbstractEventLoop) -> None:
         while True:
@@ -246,6 +247,11 @@ class HandedServer(uvicorn.Server):
         with suppress(OSError):  # the supervisor is gone: nobody to tell
             self.channel.send(message)
 
+    async def connections_set_up(self) -> None:
+        """Wait until every handed connection received so far is set up (or failed)."""
+        if self._connecting:
+            await asyncio.wait(list(self._connecting))
+
     def stop_receiving(self, loop: asyncio.AbstractEventLoop) -> None:
         """Stop reading the channel and tell the supervisor to hand this worker nothing more."""
         if self.channel.fileno() >= 0:
@@ -264,6 +270,5 @@ class _ChannelListener:
         self.server.stop_receiving(self.loop)
 
     async def wait_closed(self) -> None:
-        if self.server._connecting:
-            await asyncio.wait(list(self.server._connecting))
+        await self.server.connections_set_up()
 
