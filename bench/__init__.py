@@ -1,5 +1,5 @@
 """Performance benchmarks of the suggestion service (issue 6): ``python -m bench --help``.
 
 Not part of the service: ``service/`` never imports this package. It may import torch and
-``training`` (the peer baseline rebuilds the networks from the torch checkpoint).
+``training`` (the peer baseline rebuilds the networks in torch from the exported graphs).
 """
