@@ -17,9 +17,13 @@ a whole burst to one worker (23 / 9).
 One channel per worker, an ``AF_UNIX`` ``SOCK_SEQPACKET`` pair, one message per event:
 
 * supervisor to worker: ``c`` with one descriptor attached (``SCM_RIGHTS``): a new connection;
-* worker to supervisor: ``r`` ready (start-up finished), ``s`` stopping (hand it nothing
-  more). End of file: the worker is gone, or, seen from the worker, the supervisor is (the
-  worker then stops).
+* worker to supervisor: ``r`` ready (start-up finished), ``a`` one connection taken, ``s``
+  stopping (hand it nothing more). End of file: the worker is gone, or, seen from the worker,
+  the supervisor is (the worker then stops).
+
+A worker whose event loop is busy or stuck does not take what it is handed; past
+``max_pending`` connections not yet taken it is skipped, and when every worker is, new
+connections wait in the listen backlog instead of piling up on a worker that cannot serve them.
 
 ``ConnectionBalancer`` is the supervisor's side, ``HandedServer`` (a ``uvicorn.Server``) the
 worker's.
@@ -43,6 +47,7 @@ log = logging.getLogger(__name__)
 
 NEW_CONNECTION = b"c"
 READY = b"r"
+TAKEN = b"a"
 STOPPING = b"s"
 _ACCEPTS_PER_WAKE = 64  # accepts in a row before the channels are read again
 _RECEIVE_BYTES = 64  # one message is one byte; a larger buffer only guards against surprises
@@ -62,18 +67,25 @@ class _Worker:
     slot: int
     channel: socket.socket
     ready: bool = False
+    pending: int = 0  # connections handed and not yet taken
+
+    def takes(self, max_pending: int) -> bool:
+        return self.ready and self.pending < max_pending
 
 
 class ConnectionBalancer:
     """Accept on ``listener`` and hand the connections to the ready workers in turn.
 
     Runs in the supervisor's thread: ``poll`` does the work of one wait (call it in a loop).
-    The listener is only watched while some worker is ready; until then connections wait in
-    its backlog.
+    The listener is only watched while some worker is ready and has fewer than ``max_pending``
+    connections it has not taken yet; until then connections wait in its backlog.
     """
 
-    def __init__(self, listener: socket.socket):
+    def __init__(self, listener: socket.socket, max_pending: int = 64):
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be at least 1, found {max_pending}")
         self.listener = listener
+        self.max_pending = max_pending
         listener.setblocking(False)
         self._selector = selectors.DefaultSelector()
         self._workers: dict[int, _Worker] = {}
@@ -129,7 +141,9 @@ class ConnectionBalancer:
             if not message:  # the worker exited: the supervisor's loop restarts it
                 self.remove(worker.slot)
                 return
-            if message == READY:
+            if message == TAKEN:
+                worker.pending = max(0, worker.pending - 1)
+            elif message == READY:
                 worker.ready = True
             elif message == STOPPING:
                 worker.ready = False
@@ -137,6 +151,8 @@ class ConnectionBalancer:
 
     def _accept(self) -> None:
         for _ in range(_ACCEPTS_PER_WAKE):
+            if not self._listening:  # no worker takes more: the rest wait in the backlog
+                return
             try:
                 conn, _ = self.listener.accept()
             except BlockingIOError:
@@ -154,7 +170,7 @@ class ConnectionBalancer:
         first = bisect_left(slots, self._turn)
         for slot in slots[first:] + slots[:first]:
             worker = self._workers[slot]
-            if not worker.ready:
+            if not worker.takes(self.max_pending):
                 continue
             try:
                 socket.send_fds(worker.channel, [NEW_CONNECTION], [conn.fileno()])
@@ -163,15 +179,18 @@ class ConnectionBalancer:
             except OSError:  # it is gone; its end of file will remove it
                 worker.ready = False
                 continue
+            worker.pending += 1
             self._turn = worker.slot + 1
+            if not worker.takes(self.max_pending):
+                self._update_listening()
             return True
         log.warning("supervisor: no worker could take a connection from %s; closing it", _peer(conn))
         self._update_listening()
         return False
 
     def _update_listening(self) -> None:
-        """Watch the listener exactly while some worker is ready (and until ``stop_accepting``)."""
-        want = self._accepting and any(w.ready for w in self._workers.values())
+        """Watch the listener exactly while some worker takes connections (until ``stop_accepting``)."""
+        want = self._accepting and any(w.takes(self.max_pending) for w in self._workers.values())
         if want and not self._listening:
             self._selector.register(self.listener, selectors.EVENT_READ, None)
         elif not want and self._listening:
@@ -231,6 +250,7 @@ class HandedServer(uvicorn.Server):
                 self.should_exit = True
                 return
             for fd in fds:
+                self._send(TAKEN)
                 task = loop.create_task(self._serve_connection(loop, socket.socket(fileno=fd)))
                 self._connecting.add(task)
                 task.add_done_callback(self._connecting.discard)

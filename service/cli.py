@@ -120,7 +120,8 @@ def register_service_commands(app: typer.Typer) -> None:
             return
 
         try:
-            status = Supervisor(s.host, s.port, s.workers, log_level=s.log_level).run()
+            status = Supervisor(s.host, s.port, s.workers, log_level=s.log_level,
+                                max_pending=s.worker_max_pending).run()
         except OSError as exc:
             typer.echo(f"error: cannot listen on {s.host}:{s.port}: {exc}", err=True)
             raise typer.Exit(1) from None

@@ -35,8 +35,13 @@ class Settings(BaseSettings):
         "Port `complementme serve` listens on (0: any free port)."))
     workers: int = Field(default=1, ge=1, le=64, description=(
         "Server processes of `complementme serve`; each loads its own copy of the artifacts (about "
-        "280 MB) and has a socket of its own on the port, so the kernel spreads connections over "
-        "them. One per core for throughput (`service/workers.py`); `/metrics` sums them all."))
+        "280 MB). With more than one, a supervisor accepts the connections and deals them to the "
+        "workers in turn. One per core for throughput (`service/workers.py`); `/metrics` sums them "
+        "all."))
+    worker_max_pending: int = Field(default=64, ge=1, le=100_000, description=(
+        "With several workers: most connections the supervisor hands to a worker that has not yet "
+        "taken them (its event loop is busy or stuck). A worker past it gets no more until it "
+        "catches up; when every worker is past it, new connections wait in the listen backlog."))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", description="Log level of the server.")
     verify_checksums: bool = Field(default=True, description=(

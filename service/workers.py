@@ -86,8 +86,9 @@ class Supervisor:
     _balancer: ConnectionBalancer  # made in ``run``, with the listening socket
 
     def __init__(self, host: str, port: int, workers: int, log_level: str = "info",
-                 graceful_seconds: int = GRACEFUL_SECONDS):
+                 graceful_seconds: int = GRACEFUL_SECONDS, max_pending: int = 64):
         self.host, self.port, self.workers = host, port, workers
+        self.max_pending = max_pending
         self.log_level, self.graceful_seconds = log_level, graceful_seconds
         self._context = multiprocessing.get_context("spawn")
         self._processes: list[SpawnProcess] = []
@@ -98,7 +99,7 @@ class Supervisor:
         # Listening before the workers start fails at once, with a clear error, on a taken port.
         listener = listening_socket(self.host, self.port)
         port = int(listener.getsockname()[1])
-        self._balancer = ConnectionBalancer(listener)
+        self._balancer = ConnectionBalancer(listener, max_pending=self.max_pending)
         metrics_dir, own_dir = self._metrics_dir()
         config = WorkerConfig(self.log_level, logging.getLogger().getEffectiveLevel(), self.graceful_seconds)
         previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -11,16 +11,16 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.balancer import READY, STOPPING, ConnectionBalancer, channel_pair
+from service.balancer import READY, STOPPING, TAKEN, ConnectionBalancer, channel_pair
 
 
 class Rig:
     """A listening socket on loopback, its balancer, and the worker ends of its channels."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_pending: int = 64) -> None:
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
-        self.balancer = ConnectionBalancer(self.listener)
+        self.balancer = ConnectionBalancer(self.listener, max_pending=max_pending)
         self.workers: dict[int, socket.socket] = {}
         self.clients: list[socket.socket] = []
 
@@ -144,3 +144,29 @@ def test_after_stop_accepting_connections_wait_even_for_a_ready_worker(rig: Rig)
     rig.connect(1)
     rig.settle()
     assert rig.received(0) == []
+
+
+def test_a_worker_that_does_not_take_its_connections_is_skipped() -> None:
+    rig = Rig(max_pending=2)
+    try:
+        rig.add_worker(0)
+        rig.add_worker(1)
+        rig.settle()
+        rig.connect(2)
+        rig.settle()
+        assert [len(rig.received(0)), len(rig.received(1))] == [1, 1]
+        rig.workers[0].send(TAKEN)  # worker 0 takes its connection; worker 1 is stuck
+        rig.connect(3)
+        rig.settle()
+        # Worker 1 gets one more (its second pending), then only worker 0 is dealt to.
+        assert [len(rig.received(0)), len(rig.received(1))] == [2, 1]
+        # Both past the limit now: the next connection waits in the backlog, it is not dropped ...
+        rig.connect(1)
+        rig.settle()
+        assert [len(rig.received(0)), len(rig.received(1))] == [0, 0]
+        # ... and is handed out once a worker catches up.
+        rig.workers[1].send(TAKEN)
+        rig.settle()
+        assert [len(rig.received(0)), len(rig.received(1))] == [0, 1]
+    finally:
+        rig.close()

@@ -23,6 +23,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from service_testkit import AssemblyQuery
 
 REPO = Path(__file__).resolve().parents[2]
+SERVING = "serving connections handed over"  # a worker's log line once it takes connections
 
 
 class Served:
@@ -35,18 +36,20 @@ class Served:
         full_env = {k: v for k, v in os.environ.items()
                     if not k.startswith("COMPLEMENTME_") and k != "PROMETHEUS_MULTIPROC_DIR"}
         full_env.update({"COMPLEMENTME_ARTIFACTS": str(artifacts), "COMPLEMENTME_VERIFY_CHECKSUMS": "false",
-                         "COMPLEMENTME_LOG_LEVEL": "warning", "PYTHONPATH": str(REPO), **env})
+                         "COMPLEMENTME_LOG_LEVEL": "info", "PYTHONPATH": str(REPO), **env})
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "training", "serve", "--host", "127.0.0.1", "--port", str(self.port),
                  "--workers", str(workers)], env=full_env, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
 
-    def wait_ready(self, workers: int = 2, timeout: float = 180) -> Served:
-        """Until ``workers`` worker processes run and the port answers ``/readyz``."""
+    def wait_ready(self, workers: int = 2, started: int | None = None, timeout: float = 180) -> Served:
+        """Until ``workers`` worker processes run, ``started`` workers in all (default: ``workers``)
+        have said they serve, and the port answers ``/readyz`` (it does once one worker serves)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             assert self.proc.poll() is None, f"the supervisor exited: {self.log.read_text()[-3000:]}"
-            if len(self.workers()) == workers and _ready(self.url):
+            serving = self.log.read_text().count(SERVING)
+            if len(self.workers()) == workers and serving >= (started or workers) and _ready(self.url):
                 return self
             time.sleep(0.2)
         raise AssertionError(f"not ready: {self.log.read_text()[-3000:]}")
@@ -174,6 +177,27 @@ def test_keep_alive_connections_are_split_evenly(served: tuple[Served, Path]) ->
             client.close()
 
 
+def test_a_stopped_worker_gets_no_pile_of_connections(artifacts: Path, tmp_path: Path) -> None:
+    server = Served(artifacts, tmp_path, COMPLEMENTME_WORKER_MAX_PENDING="2").wait_ready()
+    stuck, other = server.workers()
+    clients: list[socket.socket] = []
+    try:
+        os.kill(stuck, signal.SIGSTOP)  # its event loop takes nothing while stopped
+        for _ in range(8):
+            clients.append(socket.create_connection(("127.0.0.1", server.port), timeout=10))
+        # The stopped worker is handed at most 2 (they wait in its channel); the rest go to the other.
+        _wait_until(lambda: _established_on(server.port, [other])[other] == 6, 30,
+                    "6 connections on the other worker")
+        assert _established_on(server.port, [stuck])[stuck] == 0
+        os.kill(stuck, signal.SIGCONT)
+        _wait_until(lambda: _established_on(server.port, [stuck])[stuck] == 2, 30, "the stopped worker's 2")
+    finally:
+        os.kill(stuck, signal.SIGCONT)
+        for c in clients:
+            c.close()
+        server.stop()
+
+
 def test_a_killed_worker_is_replaced_and_its_counts_kept(served: tuple[Served, Path]) -> None:
     server, _ = served
     before = _healthz_count(server.url)
@@ -198,7 +222,7 @@ def test_workers_stop_when_the_supervisor_is_killed(artifacts: Path, tmp_path: P
 
 
 def test_sigterm_stops_every_process_and_removes_the_metrics_folder(artifacts: Path, tmp_path: Path) -> None:
-    server = Served(artifacts, tmp_path, COMPLEMENTME_LOG_LEVEL="info").wait_ready()
+    server = Served(artifacts, tmp_path).wait_ready()
     workers = server.workers()
     folder = re.search(r"metrics in (\S+)\)", server.log.read_text())
     assert folder, server.log.read_text()[-2000:]
