@@ -28,8 +28,10 @@ No HTTP here: routes, the CLI and tests call these methods directly.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -287,12 +289,15 @@ class SuggestionEngine:
             return [errors[i] for i in range(len(items))]
         timings = {"prepare": time.perf_counter() - t0}
         batch = np.stack([q.points for q in queries])  # (B, N, 3)
+        # h_query needs only the points and is needed only by h_head: it runs on a thread of its
+        # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
+        features = (_beside().submit(_timed, self.networks.query_features, batch)
+                    if len(queries) <= self.settings.overlap_max_batch else None)
         t = time.perf_counter()
         mix = self.networks.mixture(batch)
         timings["g"] = time.perf_counter() - t
-        t = time.perf_counter()
-        qf = self.networks.query_features(batch)
-        timings["h_query"] = time.perf_counter() - t
+        if features is None:
+            features = _done(_timed(self.networks.query_features, batch))
         t = time.perf_counter()
         candidates = self._search(queries, mix.means)
         timings["search"] = time.perf_counter() - t
@@ -303,6 +308,7 @@ class SuggestionEngine:
             ranked.append(self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b]))
         timings["score"] = time.perf_counter() - t
 
+        qf, timings["h_query"] = features.result()
         # One h_head run over every kept candidate of every query.
         t = time.perf_counter()
         rows = np.concatenate([np.full(len(r[0]), b) for b, r in enumerate(ranked)]).astype(np.int64)
@@ -528,6 +534,30 @@ class SuggestionEngine:
                 duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
                 contact_offset=off_caller[r]))
         return out
+
+
+_beside_pool: ThreadPoolExecutor | None = None
+_beside_lock = threading.Lock()
+
+
+def _beside() -> ThreadPoolExecutor:
+    """The one thread (per process, shared by every engine snapshot) that runs h_query beside g."""
+    global _beside_pool
+    with _beside_lock:
+        if _beside_pool is None:
+            _beside_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
+        return _beside_pool
+
+
+def _timed(fn: Any, *args: Any) -> tuple[Any, float]:
+    t = time.perf_counter()
+    return fn(*args), time.perf_counter() - t
+
+
+def _done(value: Any) -> Future[Any]:
+    future: Future[Any] = Future()
+    future.set_result(value)
+    return future
 
 
 def _or_default(asked: bool | None, setting: bool) -> bool:

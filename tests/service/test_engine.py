@@ -157,3 +157,16 @@ def test_a_large_k_is_not_starved(engine: SuggestionEngine, settings: Settings, 
     k = min(20, len(engine.catalog))
     result = narrow.suggest(query.points, SuggestOptions(k=k, collapse_duplicates=False))
     assert len(result.suggestions) == k
+
+
+def test_h_query_beside_g_gives_the_same_answer(engine: SuggestionEngine, settings: Settings,
+                                                query: AssemblyQuery) -> None:
+    inline = SuggestionEngine(engine.artifacts, settings.model_copy(update={"overlap_max_batch": 0}))
+    beside = SuggestionEngine(engine.artifacts, settings.model_copy(update={"overlap_max_batch": 2}))
+    items = [(query.points, SuggestOptions(k=6)), (query.points[::2], SuggestOptions(k=4))]
+    for a, b in zip(inline.suggest_batch(items), beside.suggest_batch(items), strict=True):
+        assert not isinstance(a, ServiceError) and not isinstance(b, ServiceError)
+        assert ids(a) == ids(b)
+        np.testing.assert_array_equal([s.translation for s in a.suggestions],
+                                      [s.translation for s in b.suggestions])
+        assert a.timings["h_query"] > 0 and b.timings["h_query"] > 0
