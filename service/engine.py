@@ -31,7 +31,7 @@ import logging
 import threading
 import time
 from collections import defaultdict
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -291,13 +291,11 @@ class SuggestionEngine:
         batch = np.stack([q.points for q in queries])  # (B, N, 3)
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
-        features = (_beside().submit(_timed, self.networks.query_features, batch)
-                    if len(queries) <= self.settings.overlap_max_batch else None)
+        beside = (_beside().submit(_timed, self.networks.query_features, batch)
+                  if len(queries) <= self.settings.overlap_max_batch else None)
         t = time.perf_counter()
         mix = self.networks.mixture(batch)
         timings["g"] = time.perf_counter() - t
-        if features is None:
-            features = _done(_timed(self.networks.query_features, batch))
         t = time.perf_counter()
         candidates = self._search(queries, mix.means)
         timings["search"] = time.perf_counter() - t
@@ -308,7 +306,8 @@ class SuggestionEngine:
             ranked.append(self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b]))
         timings["score"] = time.perf_counter() - t
 
-        qf, timings["h_query"] = features.result()
+        qf, timings["h_query"] = (beside.result() if beside is not None
+                                  else _timed(self.networks.query_features, batch))
         # One h_head run over every kept candidate of every query.
         t = time.perf_counter()
         rows = np.concatenate([np.full(len(r[0]), b) for b, r in enumerate(ranked)]).astype(np.int64)
@@ -552,12 +551,6 @@ def _beside() -> ThreadPoolExecutor:
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:
     t = time.perf_counter()
     return fn(*args), time.perf_counter() - t
-
-
-def _done(value: Any) -> Future[Any]:
-    future: Future[Any] = Future()
-    future.set_result(value)
-    return future
 
 
 def _or_default(asked: bool | None, setting: bool) -> bool:
