@@ -28,7 +28,6 @@ No HTTP here: routes, the CLI and tests call these methods directly.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
@@ -291,7 +290,7 @@ class SuggestionEngine:
         batch = np.stack([q.points for q in queries])  # (B, N, 3)
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
-        beside = (_beside().submit(_timed, self.networks.query_features, batch)
+        beside = (_BESIDE.submit(_timed, self.networks.query_features, batch)
                   if len(queries) <= self.settings.overlap_max_batch else None)
         t = time.perf_counter()
         mix = self.networks.mixture(batch)
@@ -535,17 +534,9 @@ class SuggestionEngine:
         return out
 
 
-_beside_pool: ThreadPoolExecutor | None = None
-_beside_lock = threading.Lock()
-
-
-def _beside() -> ThreadPoolExecutor:
-    """The one thread (per process, shared by every engine snapshot) that runs h_query beside g."""
-    global _beside_pool
-    with _beside_lock:
-        if _beside_pool is None:
-            _beside_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
-        return _beside_pool
+# The one thread (per process, shared by every engine snapshot) that runs h_query beside g; the
+# executor starts it at the first submit.
+_BESIDE = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
 
 
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:

@@ -33,6 +33,12 @@ class Rig:
             theirs.send(READY)
         return theirs
 
+    def add_ready_workers(self, count: int) -> None:
+        """Workers 0 .. count-1, each ready, with the balancer having read that they are."""
+        for slot in range(count):
+            self.add_worker(slot)
+        self.settle()
+
     def connect(self, count: int) -> None:
         for _ in range(count):
             self.clients.append(socket.create_connection(("127.0.0.1", self.port), timeout=5))
@@ -76,8 +82,7 @@ def rig() -> Iterator[Rig]:
 
 
 def test_connections_are_dealt_to_the_workers_in_turn(rig: Rig) -> None:
-    for slot in range(3):
-        rig.add_worker(slot)
+    rig.add_ready_workers(3)
     rig.connect(9)
     rig.settle()
     handed = {slot: rig.received(slot) for slot in range(3)}
@@ -103,9 +108,7 @@ def test_nothing_is_accepted_until_a_worker_is_ready(rig: Rig) -> None:
 
 
 def test_a_stopping_worker_gets_no_more_connections(rig: Rig) -> None:
-    rig.add_worker(0)
-    rig.add_worker(1)
-    rig.settle()
+    rig.add_ready_workers(2)
     rig.workers[1].send(STOPPING)
     rig.connect(4)
     rig.settle()
@@ -114,9 +117,7 @@ def test_a_stopping_worker_gets_no_more_connections(rig: Rig) -> None:
 
 
 def test_a_worker_that_exits_is_dropped_and_the_others_take_its_share(rig: Rig) -> None:
-    rig.add_worker(0)
-    rig.add_worker(1)
-    rig.settle()
+    rig.add_ready_workers(2)
     rig.workers[1].close()  # the worker process died: its end of the channel closed
     rig.settle()
     rig.connect(4)
@@ -125,9 +126,7 @@ def test_a_worker_that_exits_is_dropped_and_the_others_take_its_share(rig: Rig) 
 
 
 def test_a_replacement_worker_takes_its_turn_again(rig: Rig) -> None:
-    rig.add_worker(0)
-    rig.add_worker(1)
-    rig.settle()
+    rig.add_ready_workers(2)
     rig.workers[1].close()
     rig.settle()
     rig.add_worker(1)  # the supervisor started another process in the slot
@@ -149,9 +148,7 @@ def test_after_stop_accepting_connections_wait_even_for_a_ready_worker(rig: Rig)
 def test_a_worker_that_does_not_take_its_connections_is_skipped() -> None:
     rig = Rig(max_pending=2)
     try:
-        rig.add_worker(0)
-        rig.add_worker(1)
-        rig.settle()
+        rig.add_ready_workers(2)
         rig.connect(2)
         rig.settle()
         assert [len(rig.received(0)), len(rig.received(1))] == [1, 1]
