@@ -9,6 +9,7 @@ continues with fresh but reproducible draws.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -19,15 +20,15 @@ from training.data.sampling import TripletSampler
 
 
 class TripletBatches(IterableDataset):
-    """Yields dicts of tensors ``X, Y, Z (B, N, 3)`` and ``Y_translation (B, 3)``, forever."""
+    """Yields dicts of tensors (``TripletSampler.batch``), forever.
+
+    ``sampler_options`` are the keyword arguments of ``TripletSampler`` beyond the dataset and N.
+    """
 
     def __init__(self, ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
-                 start_step: int = 0, query_negative_fraction: float = 0.0,
-                 lookalike_negative_fraction: float = 0.0, removal_query_fraction: float = 0.0):
+                 start_step: int = 0, sampler_options: dict[str, Any] | None = None):
         super().__init__()
-        self.sampler = TripletSampler(ds, n_points=n_points, query_negative_fraction=query_negative_fraction,
-                                      lookalike_negative_fraction=lookalike_negative_fraction,
-                                      removal_query_fraction=removal_query_fraction)
+        self.sampler = TripletSampler(ds, n_points=n_points, **(sampler_options or {}))
         self.batch_size = batch_size
         self.seed, self.rank, self.start_step = seed, rank, start_step
 
@@ -42,12 +43,9 @@ class TripletBatches(IterableDataset):
 
 def batch_stream(ds: ProcessedDataset, n_points: int, batch_size: int, seed: int, rank: int = 0,
                  start_step: int = 0, num_workers: int = 0,
-                 query_negative_fraction: float = 0.0,
-                 lookalike_negative_fraction: float = 0.0,
-                 removal_query_fraction: float = 0.0) -> Iterator[dict[str, torch.Tensor]]:
+                 sampler_options: dict[str, Any] | None = None) -> Iterator[dict[str, torch.Tensor]]:
     """An iterator over training batches; ``num_workers`` > 0 samples in background processes."""
-    source = TripletBatches(ds, n_points, batch_size, seed, rank, start_step, query_negative_fraction,
-                            lookalike_negative_fraction, removal_query_fraction)
+    source = TripletBatches(ds, n_points, batch_size, seed, rank, start_step, sampler_options)
     if num_workers == 0:
         return iter(source)
     loader = DataLoader(source, batch_size=None, num_workers=num_workers, prefetch_factor=4,

@@ -60,6 +60,13 @@ class ModelConfig:
         default=(256,), metadata=_help("FC widths of h's encoders; the last is the feature size Fq = Fp."))
     placement_head_layers: tuple[int, ...] = field(
         default=(256, 128), metadata=_help("Hidden widths of h's head MLP (then a linear layer to xyz)."))
+    # Not in the paper (0 = off): a linear head on g's PointNet feature that names the query's
+    # category, trained from the collection's category folders (how users organise collections;
+    # no part labels). The service infers the category of a request that names none from it.
+    n_categories: int = field(default=0, metadata=_help("Categories of g's category head (0 = no head)."))
+    # Not in the paper: h also predicts the per-axis log scale that fits a retrieved part to the
+    # query (trained on positives rescaled at random, see TrainConfig.scale_augment).
+    predict_scale: bool = field(default=False, metadata=_help("h predicts a per-axis log scale too."))
 
     def validate(self) -> None:
         for name in ("point_layers", "fc_layers", "placement_point_layers", "placement_fc_layers"):
@@ -82,6 +89,8 @@ class ModelConfig:
                              f"got {self.sigma_param!r}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"model config: dropout must be in [0, 1), got {self.dropout}")
+        if self.n_categories < 0:
+            raise ValueError(f"model config: n_categories must be >= 0, got {self.n_categories}")
 
 
 @dataclass
@@ -99,6 +108,10 @@ class TrainConfig:
     # so a resumed run gets a fresh budget; `steps` is the total over all invocations.
     steps: int = field(default=20000, metadata=_help("Total optimisation steps (over all resumes)."))
     minutes: float = field(default=0.0, metadata=_help("Wall-clock budget of this invocation; 0 = none."))
+    # A guard, not a budget: the run stops if this invocation passes it, but the learning rate
+    # follows the steps alone, so the same seed gives the same model on a faster or slower host.
+    max_minutes: float = field(default=0.0,
+                               metadata=_help("Stop (as a guard) after this many minutes; LR ignores it."))
     batch_size: int = field(default=32, metadata=_help("Triplets per step and per process (paper: 32)."))
     # The paper samples 1000 points; max-pooling makes the nets accept any N, and 512 halves the cost.
     n_points: int = field(default=512, metadata=_help("Points per assembly or part during training."))
@@ -141,6 +154,27 @@ class TrainConfig:
     # then be disconnected, as in the benchmark's all-but-one-part queries).
     removal_query_fraction: float = field(
         default=0.0, metadata=_help("Share of queries that are a shape minus a connected group of parts."))
+    # Not in the paper: each query is also scored against up to this many of its valid
+    # complements (the components of its shape that it lacks; the first is the paper's adjacent
+    # positive Y). With one positive per query the mixture learns one mode: a seat alone is
+    # trained towards a leg, a back or an arm by turns, and the winner of each pull takes all.
+    # Fitting the whole set at once (set_nll_weight) is an MDN trained on every answer of X.
+    positives: int = field(default=1, metadata=_help("Valid complements drawn per query (1 = the paper)."))
+    set_nll_weight: float = field(
+        default=0.0, metadata=_help("Weight of the mean mixture NLL of the query's complement set."))
+    # Not in the paper: cross-entropy of g's category head against the shape's category folder.
+    category_weight: float = field(default=0.0, metadata=_help("Weight of g's category loss."))
+    # Not in the paper: h's positive part is rescaled per axis by exp(U(-a, a)) and h learns the
+    # log scale that undoes it (a retrieved leg from a taller chair must be shortened).
+    scale_augment: float = field(default=0.0, metadata=_help("a of the positive's random log rescale for h."))
+    scale_weight: float = field(default=0.0, metadata=_help("Weight of h's log-scale regression."))
+    # Not in the paper: what real collections bring (docs/training.md): anisotropic rescaling of
+    # the whole shape, small rotations about the up axis, frames off centre and scale, point
+    # noise, missing surface and density changes, in the ranges of data.sampling.Augmentation.
+    augment: float = field(default=0.0, metadata=_help("Share of triplets augmented (0 = off)."))
+    # Measurement only: "styles" holds out one style per category (leave-one-style-out
+    # benchmark); styles are never read by the training itself.
+    split: str = field(default="random", metadata=_help("Test split: random | styles (one style held out)."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
@@ -160,7 +194,8 @@ class TrainConfig:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"train config: {name} must be positive, got {getattr(self, name)}")
-        for name in ("minutes", "val_every", "num_workers", "threads"):
+        for name in ("minutes", "max_minutes", "val_every", "num_workers", "threads", "set_nll_weight",
+                     "category_weight", "scale_augment", "scale_weight", "augment"):
             if getattr(self, name) < 0:
                 raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.test_fraction < 1.0:
@@ -179,6 +214,11 @@ class TrainConfig:
         if not 0.0 <= self.removal_query_fraction <= 1.0:
             raise ValueError("train config: removal_query_fraction must be in [0, 1], "
                              f"got {self.removal_query_fraction}")
+        if not 0.0 <= self.augment <= 1.0:
+            raise ValueError(f"train config: augment must be in [0, 1], got {self.augment}")
+        if self.positives < 1 or self.split not in ("random", "styles"):
+            raise ValueError(f"train config: positives must be >= 1 (got {self.positives}) and split "
+                             f"random or styles (got {self.split!r})")
         if not (self.train_retrieval or self.train_placement):
             raise ValueError("train config: nothing to train "
                              "(train_retrieval and train_placement are both off)")
@@ -206,6 +246,17 @@ PRESETS: dict[str, dict[str, Any]] = {
         # Label-free hard negatives and disconnected all-but-some queries (data.sampling).
         "query_negative_fraction": 0.25, "lookalike_negative_fraction": 0.5, "removal_query_fraction": 0.3,
         "model": {},
+    },
+    # Model v3 (docs/training.md): the shipped preset plus each query fitted to its whole
+    # complement set, a category head, size fitting and augmentations; a fixed number of steps
+    # (same seed, same model on any host) with a time guard only.
+    "v3": {
+        "steps": 6000, "max_minutes": 100, "n_points": 512, "val_every": 1000, "ckpt_every": 500,
+        "lr_schedule": "cosine", "nll_weight": 0.0, "wta_weight": 0.1,
+        "query_negative_fraction": 0.25, "lookalike_negative_fraction": 0.5, "removal_query_fraction": 0.3,
+        "positives": 4, "set_nll_weight": 0.1, "category_weight": 1.0,
+        "scale_augment": 0.4, "scale_weight": 0.3, "augment": 0.5,
+        "model": {"predict_scale": True},
     },
     # The paper's sizes (about 5x slower per step on CPU).
     "paper": {

@@ -111,6 +111,9 @@ class RetrievalNet(nn.Module):
         self.sigma_head = nn.Linear(width, self.k * self.d)
         if self.sigma_param == "exp_clip":
             nn.init.constant_(self.sigma_head.bias, cfg.sigma_log_bias)
+        # The category head reads the same feature as the mixture: what the query is decides
+        # what complements it, so the two share the encoder.
+        self.category_head = nn.Linear(width, cfg.n_categories) if cfg.n_categories > 0 else None
 
     def forward_log(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Mixture parameters in the form the loss needs: log weights, means and log sigmas.
@@ -118,7 +121,20 @@ class RetrievalNet(nn.Module):
         Shapes:
             points (B, N, 3) -> log_weights (B, K), means (B, K, D), log_sigmas (B, K, D).
         """
-        feat = self.encoder(points)                                   # (B, F)
+        return self._mixture(self.encoder(points))
+
+    def forward_train(self, points: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``forward_log`` plus the category logits (None without a category head).
+
+        Shapes:
+            points (B, N, 3) -> as ``forward_log``, and category_logits (B, C).
+        """
+        feat = self.encoder(points)
+        logits = self.category_head(feat) if self.category_head is not None else None
+        return (*self._mixture(feat), logits)
+
+    def _mixture(self, feat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         log_weights = F.log_softmax(self.weight_head(feat), dim=1)    # (B, K)
         means = to_sphere(self.mean_head(feat).view(-1, self.k, self.d), self.radius)  # (B, K, D)
         raw = self.sigma_head(feat).view(-1, self.k, self.d)          # (B, K, D)
@@ -128,19 +144,29 @@ class RetrievalNet(nn.Module):
             sigmas = torch.clamp(torch.exp(raw), self.sigma_min, self.sigma_max)
         return log_weights, means, torch.log(sigmas)
 
-    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        log_weights, means, log_sigmas = self.forward_log(points)
-        return torch.exp(log_weights), means, torch.exp(log_sigmas)
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The exported graph: weights, means, sigmas (and category probabilities with the head).
+
+        Shapes:
+            points (B, N, 3) -> weights (B, K), means (B, K, D), sigmas (B, K, D)[, category_probs (B, C)].
+        """
+        log_weights, means, log_sigmas, logits = self.forward_train(points)
+        out = (torch.exp(log_weights), means, torch.exp(log_sigmas))
+        return out if logits is None else (*out, torch.softmax(logits, dim=1))
 
 
 class PlacementHead(nn.Module):
     """The MLP of h on the concatenated query and part features, ending in a translation.
 
+    With ``predict_scale`` the last layer also gives the per-axis log scale that fits the part
+    to the query (a second output; the catalog geometry itself is never changed).
+
     Shapes:
-        query_feature (B, Fq), part_feature (B, Fp) -> translation (B, 3).
+        query_feature (B, Fq), part_feature (B, Fp) -> translation (B, 3)[, log_scale (B, 3)].
     """
 
-    def __init__(self, query_dim: int, part_dim: int, hidden: tuple[int, ...], batch_norm: bool = True):
+    def __init__(self, query_dim: int, part_dim: int, hidden: tuple[int, ...], batch_norm: bool = True,
+                 predict_scale: bool = False):
         super().__init__()
         layers: list[nn.Module] = []
         width = query_dim + part_dim
@@ -150,11 +176,16 @@ class PlacementHead(nn.Module):
                 layers.append(nn.BatchNorm1d(out))
             layers.append(nn.ReLU())
             width = out
-        layers.append(nn.Linear(width, 3))
+        self.predict_scale = predict_scale
+        layers.append(nn.Linear(width, 6 if predict_scale else 3))
         self.mlp = nn.Sequential(*layers)
 
-    def forward(self, query_feature: torch.Tensor, part_feature: torch.Tensor) -> torch.Tensor:
-        return self.mlp(torch.cat([query_feature, part_feature], dim=1))
+    def forward(self, query_feature: torch.Tensor, part_feature: torch.Tensor
+                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        out = self.mlp(torch.cat([query_feature, part_feature], dim=1))
+        if not self.predict_scale:
+            return out
+        return out[:, :3], out[:, 3:]
 
 
 class PlacementNet(nn.Module):
@@ -164,7 +195,8 @@ class PlacementNet(nn.Module):
     writes three graphs and the service encodes each catalog part once, ahead of time.
 
     Shapes:
-        query (B, N, 3), part (B, M, 3) -> translation (B, 3), the part's bounding-box centre.
+        query (B, N, 3), part (B, M, 3) -> translation (B, 3), the part's bounding-box centre
+        [, log_scale (B, 3) with ``predict_scale``].
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -174,7 +206,7 @@ class PlacementNet(nn.Module):
         self.part = PointNetEncoder(cfg.placement_point_layers, cfg.placement_fc_layers, cfg.batch_norm,
                                     cfg.dropout)
         self.head = PlacementHead(self.query.out_dim, self.part.out_dim, cfg.placement_head_layers,
-                                  cfg.batch_norm)
+                                  cfg.batch_norm, cfg.predict_scale)
 
     @property
     def query_dim(self) -> int:
@@ -184,7 +216,7 @@ class PlacementNet(nn.Module):
     def part_dim(self) -> int:
         return self.part.out_dim
 
-    def forward(self, query: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+    def forward(self, query: torch.Tensor, part: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         return self.head(self.query(query), self.part(part))
 
 
@@ -195,8 +227,8 @@ class RetrievalPair(nn.Module):
     and batch-norm statistics over both.
 
     Shapes:
-        X (B, N, 3), parts (2B, N, 3) -> embeddings (2B, D), log_weights (B, K), means (B, K, D),
-        log_sigmas (B, K, D).
+        X (B, N, 3), parts (M, N, 3) -> embeddings (M, D), log_weights (B, K), means (B, K, D),
+        log_sigmas (B, K, D), category_logits (B, C) or None.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -205,10 +237,10 @@ class RetrievalPair(nn.Module):
         self.g = RetrievalNet(cfg)
 
     def forward(self, X: torch.Tensor, parts: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         embeddings = self.f(parts)
-        log_weights, means, log_sigmas = self.g.forward_log(X)
-        return embeddings, log_weights, means, log_sigmas
+        log_weights, means, log_sigmas, logits = self.g.forward_train(X)
+        return embeddings, log_weights, means, log_sigmas, logits
 
 
 def build_models(cfg: ModelConfig) -> tuple[RetrievalPair, PlacementNet]:

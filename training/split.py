@@ -36,12 +36,18 @@ class Split:
         return out
 
 
-def make_split(ds: ProcessedDataset, test_fraction: float, seed: int) -> Split:
+def make_split(ds: ProcessedDataset, test_fraction: float, seed: int, by_style: bool = False) -> Split:
     """Hold out ``round(test_fraction * n)`` shapes of each category (at least one when n >= 2).
 
     Shapes are shuffled per category with ``np.random.default_rng(seed)``, in sorted category
     order, so the same dataset and seed always give the same split.
+
+    ``by_style`` holds out every shape of one style per category instead (the style drawn with
+    the same generator): the leave-one-style-out benchmark. Styles are read here, to measure,
+    and nowhere in training.
     """
+    if by_style:
+        return _style_split(ds, test_fraction, seed)
     rng = np.random.default_rng(seed)
     by_cat: dict[str, list[int]] = {}
     for s, meta in enumerate(ds.shapes):
@@ -56,6 +62,23 @@ def make_split(ds: ProcessedDataset, test_fraction: float, seed: int) -> Split:
         n_test = min(max(round(test_fraction * n), 1), n - 1) if n >= 2 else 0
         test += members[:n_test].tolist()
         train += members[n_test:].tolist()
+    return Split(train=np.asarray(sorted(train), np.int64), test=np.asarray(sorted(test), np.int64),
+                 seed=seed, test_fraction=test_fraction,
+                 dataset_hash=ds.info.get("hash") or ds.content_hash())
+
+
+def _style_split(ds: ProcessedDataset, test_fraction: float, seed: int) -> Split:
+    rng = np.random.default_rng(seed)
+    by_cat: dict[str, dict[str, list[int]]] = {}
+    for s, meta in enumerate(ds.shapes):
+        by_cat.setdefault(str(meta.get("category")), {}).setdefault(str(meta.get("style")), []).append(s)
+    train: list[int] = []
+    test: list[int] = []
+    for cat in sorted(by_cat):
+        styles = sorted(by_cat[cat])
+        held = styles[int(rng.integers(len(styles)))] if len(styles) >= 2 else None
+        for style in styles:
+            (test if style == held else train).extend(by_cat[cat][style])
     return Split(train=np.asarray(sorted(train), np.int64), test=np.asarray(sorted(test), np.int64),
                  seed=seed, test_fraction=test_fraction,
                  dataset_hash=ds.info.get("hash") or ds.content_hash())

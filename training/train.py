@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.distributed as dist
+import torch.nn.functional as F
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
@@ -55,9 +56,9 @@ log = logging.getLogger(__name__)
 CONFIG_FILE = "config.json"
 SUMMARY_FILE = "summary.json"
 LOSS_FIELDS = ["step", "elapsed_s", "lr", "triplet_loss", "e_pos", "e_neg", "batch_triplet_accuracy",
-               "placement_loss", "placement_lr", "seconds_per_step"]
+               "placement_loss", "category_loss", "scale_loss", "placement_lr", "seconds_per_step"]
 # Settings a resumed run may change; anything else must match the checkpoint.
-RESUMABLE = {"steps", "minutes", "val_every", "ckpt_every", "log_every", "num_workers", "threads", "run"}
+RESUMABLE = {"steps", "minutes", "max_minutes", "val_every", "ckpt_every", "log_every", "num_workers", "threads", "run"}
 
 
 @dataclass
@@ -104,24 +105,37 @@ def lr_factor(cfg: TrainConfig, step: int, progress: float) -> float:
     return float(cfg.lr_decay ** periods)
 
 
-def retrieval_objective(cfg: TrainConfig, y_emb: torch.Tensor, z_emb: torch.Tensor, log_w: torch.Tensor,
-                        means: torch.Tensor, log_s: torch.Tensor
+def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Tensor, first: torch.Tensor,
+                        z_emb: torch.Tensor, log_w: torch.Tensor, means: torch.Tensor, log_s: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The loss of f and g: Equation 2, plus the optional pulls of the mixture onto the positives.
+    """The loss of f and g: Equation 2, plus the optional fits of the mixture to the positives.
 
-    Returns (loss, mean hinge, e_pos, e_neg). Unless ``cfg.pull_moves_embedding``, the pulls see
-    the positives' embeddings detached: they move g's modes, and f is shaped by Equation 2 alone.
+    ``pos_emb`` holds every drawn complement of every query (``owner`` says whose; ``first``
+    indexes each query's paper positive Y). Equation 2 compares Y with Z. The set NLL is the
+    mixture NLL of all of a query's complements, averaged per query, so that each query weighs
+    the same however many parts it lacks; the relaxed winner-takes-all pull pulls the nearest
+    mode onto each of them. Returns (loss, mean hinge, e_pos, e_neg). Unless
+    ``cfg.pull_moves_embedding``, the fits see the embeddings detached: they move g's mixture,
+    and f is shaped by Equation 2 alone.
 
     Shapes:
-        y_emb, z_emb (B, D); log_w (B, K); means, log_s (B, K, D).
+        pos_emb (M, D), owner (M,) int64, first (B,) int64, z_emb (B, D); log_w (B, K);
+        means, log_s (B, K, D).
     """
-    hinge, e_pos, e_neg = triplet_loss(y_emb, z_emb, log_w, means, log_s, cfg.margin)
+    hinge, e_pos, e_neg = triplet_loss(pos_emb[first], z_emb, log_w, means, log_s, cfg.margin)
     loss = hinge
-    y_fit = y_emb if cfg.pull_moves_embedding else y_emb.detach()
+    y_fit = pos_emb if cfg.pull_moves_embedding else pos_emb.detach()
+    b = len(first)
+    per_query = torch.bincount(owner, minlength=b).clamp(min=1).to(y_fit.dtype)   # (B,)
+    share = 1.0 / (per_query[owner] * b)                                            # (M,) sums to 1
     if cfg.nll_weight:
-        loss = loss + cfg.nll_weight * mixture_nll(y_fit, log_w, means, log_s).mean()
+        loss = loss + cfg.nll_weight * mixture_nll(y_fit[first], log_w, means, log_s).mean()
+    if cfg.set_nll_weight:
+        nll = mixture_nll(y_fit, log_w[owner], means[owner], log_s[owner])
+        loss = loss + cfg.set_nll_weight * (share * nll).sum()
     if cfg.wta_weight:
-        loss = loss + cfg.wta_weight * relaxed_wta_pull(y_fit, means, log_s, cfg.wta_epsilon).mean()
+        pull = relaxed_wta_pull(y_fit, means[owner], log_s[owner], cfg.wta_epsilon)
+        loss = loss + cfg.wta_weight * (share * pull).sum()
     return loss, hinge, e_pos, e_neg
 
 
@@ -180,13 +194,19 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     if (run_dir / SPLIT_FILE).exists():
         split = load_split(run_dir, ds)
     else:
-        split = make_split(ds, cfg.test_fraction, cfg.seed)
+        split = make_split(ds, cfg.test_fraction, cfg.seed, by_style=cfg.split == "styles")
         if env.is_main:
             save_split(split, ds, run_dir)
     if len(split.test) == 0:
         raise ValueError(f"{cfg.data}: too few shapes per category to hold out a test split")
     train_ds = ds.subset(split.train)
 
+    if cfg.category_weight > 0 and cfg.model.n_categories == 0:
+        # The head's classes are the collection's category folders (ProcessedDataset.categories).
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, n_categories=len(ds.categories())))
+    if cfg.model.n_categories not in (0, len(ds.categories())):
+        raise ValueError(f"{cfg.data}: the dataset has {len(ds.categories())} categories, the model's "
+                         f"category head {cfg.model.n_categories}")
     torch.manual_seed(cfg.seed)
     pair, placement = build_models(cfg.model)
     opt_r = torch.optim.Adam(pair.parameters(), lr=cfg.lr)
@@ -223,11 +243,13 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         val_log = CsvLog(run_dir / VALIDATION_CSV, ["step", "elapsed_s", *_validation_keys(cfg)])
 
     stream = batch_stream(train_ds, cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
-                          start_step=step, num_workers=cfg.num_workers,
-                          query_negative_fraction=cfg.query_negative_fraction,
-                          lookalike_negative_fraction=cfg.lookalike_negative_fraction,
-                          removal_query_fraction=cfg.removal_query_fraction)
-    window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:8]}
+                          start_step=step, num_workers=cfg.num_workers, sampler_options={
+                              "query_negative_fraction": cfg.query_negative_fraction,
+                              "lookalike_negative_fraction": cfg.lookalike_negative_fraction,
+                              "removal_query_fraction": cfg.removal_query_fraction,
+                              "positives": cfg.positives, "augment": cfg.augment,
+                              "scale_augment": cfg.scale_augment, "categories": ds.categories()})
+    window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:10]}
     recent: dict[str, deque[float]] = {k: deque(maxlen=100) for k in ("triplet_loss", "placement_loss")}
     t_start = time.monotonic()
     t_window = t_start
@@ -274,17 +296,36 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
         if cfg.minutes > 0 and progress >= 1.0:
             log.info("time budget of %.1f min reached at step %d", cfg.minutes, step)
             break
+        guard = time.monotonic() - t_start >= cfg.max_minutes * 60 if cfg.max_minutes > 0 else False
+        if env.world > 1:
+            flag = torch.tensor([float(guard)])
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            guard = bool(flag.item())
+        if guard:
+            log.warning("time guard of %.1f min reached at step %d of %d: the run stops early",
+                        cfg.max_minutes, step, cfg.steps)
+            break
         factor = lr_factor(cfg, step, progress)
         for group in opt_r.param_groups:
             group["lr"] = cfg.lr * factor
         for group in opt_p.param_groups:
             group["lr"] = cfg.placement_lr * factor
         batch = next(stream)
-        X, Y, Z, T = batch["X"], batch["Y"], batch["Z"], batch["Y_translation"]
+        X, Z, T = batch["X"], batch["Z"], batch["Y_translation"]
         if cfg.train_retrieval:
-            emb, log_w, means, log_s = pair_run(X, torch.cat([Y, Z]))
-            b = len(Y)
-            loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:b], emb[b:], log_w, means, log_s)
+            mask = batch["P_mask"]
+            pos = batch["P"][mask]                                   # (M, N, 3), each query's Y first
+            counts = mask.sum(dim=1)
+            first = torch.cumsum(counts, 0) - counts                 # (B,) index of each query's Y
+            owner = torch.repeat_interleave(torch.arange(len(X)), counts)
+            emb, log_w, means, log_s, logits = pair_run(X, torch.cat([pos, Z]))
+            m = len(pos)
+            loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:m], owner, first, emb[m:], log_w, means,
+                                                            log_s)
+            if cfg.category_weight and logits is not None:
+                closs = F.cross_entropy(logits, batch["category"])
+                loss = loss + cfg.category_weight * closs
+                window["category_loss"].append(closs.item())
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"triplet loss is {loss.item()} at step {step}")
             opt_r.zero_grad(set_to_none=True)
@@ -296,7 +337,14 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
             window["batch_triplet_accuracy"].append((e_pos < e_neg).float().mean().item())
             recent["triplet_loss"].append(hinge.item())
         if cfg.train_placement:
-            ploss = placement_loss(place_run(X, Y), T)
+            out = place_run(X, batch["Y_h"])
+            if isinstance(out, tuple):
+                translation, log_scale = out
+                sloss = (log_scale - batch["Y_log_scale"]).square().mean()
+                window["scale_loss"].append(sloss.item())
+                ploss = placement_loss(translation, T) + cfg.scale_weight * sloss
+            else:
+                ploss = placement_loss(out, T)
             if not torch.isfinite(ploss):
                 raise FloatingPointError(f"placement loss is {ploss.item()} at step {step}")
             opt_p.zero_grad(set_to_none=True)
@@ -350,7 +398,7 @@ def _validation_keys(cfg: TrainConfig) -> list[str]:
     if cfg.train_retrieval:
         k = cfg.val_precision_k
         keys += ["triplet_accuracy", "triplet_loss", f"label_precision_at_{k}", f"category_precision_at_{k}",
-                 "precision_queries", "mean_sigma"]
+                 "precision_queries", "mean_sigma", "live_modes"]
     if cfg.train_placement:
         keys += ["placement_mean_error", "placement_median_error"]
     return keys

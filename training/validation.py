@@ -157,6 +157,8 @@ def validate(pair: RetrievalPair | None, placement: PlacementNet | None, vset: V
         metrics[f"category_precision_at_{k}"] = cp
         metrics["precision_queries"] = float(scored)
         metrics["mean_sigma"] = float(torch.exp(log_s).mean())
+        # Modes of weight >= 0.05 per query: 1 means the mixture has collapsed.
+        metrics["live_modes"] = float((torch.exp(log_w) >= 0.05).sum(dim=1).float().mean())
         pair.train(was_training)
     if placement is not None:
         was_training = placement.training

@@ -95,7 +95,7 @@ def suggest(model: PeerModel, points: np.ndarray, k: int) -> list[dict[str, Any]
         points = np.concatenate([points, points[rng.integers(0, len(points), model.n_points - len(points))]])
     x = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))[None]    # (1, N, 3)
     with torch.no_grad():
-        w, mu, sigma = (t[0].numpy().astype(np.float64) for t in model.g(x))     # (K,), (K, D), (K, D)
+        w, mu, sigma = (t[0].numpy().astype(np.float64) for t in model.g(x)[:3])  # (K,), (K, D), (K, D)
     emb = model.embeddings
     dist = ((emb[None, :, :] - mu[:, None, :].astype(np.float32)) ** 2).sum(-1)  # (K, P)
     nn = min(model.neighbours, len(emb))

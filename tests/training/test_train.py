@@ -184,10 +184,41 @@ def test_pulls_reach_the_embedding_only_when_asked(moves: bool):
     log_w = torch.log_softmax(torch.randn(4, 2), dim=1)
     means = torch.randn(4, 2, 3, requires_grad=True)
     log_s = torch.log(torch.full((4, 2, 3), 0.05))
-    cfg = resolve_config(overrides={"nll_weight": 0.1, "wta_weight": 0.1, "pull_moves_embedding": moves,
-                                    "margin": 0.001})
-    loss, hinge, _, _ = retrieval_objective(cfg, y, z, log_w, means, log_s)
+    cfg = resolve_config(overrides={"nll_weight": 0.1, "wta_weight": 0.1, "set_nll_weight": 0.1,
+                                    "pull_moves_embedding": moves, "margin": 0.001})
+    owner, first = torch.arange(4), torch.arange(4)
+    loss, hinge, _, _ = retrieval_objective(cfg, y, owner, first, z, log_w, means, log_s)
     assert hinge.item() == 0.0
     loss.backward()
     assert means.grad is not None and means.grad.abs().sum() > 0
     assert (y.grad is not None and y.grad.abs().sum() > 0) == moves
+
+
+def test_set_nll_spreads_the_modes_over_a_query_s_complements():
+    """Two distinct complements of one query: fitting the set puts a live mode on each.
+
+    With one positive per query the winner of each pull takes all the weight; the set NLL is an
+    MDN fitted to every answer of X, so two modes end up on the two answers with weight ~1/2 each.
+    """
+    torch.manual_seed(0)
+    answers = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    pos = answers.repeat(8, 1)                                   # 8 queries x 2 complements
+    owner = torch.arange(8).repeat_interleave(2)
+    first = torch.arange(0, 16, 2)
+    z = torch.full((8, 3), 5.0)
+    logits = torch.zeros(8, 3, requires_grad=True)
+    means = (0.1 * torch.randn(8, 3, 3)).requires_grad_(True)
+    log_s = torch.log(torch.full((8, 3, 3), 0.3))
+    cfg = resolve_config(overrides={"set_nll_weight": 1.0, "wta_weight": 0.1, "margin": 0.001})
+    opt = torch.optim.Adam([logits, means], lr=0.05)
+    for _ in range(300):
+        log_w = torch.log_softmax(logits, dim=1)
+        loss, _, _, _ = retrieval_objective(cfg, pos, owner, first, z, log_w, means, log_s)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    w = torch.softmax(logits, dim=1)[0].detach()
+    dist = torch.cdist(answers, means[0].detach())                # (2 answers, 3 modes)
+    assert float(dist.min(dim=1).values.max()) < 0.1              # a mode on each answer
+    mass = [float(w[dist[i] < 0.1].sum()) for i in range(2)]      # (two modes may share one)
+    assert all(abs(m - 0.5) < 0.05 for m in mass), mass

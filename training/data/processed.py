@@ -96,6 +96,14 @@ class ProcessedDataset:
     def n_components(self) -> int:
         return len(self.translation)
 
+    def categories(self) -> list[str]:
+        """The collection's category folders, sorted: the classes of g's category head.
+
+        Folders are how users organise a collection, so naming them is fair supervision (part
+        labels and styles stay unread). Training and export both take the list from here.
+        """
+        return sorted({str(meta.get("category", "")) for meta in self.shapes})
+
     def components_of(self, shape: int) -> np.ndarray:
         """Global component indices of one shape."""
         return np.arange(self.first_comp[shape], self.first_comp[shape + 1])

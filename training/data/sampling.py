@@ -15,8 +15,11 @@ from training.data.processed import ProcessedDataset
 
 
 def sample_assembly(ds: ProcessedDataset, comps: np.ndarray | list[int], n: int,
-                    rng: np.random.Generator) -> np.ndarray:
+                    rng: np.random.Generator, by_area: bool = True) -> np.ndarray:
     """Sample ``n`` points area-weighted over a set of components, in the shape's frame.
+
+    ``by_area=False`` draws components evenly instead (a collection sampled per part, not by
+    surface).
 
     Shapes:
         returns (n, 3) float32.
@@ -24,7 +27,8 @@ def sample_assembly(ds: ProcessedDataset, comps: np.ndarray | list[int], n: int,
     comps = np.asarray(comps, dtype=np.int64)
     assert comps.size > 0, "an assembly needs at least one component"
     area = ds.area[comps].astype(np.float64)
-    probs = area / area.sum() if area.sum() > 0 else np.full(len(comps), 1.0 / len(comps))
+    even = np.full(len(comps), 1.0 / len(comps))
+    probs = area / area.sum() if by_area and area.sum() > 0 else even
     which = rng.choice(len(comps), size=n, p=probs)
     cached = ds.points.shape[1]
     rows = rng.integers(0, cached, size=n)
@@ -99,12 +103,70 @@ def lookalike_components(ds: ProcessedDataset, k: int) -> np.ndarray:
 
 @dataclass
 class Triplet:
-    """One training example: query components X, a positive complement Y and a negative Z."""
+    """One training example: query components X, a positive complement Y and a negative Z.
+
+    ``missing`` holds every component of the shape that X lacks: all of them are valid answers
+    to X (the paper's Y is one, adjacent to X), which is what a multimodal g must cover.
+    """
 
     shape: int
     query: list[int]
     positive: int
     negative: int
+    missing: list[int]
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """Ranges of the shape augmentations (``TrainConfig.augment`` is the share augmented).
+
+    What real collections bring and the generator does not: other proportions, models a little
+    rotated about the up axis, frames off centre or off scale, noisy or unevenly sampled
+    surfaces and holes.
+    """
+
+    axis_log_scale: float = 0.2        # per-axis rescale of the whole shape, exp(U(-a, a))
+    yaw_degrees: float = 8.0           # rotation about the up (y) axis
+    frame_offset: float = 0.05         # translation of the whole shape (unit radius)
+    frame_log_scale: float = 0.1       # uniform rescale of the whole shape
+    noise: float = 0.01                # largest per-point Gaussian noise sigma
+    hole_probability: float = 0.3      # chance that X loses the points within a random ball
+    hole_radius: float = 0.25
+    uniform_density_probability: float = 0.3  # chance that X samples components evenly, not by area
+
+
+def augmentation_transform(rng: np.random.Generator, strength: float,
+                           ranges: Augmentation = Augmentation()) -> tuple[np.ndarray, np.ndarray]:
+    """A random linear map and offset of a whole shape (its parts share the linear map).
+
+    Shapes:
+        returns A (3, 3) float32 and t (3,) float32: p -> p @ A.T + t.
+    """
+    a = ranges.axis_log_scale * strength
+    scale = np.exp(rng.uniform(-a, a, 3) + rng.uniform(-1, 1) * ranges.frame_log_scale * strength)
+    yaw = np.deg2rad(rng.uniform(-1, 1) * ranges.yaw_degrees * strength)
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    A = rot @ np.diag(scale)
+    t = rng.uniform(-1, 1, 3) * ranges.frame_offset * strength
+    return A.astype(np.float32), t.astype(np.float32)
+
+
+def punch_hole(points: np.ndarray, rng: np.random.Generator, radius: float) -> np.ndarray:
+    """Points with those within ``radius`` of a random one of them replaced by other kept points.
+
+    The count stays the same (the networks take a fixed N in a batch), as a scan with a hole
+    resampled to N points would.
+
+    Shapes:
+        points (N, 3) -> (N, 3).
+    """
+    centre = points[int(rng.integers(len(points)))]
+    keep = np.linalg.norm(points - centre, axis=1) > radius
+    if keep.sum() < len(points) // 2:   # never lose most of the query
+        return points
+    kept = points[keep]
+    return np.concatenate([kept, kept[rng.integers(0, len(kept), len(points) - len(kept))]])
 
 
 class TripletSampler:
@@ -133,7 +195,8 @@ class TripletSampler:
 
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
-                 removal_query_fraction: float = 0.0):
+                 removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
+                 scale_augment: float = 0.0, categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
                             ("removal_query_fraction", removal_query_fraction)):
@@ -147,6 +210,12 @@ class TripletSampler:
         self.query_negative_fraction = query_negative_fraction
         self.lookalike_negative_fraction = lookalike_negative_fraction
         self.removal_query_fraction = removal_query_fraction
+        self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
+        self.ranges = Augmentation()
+        # The full collection's list, so that a subset (the train split) keeps the same indices.
+        categories = categories if categories is not None else ds.categories()
+        self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
+                                          np.int64)
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
                            if lookalike_negative_fraction > 0 else None)
         self.adj = ds.adjacency()
@@ -181,7 +250,8 @@ class TripletSampler:
                         else self._negative(qset | set(neighbours), rng))
         else:
             negative = self._negative(qset | set(neighbours), rng)
-        return Triplet(shape=shape, query=query, positive=positive, negative=negative)
+        return Triplet(shape=shape, query=query, positive=positive, negative=negative,
+                       missing=[c for c in nodes if c not in qset])
 
     def _negative(self, blocked: set[int], rng: np.random.Generator, tries: int = 64) -> int:
         """A random component outside ``blocked``: rejection sampling, then an explicit draw."""
@@ -199,18 +269,55 @@ class TripletSampler:
     def batch(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         """A batch of triplets as arrays.
 
+        ``P`` holds up to ``positives`` components of X's complement set, the paper's positive
+        Y first (``P[:, 0] == Y``), ``P_mask`` which of them are real (a query may lack fewer).
+        A share ``augment`` of the triplets is augmented: the shape gets a random linear map and
+        offset (its parts the same linear map: they stay centred), X point noise, a hole and
+        even-by-component density, in the ranges of ``Augmentation``.
+        ``Y_h`` is the positive that h sees, rescaled per axis by exp(U(-a, a)) with
+        ``a = scale_augment``; ``Y_log_scale`` is the log scale that undoes it.
+
         Shapes:
-            X (B, N, 3), Y (B, N, 3), Z (B, N, 3) float32; Y_translation (B, 3) float32.
+            X (B, N, 3), Y (B, N, 3), Z (B, N, 3), Y_h (B, N, 3) float32; Y_translation (B, 3),
+            Y_log_scale (B, 3) float32; P (B, P, N, 3) float32, P_mask (B, P) bool;
+            category (B,) int64.
         """
-        n = self.n_points
+        n, npos = self.n_points, self.positives
         X = np.empty((batch_size, n, 3), np.float32)
         Y = np.empty_like(X)
         Z = np.empty_like(X)
+        P = np.zeros((batch_size, npos, n, 3), np.float32)
+        mask = np.zeros((batch_size, npos), bool)
         T = np.empty((batch_size, 3), np.float32)
+        category = np.empty(batch_size, np.int64)
+        ranges = self.ranges
         for b in range(batch_size):
             t = self.sample_triplet(rng)
-            X[b] = sample_assembly(self.ds, t.query, n, rng)
+            augmented = self.augment > 0 and rng.random() < self.augment
+            by_area = not (augmented and rng.random() < ranges.uniform_density_probability)
+            X[b] = sample_assembly(self.ds, t.query, n, rng, by_area=by_area)
             Y[b] = sample_part(self.ds, t.positive, n, rng)
             Z[b] = sample_part(self.ds, t.negative, n, rng)
             T[b] = self.ds.translation[t.positive]
-        return {"X": X, "Y": Y, "Z": Z, "Y_translation": T}
+            others = [c for c in t.missing if c != t.positive]
+            extra = rng.permutation(others)[:npos - 1].tolist() if npos > 1 else []
+            P[b, 0] = Y[b]
+            for j, comp in enumerate(extra, start=1):
+                P[b, j] = sample_part(self.ds, int(comp), n, rng)
+            mask[b, :1 + len(extra)] = True
+            category[b] = self.category_of_shape[t.shape]
+            if augmented:
+                A, offset = augmentation_transform(rng, 1.0, ranges)
+                X[b] = X[b] @ A.T + offset
+                Y[b], Z[b], P[b] = Y[b] @ A.T, Z[b] @ A.T, P[b] @ A.T
+                T[b] = T[b] @ A.T + offset
+                X[b] += rng.normal(0.0, rng.uniform(0, ranges.noise), X[b].shape)
+                if rng.random() < ranges.hole_probability:
+                    X[b] = punch_hole(X[b], rng, ranges.hole_radius)
+        a = self.scale_augment
+        log_scale = rng.uniform(-a, a, (batch_size, 3)).astype(np.float32) if a > 0 \
+            else np.zeros((batch_size, 3), np.float32)
+        # The part h sees is Y grown by exp(log_scale); the fitting scale undoes that.
+        Y_h = Y * np.exp(log_scale)[:, None, :]
+        return {"X": X, "Y": Y, "Z": Z, "Y_translation": T, "Y_h": Y_h.astype(np.float32),
+                "Y_log_scale": -log_scale, "P": P, "P_mask": mask, "category": category}

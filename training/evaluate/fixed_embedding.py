@@ -96,7 +96,7 @@ class FixedEmbedding:
     def mixture(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """g of one query. Shapes: (N, 3) -> weights (K,), means (K, dim), sigmas (K, dim)."""
         self.g.eval()
-        w, mu, sd = self.g(torch.from_numpy(np.asarray(points, np.float32)[None]))
+        w, mu, sd = self.g(torch.from_numpy(np.asarray(points, np.float32)[None]))[:3]
         return w[0].numpy(), mu[0].numpy(), sd[0].numpy()
 
 
