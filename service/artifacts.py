@@ -62,6 +62,17 @@ GRAPH_OUTPUTS = {
     "h_part": ["part_feature"],
     "h_head": ["translation"],
 }
+# Outputs a graph may add after its required ones (model v3): g's category probabilities over
+# the manifest's "categories", h_head's per-axis log scale that fits a part to the query.
+OPTIONAL_OUTPUTS = {"g": ["category_probs"], "h_head": ["log_scale"]}
+
+
+def graph_outputs(graph: str, category_head: bool = False, scale_head: bool = False) -> list[str]:
+    """The output names of one graph, with the optional heads it was exported with."""
+    names = list(GRAPH_OUTPUTS[graph])
+    if (graph == "g" and category_head) or (graph == "h_head" and scale_head):
+        names += OPTIONAL_OUTPUTS[graph]
+    return names
 
 # Fields of one record in catalog.json.
 CATALOG_FIELDS = (

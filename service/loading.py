@@ -25,6 +25,7 @@ from service.artifacts import (
     GRAPH_FILES,
     GRAPH_INPUTS,
     GRAPH_OUTPUTS,
+    OPTIONAL_OUTPUTS,
     INDEX_FILE,
     ArtifactError,
     read_manifest,
@@ -91,12 +92,14 @@ def open_session(path: Path, graph: str, threads: int) -> ort.InferenceSession:
                                     providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own untyped errors on bad files
         raise ArtifactError(f"{path}: cannot be opened as an ONNX graph ({exc})") from exc
-    for kind, found, expected in (
-        ("inputs", [i.name for i in sess.get_inputs()], GRAPH_INPUTS[graph]),
-        ("outputs", [o.name for o in sess.get_outputs()], GRAPH_OUTPUTS[graph]),
-    ):
-        if found != expected:
-            raise ArtifactError(f"{path}: graph {graph!r} has {kind} {found}, expected {expected}")
+    outputs = [o.name for o in sess.get_outputs()]
+    allowed = [GRAPH_OUTPUTS[graph], GRAPH_OUTPUTS[graph] + OPTIONAL_OUTPUTS.get(graph, [])]
+    inputs = [i.name for i in sess.get_inputs()]
+    if inputs != GRAPH_INPUTS[graph]:
+        raise ArtifactError(f"{path}: graph {graph!r} has inputs {inputs}, expected {GRAPH_INPUTS[graph]}")
+    if outputs not in allowed:
+        raise ArtifactError(f"{path}: graph {graph!r} has outputs {outputs}, expected "
+                            + " or ".join(str(a) for a in allowed))
     for inp in sess.get_inputs():
         if inp.type != "tensor(float)":
             raise ArtifactError(f"{path}: input {inp.name!r} has type {inp.type}, expected tensor(float)")

@@ -20,11 +20,14 @@ class Mixture:
         weights: (B, K) float32, softmax weights phi_k.
         means: (B, K, D) float32, mu_k.
         sigmas: (B, K, D) float32, per-dimension standard deviations sigma_k.
+        category_probs: (B, C) float32 over the manifest's categories, or None when g has no
+            category head (models before v3).
     """
 
     weights: np.ndarray
     means: np.ndarray
     sigmas: np.ndarray
+    category_probs: np.ndarray | None = None
 
 
 @dataclass
@@ -57,10 +60,20 @@ class Networks:
         """Embed centred part point clouds: (B, S, 3) float32 -> (B, D) float32."""
         return self._run_points(self.f, ["embedding"], points)[0]
 
+    @property
+    def has_category_head(self) -> bool:
+        return any(o.name == "category_probs" for o in self.g.get_outputs())
+
+    @property
+    def has_scale_head(self) -> bool:
+        return any(o.name == "log_scale" for o in self.h_head.get_outputs())
+
     def mixture(self, points: np.ndarray) -> Mixture:
         """Predict the complement distribution of partial assemblies: (B, N, 3) -> Mixture."""
-        w, mu, sigma = self._run_points(self.g, ["weights", "means", "sigmas"], points)
-        return Mixture(weights=w, means=mu, sigmas=sigma)
+        names = ["weights", "means", "sigmas"] + (["category_probs"] if self.has_category_head else [])
+        out = self._run_points(self.g, names, points)
+        return Mixture(weights=out[0], means=out[1], sigmas=out[2],
+                       category_probs=out[3] if len(out) > 3 else None)
 
     def query_features(self, points: np.ndarray) -> np.ndarray:
         """Placement features of partial assemblies: (B, N, 3) -> (B, Fq) float32."""
@@ -72,8 +85,21 @@ class Networks:
 
     def place(self, query_features: np.ndarray, part_features: np.ndarray) -> np.ndarray:
         """Translations of parts next to queries, row by row: (B, Fq), (B, Fp) -> (B, 3) float32."""
-        return self.h_head.run(["translation"], {"query_feature": _f32(query_features),
-                                                 "part_feature": _f32(part_features)})[0]
+        return self.place_and_fit(query_features, part_features)[0]
+
+    def place_and_fit(self, query_features: np.ndarray, part_features: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Translations and per-axis fitting scales, row by row (scale 1 without a scale head).
+
+        Shapes:
+            (B, Fq), (B, Fp) -> translation (B, 3) float32, scale (B, 3) float32.
+        """
+        feed = {"query_feature": _f32(query_features), "part_feature": _f32(part_features)}
+        if not self.has_scale_head:
+            translation = self.h_head.run(["translation"], feed)[0]
+            return translation, np.ones_like(translation)
+        translation, log_scale = self.h_head.run(["translation", "log_scale"], feed)
+        return translation, np.exp(log_scale).astype(np.float32)
 
 
 def _f32(a: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from service.artifacts import (
     CATALOG_JSON,
     GRAPH_FILES,
     GRAPH_INPUTS,
-    GRAPH_OUTPUTS,
+    graph_outputs,
     INDEX_FILE,
     MANIFEST,
     write_manifest,
@@ -91,11 +91,17 @@ class ExportOptions:
     chunk: int = 256
 
 
-def _dynamic_axes(graph: str) -> dict[str, dict[int, str]]:
+def output_names(graph: str, module: nn.Module) -> list[str]:
+    """The graph's output names, with the optional heads its module has (service.artifacts)."""
+    return graph_outputs(graph, category_head=getattr(module, "category_head", None) is not None,
+                         scale_head=bool(getattr(module, "predict_scale", False)))
+
+
+def _dynamic_axes(graph: str, outputs: list[str]) -> dict[str, dict[int, str]]:
     axes: dict[str, dict[int, str]] = {}
     for name in GRAPH_INPUTS[graph]:
         axes[name] = {0: "batch", 1: "n_points"} if name == "points" else {0: "batch"}
-    for name in GRAPH_OUTPUTS[graph]:
+    for name in outputs:
         axes[name] = {0: "batch"}
     return axes
 
@@ -120,12 +126,13 @@ def export_graph(module: nn.Module, graph: str, inputs: tuple[torch.Tensor, ...]
                  opset: int = 17) -> None:
     """Write one graph as a single ONNX file (legacy exporter) and check it with onnx.checker."""
     module.eval()
+    outputs = output_names(graph, module)
     with warnings.catch_warnings():
         # The legacy exporter is deprecated, but it is the one that writes a single file per graph.
         warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(module, inputs, str(path), dynamo=False, opset_version=opset,
-                          input_names=GRAPH_INPUTS[graph], output_names=GRAPH_OUTPUTS[graph],
-                          dynamic_axes=_dynamic_axes(graph))
+                          input_names=GRAPH_INPUTS[graph], output_names=outputs,
+                          dynamic_axes=_dynamic_axes(graph, outputs))
     onnx.checker.check_model(onnx.load(str(path)))
 
 
@@ -306,6 +313,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "catalog_points": opts.catalog_points,
         "index": index_entry(index_params),
         "model_config": config_to_dict(cfg.model),
+        # The classes of g's category_probs output, in order (ProcessedDataset.categories).
+        **({"categories": ds.categories()} if cfg.model.n_categories else {}),
         "dataset": {"seed": ds.info.get("seed"), "hash": ds.info.get("hash") or ds.content_hash(),
                     "path": str(data_dir), "shapes": ds.n_shapes},
         "split": {"train_shapes": split_of_shape.count("train"), "test_shapes": split_of_shape.count("test")},
