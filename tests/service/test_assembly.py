@@ -38,7 +38,7 @@ from service.settings import DEFAULT_ARTIFACTS, Settings
 ESSENTIAL = {
     "chair": {"seat", "back", "leg"}, "table": {"top", "leg"}, "airplane": {"body", "wing", "tail"},
     "car": {"body", "wheel"}, "sofa": {"seat", "back"}, "lamp": {"base", "shade"},
-    "guitar": {"body", "neck"}, "watercraft": {"hull"},
+    "guitar": {"body", "neck"}, "watercraft": {"hull"}, "rifle": {"barrel", "stock", "body"},
 }
 SAME_LABEL_MIN_DISTANCE = 0.05
 QUALITY_RUNS = 10          # per category: half greedy, half sampled

@@ -20,7 +20,7 @@ from training.data.generator.primitives import capsule, extrude, lathe, loft, sw
 from training.data.shape_io import save_shape
 from training.data.shapes import RawShape
 
-REQUIRED_CATEGORIES = {"chair", "table", "sofa", "lamp", "airplane", "car", "guitar", "watercraft"}
+REQUIRED_CATEGORIES = {"chair", "table", "sofa", "lamp", "airplane", "car", "guitar", "watercraft", "rifle"}
 # ShapeNet part benchmark names where the category has them.
 BENCHMARK_LABELS = {
     "airplane": {"body", "wing", "tail", "engine"},
@@ -41,6 +41,7 @@ ORIENTATION = {
     "car": [("roof", 1, "wheel"), ("hood", 0, "roof")],
     "guitar": [("head", 1, "body"), ("neck", 0, "body")],
     "watercraft": [("*", 1, "hull")],
+    "rifle": [("barrel", 0, "body"), ("barrel", 0, "stock"), ("body", 1, "trigger")],
 }
 STYLE_ORIENTATION = {
     ("lamp", "pendant"): [("base", 1, "shade")],

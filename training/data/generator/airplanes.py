@@ -91,7 +91,7 @@ def airliner(rng: np.random.Generator, b: ShapeBuilder) -> None:
     b.add(fuselage(xs[: cut + 1], r[: cut + 1], lift[: cut + 1], circle), "body")
     b.add(fuselage(xs[cut:], r[cut:], lift[cut:], circle), "body")
     b.add(ellipsoid(0.04, 0.02, 0.6 * R, 10, 4), "body", [translation(xs[2] - 0.02, lift[2] + 0.6 * r[2], 0)])
-    span, root = _u(rng, 1.6, 2.0), _u(rng, 0.3, 0.42)
+    span, root = _u(rng, 1.384, 2.216), _u(rng, 0.3, 0.42)
     x_wing, sweep, dihedral = _u(rng, 0.05, 0.2), _u(rng, 0.25, 0.45), _u(rng, 0.05, 0.1)
     y_wing = -0.45 * R
     b.add(wing(x_wing, y_wing, root, root * _u(rng, 0.25, 0.4), span, sweep, dihedral), "wing")
@@ -135,7 +135,7 @@ def fighter(rng: np.random.Generator, b: ShapeBuilder) -> None:
         "body",
         [translation(xs[2] - cl / 2, lift[2] + 0.55 * R, 0)],
     )
-    span, root = _u(rng, 1.0, 1.4), _u(rng, 0.7, 0.95)
+    span, root = _u(rng, 0.856, 1.544), _u(rng, 0.7, 0.95)
     b.add(
         wing(
             -L / 2 + 0.05 + root,
@@ -174,7 +174,8 @@ def fighter(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 
 def propeller(rng: np.random.Generator, b: ShapeBuilder) -> None:
-    """Light aircraft: boxy fuselage, strut-braced high wing, cowling with a propeller, wheel pants."""
+    """Light aircraft: boxy fuselage, strut-braced high wing, cowling with a propeller, wheel pants;
+    some are tri-motors with two more engines under the wing."""
     L, R = _u(rng, 1.4, 1.7), _u(rng, 0.1, 0.13)
     xs = L / 2 - np.array([0.0, 0.12, 0.3, 0.5, 0.75, 1.0]) * L
     r = R * np.array([0.8, 1.0, 1.05, 0.85, 0.5, 0.25])
@@ -201,7 +202,7 @@ def propeller(rng: np.random.Generator, b: ShapeBuilder) -> None:
         "engine",
         [compose(hub, rotation("x", 2 * np.pi * k / nb + 0.3)) for k in range(nb)],
     )
-    span, chord = _u(rng, 1.7, 2.1), _u(rng, 0.24, 0.32)
+    span, chord = _u(rng, 1.472, 2.328), _u(rng, 0.24, 0.32)
     x_w = xs[1] - _u(rng, 0.05, 0.15)
     y_w = lift[2] + r[2] * 0.95
     b.add(wing(x_w, y_w, chord, chord * _u(rng, 0.85, 1.0), span, 0.0, 0.02), "wing")
@@ -209,6 +210,12 @@ def propeller(rng: np.random.Generator, b: ShapeBuilder) -> None:
     strut = rod([0, lift[2] - 0.6 * R, 0.7 * R], [0, y_w, zs], 0.01, segments=8)
     at = translation(x_w - chord * 0.4, 0, 0)
     b.add(strut, "wing", [at, compose(at, rotation("y", np.pi))])
+    if rng.random() < 0.35:
+        # Tri-motor: a pair of nacelles hung under the wing, as in ShapeNet's underwing engines.
+        nr, nl = 0.55 * R, _u(rng, 0.22, 0.3)
+        zn = span * _u(rng, 0.14, 0.2)
+        pods = [translation(x_w + 0.06, y_w - 0.7 * nr, sz * zn) for sz in (1, -1)]
+        b.add(_engine_pod(nr, nl), "engine", pods)
     hs_span, hs_chord = _u(rng, 0.5, 0.7), _u(rng, 0.14, 0.2)
     b.add(wing(-L / 2 + hs_chord - 0.02, lift[-1], hs_chord, hs_chord * 0.7, hs_span, 0.03, 0.0), "tail")
     b.add(fin(-L / 2 + 0.22, lift[-1], 0.24, 0.1, _u(rng, 0.2, 0.28), 0.12), "tail")

@@ -106,7 +106,7 @@ def _lights(b: ShapeBuilder, x: float, y: float, z: float) -> None:
 
 def sedan(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Three-box sedan: lower body, hood, cabin with side windows, trunk, four wheels."""
-    L, W = _u(rng, 1.8, 2.0), _u(rng, 0.75, 0.85)
+    L, W = _u(rng, 1.572, 2.228), _u(rng, 0.654, 0.946)
     rw, ww = _u(rng, 0.15, 0.18), _u(rng, 0.1, 0.13)
     xf, xr = L / 2 - _u(rng, 0.3, 0.36), -L / 2 + _u(rng, 0.3, 0.38)
     yb = 2 * rw + _u(rng, 0.06, 0.12)
@@ -169,7 +169,7 @@ def sedan(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def suv(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Tall box: high lower body, short hood, long cabin to the rear, roof rails, spare wheel."""
-    L, W = _u(rng, 1.7, 1.9), _u(rng, 0.8, 0.9)
+    L, W = _u(rng, 1.484, 2.116), _u(rng, 0.698, 1.002)
     rw, ww = _u(rng, 0.18, 0.22), _u(rng, 0.12, 0.15)
     xf, xr = L / 2 - _u(rng, 0.28, 0.33), -L / 2 + _u(rng, 0.28, 0.33)
     yb = 2 * rw + _u(rng, 0.12, 0.2)
@@ -216,7 +216,7 @@ def suv(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def sports(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Low coupe: wedge lower body, long hood, small fastback cabin, rear spoiler on posts."""
-    L, W = _u(rng, 1.85, 2.0), _u(rng, 0.85, 0.95)
+    L, W = _u(rng, 1.619, 2.231), _u(rng, 0.742, 1.058)
     rw, ww = _u(rng, 0.15, 0.17), _u(rng, 0.13, 0.16)
     xf, xr = L / 2 - _u(rng, 0.32, 0.38), -L / 2 + _u(rng, 0.3, 0.35)
     yb = 2 * rw + _u(rng, 0.02, 0.06)
@@ -250,7 +250,7 @@ def sports(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def pickup(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Pickup truck: lower body, hood, short cab, open cargo bed (two side walls and a tailgate)."""
-    L, W = _u(rng, 1.9, 2.0), _u(rng, 0.8, 0.88)
+    L, W = _u(rng, 1.666, 2.234), _u(rng, 0.699, 0.981)
     rw, ww = _u(rng, 0.18, 0.21), _u(rng, 0.12, 0.15)
     xf, xr = L / 2 - _u(rng, 0.3, 0.35), -L / 2 + _u(rng, 0.35, 0.42)
     yb = 2 * rw + _u(rng, 0.08, 0.14)

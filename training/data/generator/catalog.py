@@ -8,7 +8,17 @@ from types import ModuleType
 
 import numpy as np
 
-from training.data.generator import airplanes, cars, chairs, guitars, lamps, sofas, tables, watercraft
+from training.data.generator import (
+    airplanes,
+    cars,
+    chairs,
+    guitars,
+    lamps,
+    rifles,
+    sofas,
+    tables,
+    watercraft,
+)
 from training.data.generator.assembly import ShapeBuilder
 
 StyleBuilder = Callable[[np.random.Generator, ShapeBuilder], None]
@@ -37,6 +47,7 @@ _MODULES: dict[str, ModuleType] = {
     "car": cars,
     "guitar": guitars,
     "watercraft": watercraft,
+    "rifle": rifles,
 }
 
 CATEGORIES: dict[str, Category] = {name: _category(name, module) for name, module in _MODULES.items()}

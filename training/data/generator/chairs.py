@@ -48,7 +48,7 @@ def _corners(x: float, z: float) -> list[np.ndarray]:
 
 def straight(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Dining chair: four tapered square legs, side stretchers, slatted back with a curved rail."""
-    hs, d, w, t = _u(rng, 0.75, 0.9), _u(rng, 0.75, 0.9), _u(rng, 0.75, 0.95), _u(rng, 0.06, 0.09)
+    hs, d, w, t = _u(rng, 0.651, 0.999), _u(rng, 0.651, 0.999), _u(rng, 0.648, 1.052), _u(rng, 0.06, 0.09)
     lb, lt = _u(rng, 0.05, 0.07), _u(rng, 0.07, 0.095)
     inset = lt / 2 + _u(rng, 0.01, 0.04)
     lx, lz = d / 2 - inset, w / 2 - inset
@@ -97,7 +97,7 @@ def straight(rng: np.random.Generator, b: ShapeBuilder) -> None:
 def armchair(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Upholstered club chair: thick base and cushion, padded reclined back, solid rolled arms."""
     hl, hs = _u(rng, 0.2, 0.3), _u(rng, 0.7, 0.85)
-    W, D, at, bt = _u(rng, 1.1, 1.4), _u(rng, 0.9, 1.05), _u(rng, 0.14, 0.24), _u(rng, 0.15, 0.25)
+    W, D, at, bt = _u(rng, 0.95, 1.55), _u(rng, 0.783, 1.167), _u(rng, 0.14, 0.24), _u(rng, 0.15, 0.25)
     ct = _u(rng, 0.1, 0.16)
     base_top = hs - ct
     leg = lathe(np.array([[0.035, 0.0], [0.05, 0.3 * hl], [0.045, 0.8 * hl], [0.06, hl + 0.02]]), 12)
@@ -146,7 +146,7 @@ def swivel(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Office chair: five-star base on casters, gas-lift column, cushion seat, curved back on a
     bar, and (usually) T-shaped armrests."""
     rc, R = _u(rng, 0.035, 0.048), _u(rng, 0.5, 0.62)
-    hs, d, w, st = _u(rng, 0.75, 0.9), _u(rng, 0.72, 0.88), _u(rng, 0.75, 0.9), _u(rng, 0.08, 0.12)
+    hs, d, w, st = _u(rng, 0.651, 0.999), _u(rng, 0.624, 0.976), _u(rng, 0.651, 0.999), _u(rng, 0.08, 0.12)
     cr = _u(rng, 0.03, 0.042)
     y_out, y_in = 2 * rc + 0.02, 2 * rc + _u(rng, 0.06, 0.1)
     spoke = loft(
@@ -202,7 +202,7 @@ def swivel(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def stool(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Bar stool: round seat, three or four splayed legs and a foot ring."""
-    hs, rs, st = _u(rng, 1.0, 1.5), _u(rng, 0.28, 0.4), _u(rng, 0.06, 0.1)
+    hs, rs, st = _u(rng, 0.85, 1.65), _u(rng, 0.239, 0.441), _u(rng, 0.06, 0.1)
     n = int(rng.integers(3, 5))
     rt, rb, lr = rs * _u(rng, 0.45, 0.6), rs * _u(rng, 0.85, 1.15), _u(rng, 0.025, 0.04)
     top = hs - st + 0.01
@@ -227,7 +227,7 @@ def stool(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def cantilever(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Tubular steel cantilever chair: two bent side frames, seat panel and a curved back."""
-    hs, d, w = _u(rng, 0.75, 0.88), _u(rng, 0.72, 0.85), _u(rng, 0.75, 0.9)
+    hs, d, w = _u(rng, 0.652, 0.978), _u(rng, 0.626, 0.944), _u(rng, 0.651, 0.999)
     rt, st = _u(rng, 0.016, 0.025), _u(rng, 0.035, 0.06)
     hb, recline = _u(rng, 0.6, 0.85), _u(rng, 0.08, 0.2)
     zf = w / 2 - 0.04

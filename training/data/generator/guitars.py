@@ -42,21 +42,37 @@ def _acoustic_outline(lb: float, r1: float, r2: float, waist: float) -> np.ndarr
 
 
 def _neck(
-    b: ShapeBuilder, rng: np.random.Generator, y0: float, y1: float, x_front: float, w0: float, w1: float
+    b: ShapeBuilder,
+    rng: np.random.Generator,
+    y0: float,
+    y1: float,
+    x_front: float,
+    w0: float,
+    w1: float,
+    heel: float = 0.0,
 ) -> None:
-    """D-section neck from y0 to y1 with its flat front at x_front, fretboard overlay and frets."""
+    """D-section neck from y0 to y1 with its flat front at x_front, fretboard overlay and frets.
+
+    ``heel`` > 0: the neck's lowest ``heel`` length is a separate piece labelled body (the part
+    of the neck set into the body, which ShapeNet labels as body in some guitars).
+    """
     t = np.linspace(0, np.pi, 7)
     d_shape = np.concatenate([[[0.5, 0.0]], np.stack([0.5 * np.cos(t), -np.sin(t)], 1)[1:-1], [[-0.5, 0.0]]])
     depth = _u(rng, 0.03, 0.04)
+    ym = y0 + heel
+    wm = w0 + (w1 - w0) * heel / (y1 - y0)
     # loft along y: section (u, v) -> (z, x); flat side (v = 0) at the front.
-    neck = loft(
-        d_shape,
-        np.array([y0, y1]),
-        np.array([[0.0, x_front - 0.006]] * 2),
-        np.array([[w0, depth], [w1, depth]]),
-        axis="y",
-    )
-    b.add(neck, "neck")
+    for lo, hi, wlo, whi, label in ((y0, ym, w0, wm, "body"), (ym, y1, wm, w1, "neck")):
+        if hi - lo <= 1e-9:
+            continue
+        neck = loft(
+            d_shape,
+            np.array([lo, hi]),
+            np.array([[0.0, x_front - 0.006]] * 2),
+            np.array([[wlo, depth], [whi, depth]]),
+            axis="y",
+        )
+        b.add(neck, label)
     fb = loft(
         rounded_rect(1.0, 1.0, 0.0),
         np.array([y0 + 0.02, y1]),
@@ -104,7 +120,7 @@ def _head(
 
 def acoustic(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Acoustic: deep figure-eight body with sound hole ring and bridge, 3+3 headstock."""
-    lb, r1 = _u(rng, 0.8, 0.95), _u(rng, 0.28, 0.34)
+    lb, r1 = _u(rng, 0.695, 1.055), _u(rng, 0.28, 0.34)
     r2, depth = r1 * _u(rng, 0.72, 0.82), _u(rng, 0.16, 0.22)
     outline = _acoustic_outline(lb, r1, r2, r2 * _u(rng, 0.75, 0.85))
     b.add(panel(outline, depth, 0.01), "body")
@@ -159,7 +175,7 @@ def _electric_parts(
 
 def double_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Symmetric double-cutaway solid body with two horns, pickguard, 3+3 pointed headstock."""
-    lb, W, depth = _u(rng, 0.7, 0.85), _u(rng, 0.48, 0.58), _u(rng, 0.07, 0.1)
+    lb, W, depth = _u(rng, 0.607, 0.943), _u(rng, 0.416, 0.644), _u(rng, 0.07, 0.1)
     horn = _u(rng, 0.08, 0.16)
     half = np.array(
         [
@@ -190,7 +206,8 @@ def double_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
     b.add(panel(chaikin(guard, 1), 0.006, 0.0), "body", [translation(front, 0, 0)])
     _electric_parts(b, rng, front, 0.25 * lb, 0.65 * lb, 0.3 * W)
     ln = _u(rng, 0.7, 0.8)
-    _neck(b, rng, 0.8 * lb, lb + ln, front + 0.012, 0.075, 0.062)
+    heel = 0.08 * lb if rng.random() < 0.35 else 0.0
+    _neck(b, rng, 0.8 * lb, lb + ln, front + 0.012, 0.075, 0.062, heel)
     lh, wh = _u(rng, 0.22, 0.28), _u(rng, 0.08, 0.1)
     head = _symmetric(
         np.array([[0.0, -0.01], [0.035, -0.01], [wh * 0.6, 0.4 * lh], [wh * 0.5, 0.85 * lh], [0.0, lh]])
@@ -201,7 +218,7 @@ def double_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def single_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Single-cutaway carved-top body (one horn), raised pickups, rounded 3+3 headstock."""
-    lb, W, depth = _u(rng, 0.7, 0.8), _u(rng, 0.5, 0.58), _u(rng, 0.09, 0.12)
+    lb, W, depth = _u(rng, 0.61, 0.89), _u(rng, 0.435, 0.645), _u(rng, 0.09, 0.12)
     ctrl = np.array(
         [
             [0.0, 0.0],
@@ -223,7 +240,8 @@ def single_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
     front = depth / 2
     _electric_parts(b, rng, front, 0.3 * lb, 0.7 * lb, -0.3 * W)
     ln = _u(rng, 0.62, 0.72)
-    _neck(b, rng, 0.85 * lb, lb + ln, front + 0.012, 0.078, 0.066)
+    heel = 0.1 * lb if rng.random() < 0.35 else 0.0
+    _neck(b, rng, 0.85 * lb, lb + ln, front + 0.012, 0.078, 0.066, heel)
     lh, wh = _u(rng, 0.22, 0.27), _u(rng, 0.1, 0.12)
     head = _symmetric(
         np.array(
@@ -243,7 +261,7 @@ def single_cut(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def flying_v(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Flying V: two wings meeting at the neck, pointed six-in-line headstock."""
-    lb, W, depth = _u(rng, 0.75, 0.9), _u(rng, 0.5, 0.62), _u(rng, 0.06, 0.08)
+    lb, W, depth = _u(rng, 0.651, 0.999), _u(rng, 0.433, 0.687), _u(rng, 0.06, 0.08)
     notch = _u(rng, 0.35, 0.5) * lb
     half = np.array(
         [[0.0, notch], [0.32 * W, 0.0], [0.5 * W, 0.03], [0.2 * W, 0.8 * lb], [0.08 * W, lb], [0.0, lb]]

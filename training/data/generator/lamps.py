@@ -44,7 +44,7 @@ def _bulb(radius: float) -> Mesh:
 
 def table(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Table lamp: turned vase base, short tube, socket, bulb, drum or conical shade."""
-    bh, br = _u(rng, 0.5, 0.8), _u(rng, 0.22, 0.35)
+    bh, br = _u(rng, 0.422, 0.878), _u(rng, 0.186, 0.384)
     belly = _u(rng, 0.9, 1.3)
     base = lathe(
         np.array(
@@ -82,7 +82,7 @@ def table(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def floor(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Torchiere: heavy disc base, pole of identical screwed segments, uplight bowl and bulb."""
-    H = _u(rng, 1.7, 2.1)
+    H = _u(rng, 1.472, 2.328)
     br, bh = _u(rng, 0.22, 0.32), _u(rng, 0.04, 0.07)
     b.add(lathe(np.array([[br, 0.0], [br, bh * 0.6], [0.8 * br, bh], [0.06, bh + 0.02]]), 20), "base")
     n = int(rng.integers(2, 4))
@@ -135,7 +135,7 @@ def desk(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def pendant(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Pendant lamp: ceiling canopy, long cord, dome shade and a bulb hanging out of it."""
-    H = _u(rng, 1.6, 2.1)
+    H = _u(rng, 1.378, 2.322)
     cr, ch = _u(rng, 0.1, 0.16), _u(rng, 0.06, 0.1)
     b.add(lathe(np.array([[0.0, H - ch], [0.6 * cr, H - ch], [cr, H - 0.3 * ch], [cr, H]]), 18), "base")
     # Two screws through the canopy's rim into the ceiling.

@@ -35,7 +35,7 @@ def _corners(x: float, z: float) -> list[np.ndarray]:
 def classic(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Rolled-arm sofa: base, n seat cushions, back slab with n back cushions, turned legs."""
     n = int(rng.integers(2, 4))
-    L, D = _u(rng, 1.7, 2.2), _u(rng, 0.8, 1.0)
+    L, D = _u(rng, 1.466, 2.434), _u(rng, 0.692, 1.108)
     hl, hb, ct = _u(rng, 0.14, 0.22), _u(rng, 0.38, 0.46), _u(rng, 0.1, 0.15)
     at, bt = _u(rng, 0.16, 0.24), _u(rng, 0.16, 0.24)
     leg = lathe(np.array([[0.03, 0.0], [0.045, 0.35 * hl], [0.04, 0.75 * hl], [0.055, hl + 0.02]]), 12)
@@ -88,7 +88,7 @@ def classic(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def modern(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Low boxy sofa: thin base, one long bench cushion, low back, box arms, two sled legs."""
-    L, D = _u(rng, 1.8, 2.3), _u(rng, 0.8, 0.95)
+    L, D = _u(rng, 1.554, 2.546), _u(rng, 0.695, 1.055)
     hl, ct = _u(rng, 0.15, 0.25), _u(rng, 0.12, 0.18)
     bh = _u(rng, 0.12, 0.18)
     hb = hl + bh

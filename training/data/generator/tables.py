@@ -1,5 +1,5 @@
-"""Tables: dining table (four legs and aprons), pedestal table, trestle table and coffee table
-with a lower shelf.
+"""Tables: dining table (four legs and aprons, sometimes low stretchers), pedestal table,
+trestle table and coffee table with a lower shelf.
 
 Labels follow the ShapeNet part benchmark: top, leg, support. Rule used throughout: what
 reaches the floor is a leg; horizontal structure below the top (aprons, stretchers, shelves,
@@ -39,7 +39,7 @@ def _plank_top(b: ShapeBuilder, length: float, depth: float, t: float, y: float,
 
 def dining(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Four tapered square legs under a rectangular top, joined by aprons, with corner blocks."""
-    L, D, H, t = _u(rng, 1.5, 1.95), _u(rng, 0.8, 1.05), _u(rng, 0.72, 0.85), _u(rng, 0.04, 0.07)
+    L, D, H, t = _u(rng, 1.293, 2.157), _u(rng, 0.689, 1.161), _u(rng, 0.626, 0.944), _u(rng, 0.04, 0.07)
     lt, lb = _u(rng, 0.07, 0.1), _u(rng, 0.045, 0.07)
     inset = _u(rng, 0.06, 0.14)
     lx, lz = L / 2 - inset, D / 2 - inset
@@ -66,13 +66,19 @@ def dining(rng: np.random.Generator, b: ShapeBuilder) -> None:
         "support",
         [translation(lx - lt / 2 + at / 2 + 0.005, ya, 0), translation(-lx + lt / 2 - at / 2 - 0.005, ya, 0)],
     )
+    if rng.random() < 0.4:
+        # Low stretchers between the legs (support, like the aprons), sometimes an H with a cross bar.
+        ys, sh = _u(rng, 0.12, 0.28) * H, _u(rng, 0.03, 0.05)
+        b.add(box(2 * lx, sh, 0.6 * lb), "support", [translation(0, ys, lz), translation(0, ys, -lz)])
+        if rng.random() < 0.5:
+            b.add(box(0.6 * lb, sh, 2 * lz), "support", [translation(0, ys, 0)])
 
 
 def pedestal(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Round or oval top on a turned column, arched feet radiating from its foot, a cross spider."""
-    a = _u(rng, 0.7, 0.95)
+    a = _u(rng, 0.601, 1.049)
     c = a * float(rng.choice([1.0, 1.0, _u(rng, 0.65, 0.85)]))
-    H, t = _u(rng, 0.72, 0.85), _u(rng, 0.04, 0.07)
+    H, t = _u(rng, 0.626, 0.944), _u(rng, 0.04, 0.07)
     b.add(plate(ellipse(a, c, 32), t, 0.015), "top", [translation(0, H - t / 2, 0)])
     cr = _u(rng, 0.06, 0.1)
     y0, y1 = _u(rng, 0.08, 0.14), H - t + 0.01
@@ -111,7 +117,7 @@ def pedestal(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def trestle(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Plank top on two shaped end frames standing on feet, tied by a long stretcher."""
-    L, D, H, t = _u(rng, 1.6, 2.0), _u(rng, 0.75, 1.0), _u(rng, 0.72, 0.85), _u(rng, 0.05, 0.08)
+    L, D, H, t = _u(rng, 1.384, 2.216), _u(rng, 0.645, 1.105), _u(rng, 0.626, 0.944), _u(rng, 0.05, 0.08)
     _plank_top(b, L, D, t, H - t / 2, int(rng.choice([1, 3, 4])))
     ex = L / 2 - _u(rng, 0.18, 0.3)
     fh, fw = _u(rng, 0.06, 0.1), _u(rng, 0.08, 0.12)
@@ -139,7 +145,7 @@ def trestle(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def coffee(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Low table: soft-rectangle top on four round legs, a lower shelf pierced by the legs."""
-    L, D, H, t = _u(rng, 1.5, 2.0), _u(rng, 0.7, 1.1), _u(rng, 0.45, 0.6), _u(rng, 0.05, 0.08)
+    L, D, H, t = _u(rng, 1.29, 2.21), _u(rng, 0.592, 1.208), _u(rng, 0.387, 0.663), _u(rng, 0.05, 0.08)
     b.add(
         plate(superellipse(L / 2, D / 2, _u(rng, 3.0, 6.0), 32), t, 0.015),
         "top",

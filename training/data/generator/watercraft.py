@@ -91,7 +91,7 @@ def _profile(m: int, stern: float, mid: float, bow: float, power: float = 1.5) -
 
 def sailboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Sailing yacht: hull with fin keel and rudder, deck, coachroof cabin, mast, main and jib."""
-    L, W, D = _u(rng, 1.5, 1.9), _u(rng, 0.22, 0.3), _u(rng, 0.16, 0.22)
+    L, W, D = _u(rng, 1.296, 2.104), _u(rng, 0.189, 0.331), _u(rng, 0.137, 0.243)
     m = 9
     beam = _profile(m, 0.75 * W, W, 0.02)
     depth = _profile(m, 0.6 * D, D, 0.35 * D)
@@ -135,7 +135,7 @@ def sailboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def motorboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Motor cruiser: deep-V hull, deck, cabin with windscreen, bow rail on posts, outboard engine."""
-    L, W, D = _u(rng, 1.6, 2.0), _u(rng, 0.3, 0.4), _u(rng, 0.2, 0.28)
+    L, W, D = _u(rng, 1.384, 2.216), _u(rng, 0.258, 0.442), _u(rng, 0.171, 0.309)
     m = 9
     beam = _profile(m, 0.9 * W, W, 0.03, 2.0)
     depth = _profile(m, 0.8 * D, D, 0.5 * D)
@@ -189,7 +189,7 @@ def motorboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def ship(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Cargo ship: long blunt hull, deck, container stacks, two-tier bridge, funnel and mast."""
-    L, W, D = _u(rng, 1.9, 2.1), _u(rng, 0.18, 0.24), _u(rng, 0.14, 0.2)
+    L, W, D = _u(rng, 1.66, 2.34), _u(rng, 0.155, 0.265), _u(rng, 0.12, 0.22)
     m = 11
     beam = _profile(m, 0.95 * W, W, 0.05, 4.0)
     depth = _profile(m, 0.9 * D, D, 0.7 * D, 4.0)
@@ -235,7 +235,7 @@ def ship(rng: np.random.Generator, b: ShapeBuilder) -> None:
 
 def rowboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     """Rowing boat: double-ended open hull, plank seats across it, two oars resting in oarlocks."""
-    L, W, D = _u(rng, 1.6, 2.0), _u(rng, 0.28, 0.36), _u(rng, 0.2, 0.26)
+    L, W, D = _u(rng, 1.384, 2.216), _u(rng, 0.242, 0.398), _u(rng, 0.172, 0.288)
     m = 11
     s = np.linspace(-1, 1, m)
     beam = np.maximum(W * (1 - np.abs(s) ** 2.2), 0.03)
