@@ -251,11 +251,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # complement set, a category head, size fitting and augmentations; a fixed number of steps
     # (same seed, same model on any host) with a time guard only.
     "v3": {
-        "steps": 3200, "max_minutes": 100, "n_points": 512, "val_every": 800, "ckpt_every": 200,
+        "steps": 1500, "max_minutes": 95, "n_points": 256, "val_every": 500, "ckpt_every": 100,
         "num_workers": 0,
         "lr_schedule": "cosine", "nll_weight": 0.0, "wta_weight": 0.1,
         "query_negative_fraction": 0.25, "lookalike_negative_fraction": 0.5, "removal_query_fraction": 0.3,
-        "positives": 4, "set_nll_weight": 0.1, "category_weight": 1.0,
+        "positives": 3, "set_nll_weight": 0.1, "category_weight": 1.0,
         "scale_augment": 0.4, "scale_weight": 0.3, "augment": 0.5,
         "model": {"predict_scale": True},
     },
