@@ -56,11 +56,12 @@ class Gated:
         self.hold.set()
         self.entered = threading.Event()
 
-    def __call__(self, items: list[Query]) -> Sequence[SuggestResult | ServiceError]:
+    def __call__(self, items: list[Query], deadlines: list[float | None]
+                 ) -> Sequence[SuggestResult | ServiceError]:
         self.sizes.append(len(items))
         self.entered.set()
         assert self.hold.wait(60), "the test never released the batch"
-        return self.engine.suggest_batch(items)
+        return self.engine.suggest_batch(items, deadlines)
 
 
 def test_queries_queued_during_a_batch_run_together_and_equal_the_engine(
@@ -123,11 +124,11 @@ def test_an_unexpected_failure_fails_its_batch_and_the_worker_goes_on(engine: Su
                                                                        query: AssemblyQuery) -> None:
     calls: list[int] = []
 
-    def flaky(items: list[Query]) -> Sequence[SuggestResult | ServiceError]:
+    def flaky(items: list[Query], deadlines: list[float | None]) -> Sequence[SuggestResult | ServiceError]:
         calls.append(len(items))
         if len(calls) == 1:
             raise RuntimeError("engine bug")
-        return engine.suggest_batch(items)
+        return engine.suggest_batch(items, deadlines)
 
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(flaky, max_size=4, max_wait=0.0)
 
