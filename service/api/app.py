@@ -140,7 +140,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        max_inflight_suggest=settings.max_inflight_suggest,
                        metrics=app.state.metrics)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
-                       max_upload_bytes=settings.max_upload_bytes)
+                       max_upload_bytes=settings.max_upload_bytes,
+                       body_read_timeout=settings.body_read_timeout)
     if settings.cors_origins:  # browsers only; none by default
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
