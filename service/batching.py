@@ -11,9 +11,10 @@ engine. Requests ``submit`` their queries from the event loop and await the answ
 
 * a worker takes the jobs queued, in order, up to ``max_size`` queries and ``max_cost``
   (estimated milliseconds, ``cost`` of each query) and runs them at once; a job whose queries do
-  not all fit gives the batch what fits and goes to the back of the queue with the rest, so one
-  request of many (or costly) queries cannot hold the worker while others wait: they run between
-  its chunks, each waiting about one batch;
+  not all fit gives the batch what fits, and its rest goes to the back of the queue once that
+  batch has run, behind the requests that arrived meanwhile: one request of many (or costly)
+  queries cannot hold the worker while others wait, they run between its chunks, each waiting
+  for one of its chunks at most;
 * it waits for more only while a request has *announced* itself (its body is being read or
   parsed, see ``arriving``) and at most ``max_wait`` seconds after the oldest job was queued,
   so a lone request never waits, and no request waits longer than the bound for company;
@@ -220,7 +221,8 @@ class MicroBatcher(Generic[Q, R]):
     def _take(self, batch: list[_Chunk[Q, R]], size: int, cost: float) -> tuple[int, float]:
         """Move queued queries into ``batch`` while they fit (the first always does); lock held.
 
-        A job that does not fit whole gives what fits and goes to the back of the queue.
+        A job that does not fit whole gives what fits; the rest goes to the back of the queue
+        when this batch has run, behind the requests that arrived meanwhile.
         """
         while self._jobs:
             job = self._jobs[0]
@@ -239,8 +241,7 @@ class MicroBatcher(Generic[Q, R]):
             job.taken = stop
             self._jobs.popleft()
             if stop < len(job.queries):
-                self._jobs.append(job)  # the rest after the others' queries
-                break
+                break  # the rest is queued again once this chunk ran (``_requeue``)
         return size, cost
 
     def _full(self, size: int, cost: float) -> bool:
@@ -274,6 +275,21 @@ class MicroBatcher(Generic[Q, R]):
             self._run(batch)
 
     def _run(self, batch: list[_Chunk[Q, R]]) -> None:
+        try:
+            self._run_chunks(batch)
+        finally:
+            self._requeue(batch)
+
+    def _requeue(self, batch: list[_Chunk[Q, R]]) -> None:
+        """Queue again the rest of the batch's unfinished large jobs."""
+        with self._cond:
+            for chunk in batch:
+                job = chunk.job
+                if chunk.stop == job.taken < len(job.queries) and not job.finished:
+                    self._jobs.append(job)
+                    self._cond.notify_all()
+
+    def _run_chunks(self, batch: list[_Chunk[Q, R]]) -> None:
         start = time.monotonic()
         live = []
         for chunk in batch:
