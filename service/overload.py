@@ -112,8 +112,9 @@ class OverloadMiddleware:
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
                  max_inflight_writes: int = 2, metrics: Metrics | None = None,
-                 max_inflight_suggest: int | None = None):
+                 max_inflight_suggest: int | None = None, refusal_delay: float = 0.0):
         self.app = app
+        self.refusal_delay = refusal_delay
         self.gate = InferenceGate(max_inflight, max_queue)
         self.write_gate = InferenceGate(max_inflight_writes, max_queue)
         # None: /suggest shares the inference gate.
@@ -213,7 +214,9 @@ class OverloadMiddleware:
             fut = gate.try_enter()
         except OverflowError:
             self.rejected.labels("queue_full").inc()
-            raise Overloaded(gate, self._why_full(gate)) from None
+            why = self._why_full(gate)
+            await asyncio.sleep(self.refusal_delay)  # as in ``_overloaded``
+            raise Overloaded(gate, why) from None
         admission.state = "waiting"
         if fut is not None:
             try:
@@ -258,6 +261,10 @@ class OverloadMiddleware:
             raise
 
     async def _overloaded(self, gate: InferenceGate, send: Send, why: str) -> None:
+        # A refusal costs the event loop about what reading a small request does; clients that
+        # retry at once (ignoring Retry-After) would make hundreds a second of them. Held a
+        # while, at no CPU cost, each such client retries a few times a second at most.
+        await asyncio.sleep(self.refusal_delay)
         retry = gate.retry_after()
         await _send_error(send, 503, "overloaded", f"the service is overloaded ({why}); retry in {retry} s",
                           [(b"retry-after", str(retry).encode())])

@@ -247,6 +247,11 @@ class Settings(BaseSettings):
     max_queue: int = Field(default=32, ge=0, description=(
         "Requests that may wait for an inference slot; past this the service answers 503 with "
         "Retry-After at once."))
+    overload_refusal_delay: float = Field(default=0.5, ge=0, le=10, description=(
+        "Seconds a request refused with 503 `overloaded` waits (on no CPU) before its answer. "
+        "Clients that retry at once, ignoring Retry-After, then come back a few times a second "
+        "each instead of hundreds: 128 such clients of `/suggest` on one worker made 840 refusals a "
+        "second without it and cut goodput to 60% of that at concurrency 32."))
     body_read_timeout: float = Field(default=10.0, gt=0, description=(
         "Seconds a request body may go without a byte arriving; past this it is answered 408 "
         "`body_timeout` (a client that stalls, or declared a Content-Length longer than what it "

@@ -138,6 +138,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
                        max_inflight_suggest=settings.max_inflight_suggest,
+                       refusal_delay=settings.overload_refusal_delay,
                        metrics=app.state.metrics)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes,
