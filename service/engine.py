@@ -30,7 +30,9 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,7 +41,7 @@ import numpy as np
 
 from service.complement import covered_share, demote_covered
 from service.contact import ContactParams, PartContacts
-from service.errors import InputError, ServiceError
+from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
 from service.frames import Frame
 from service.geometry import resample_points
 from service.inputs import check_points
@@ -50,6 +52,16 @@ from service.preferences import Preferences, diverse_order
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+
+
+# The cost model of a suggestion query, in estimated CPU milliseconds (max_request_cost_ms,
+# batch_max_cost_ms). Measured in process on the shipped artifacts (engine.suggest_batch, one
+# core, training running on the other): a query cost 3.7 ms in a batch of 32 and 6-8 ms alone;
+# 100k points against 1.5k added about 5 ms (frame, resampling); contact refinement cost 37-85 ms
+# for k = 10 and 0.93-1.38 s for k = 100, 10-14 ms per refined part.
+QUERY_COST_MS = 4.0
+POINT_COST_MS = 0.05 / 1000
+REFINED_PART_COST_MS = 12.0
 
 
 @dataclass(frozen=True)
@@ -134,6 +146,11 @@ class PlaceResult:
     frame: Frame
     n_input_points: int
     timings: dict[str, float] = field(default_factory=dict)
+
+
+# A query's ranked candidates: kept rows (k',), log-likelihoods (k',), best modes (k',) and
+# the number of candidates scored.
+_Ranked = tuple[np.ndarray, np.ndarray, np.ndarray, int]
 
 
 @dataclass
@@ -253,6 +270,39 @@ class SuggestionEngine:
         """Whether a suggestion query's placements get contact refinement."""
         return _or_default(options.refine_contact, self.settings.suggest_refine_contact)
 
+    # ---------------------------------------------------------------- cost, checked up front
+    def query_cost(self, n_points: int, options: SuggestOptions) -> float:
+        """Estimated CPU milliseconds of one suggestion query (see ``max_request_cost_ms``)."""
+        k = self.settings.default_k if options.k is None else options.k
+        refined = max(0, k) if self._refines(options) else 0
+        return QUERY_COST_MS + POINT_COST_MS * max(0, n_points) + REFINED_PART_COST_MS * refined
+
+    def check_query(self, n_points: int, options: SuggestOptions) -> float:
+        """Refuse what can be refused before a query joins a batch; its estimated cost.
+
+        Raises ``InputError`` for k out of range, too many exclusions or preferences that leave
+        no mode (the checks of ``_resolve`` that need neither points nor the catalog).
+        """
+        s = self.settings
+        k = s.default_k if options.k is None else options.k
+        if not 1 <= k <= s.max_k:
+            raise InputError("k_out_of_range", f"k must be between 1 and {s.max_k}, found {k}")
+        if len(options.exclude_parts) + len(options.exclude_shapes) > s.max_exclude:
+            raise InputError("too_many_exclusions", f"at most {s.max_exclude} part and shape ids may be "
+                             "excluded per request")
+        options.preferences.check(self.artifacts.n_modes)
+        return self.query_cost(n_points, options)
+
+    def check_budget(self, cost: float, queries: int = 1) -> None:
+        """``PayloadTooLargeError`` when a request's estimated cost is over ``max_request_cost_ms``."""
+        budget = self.settings.max_request_cost_ms
+        if cost > budget:
+            raise PayloadTooLargeError("over_budget", (
+                f"the request's {queries} quer{'y' if queries == 1 else 'ies'} would take about "
+                f"{cost:.0f} ms of CPU, over the budget of {budget:g} ms per request "
+                "(COMPLEMENTME_MAX_REQUEST_COST_MS); ask for fewer items, a smaller k or no "
+                "refine_contact (12 ms per refined suggestion), or split the request"))
+
     # ---------------------------------------------------------------- public API
     def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
         """Ranked, placed suggestions for one partial assembly; raises ``ServiceError`` on bad input.
@@ -265,12 +315,15 @@ class SuggestionEngine:
             raise result
         return result
 
-    def suggest_batch(self, items: list[tuple[np.ndarray, SuggestOptions]]
-                      ) -> list[SuggestResult | ServiceError]:
+    def suggest_batch(self, items: list[tuple[np.ndarray, SuggestOptions]],
+                      deadlines: Sequence[float | None] | None = None) -> list[SuggestResult | ServiceError]:
         """Suggestions for many queries with batched inference; a bad item yields its own error.
 
         Returns one entry per item, in order: a ``SuggestResult`` or the ``ServiceError`` that
-        item raised (the other items are unaffected).
+        item raised (the other items are unaffected: every step past the batched network runs
+        is checked per query). ``deadlines`` (``time.monotonic()``, one per item, None: none):
+        an item past its deadline before contact refinement, the costly step, gets a
+        ``DeadlineError`` instead of being refined.
         """
         t0 = time.perf_counter()
         # OpenMP's thread count is per calling thread: set it in this one (the batcher's worker)
@@ -300,44 +353,56 @@ class SuggestionEngine:
         timings["search"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        ranked = []
+        ranked: dict[int, _Ranked] = {}  # query position b -> its ranked candidates
         for b, q in enumerate(queries):
-            ranked.append(self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b]))
+            with _own_error(q, errors):
+                ranked[b] = self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b])
         timings["score"] = time.perf_counter() - t
 
         qf, timings["h_query"] = (beside.result() if beside is not None
                                   else _timed(self.networks.query_features, batch))
         # One h_head run over every kept candidate of every query.
         t = time.perf_counter()
-        rows = np.concatenate([np.full(len(r[0]), b) for b, r in enumerate(ranked)]).astype(np.int64)
-        parts = np.concatenate([r[0] for r in ranked]).astype(np.int64)
+        rows = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(r[0]), b) for b, r in ranked.items()]
+                              ).astype(np.int64)
+        parts = np.concatenate([np.zeros(0, np.int64)] + [r[0] for r in ranked.values()]).astype(np.int64)
         translations = (self.networks.place(qf[rows], self.catalog.part_features[parts])
                         if len(parts) else np.zeros((0, 3), np.float32))
         timings["h_head"] = time.perf_counter() - t
         t = time.perf_counter()
-        placed = []
-        for b, q in enumerate(queries):
-            idx, scores, modes, _ = ranked[b]
+        placed: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        for b, (idx, scores, modes, _) in ranked.items():
+            q = queries[b]
             tr = translations[rows == b]
-            order = self._complement_order(q, idx, tr)
-            placed.append((idx[order], scores[order], modes[order], tr[order]))
+            with _own_error(q, errors):
+                order = self._complement_order(q, idx, tr)
+                placed[b] = (idx[order], scores[order], modes[order], tr[order])
         timings["complement"] = time.perf_counter() - t
         t = time.perf_counter()
-        offsets = [np.zeros((len(p[0]), 3)) for p in placed]
-        for b, q in enumerate(queries):
-            if self._refines(q.options) and len(placed[b][0]):
-                offsets[b] = self.contact_offsets(q.full, placed[b][0], placed[b][3])
+        offsets: dict[int, np.ndarray] = {}
+        for b, (idx, _, _, tr) in placed.items():
+            q = queries[b]
+            deadline = deadlines[q.item] if deadlines is not None else None
+            with _own_error(q, errors):
+                if deadline is not None and time.monotonic() > deadline:
+                    raise DeadlineError("deadline_exceeded", "the request's deadline passed before its "
+                                        "placements were refined")
+                offsets[b] = (self.contact_offsets(q.full, idx, tr) if self._refines(q.options) and len(idx)
+                              else np.zeros((len(idx), 3)))
         timings["contact"] = time.perf_counter() - t
 
         out: dict[int, SuggestResult | ServiceError] = dict(errors)
-        for b, q in enumerate(queries):
+        for b, off in offsets.items():
+            q = queries[b]
             idx, scores, modes, tr = placed[b]
-            off = offsets[b]
-            n_cand = ranked[b][3]
-            out[q.item] = SuggestResult(
-                suggestions=self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame),
-                mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
-                candidates=n_cand, timings=timings, mode_means=mix.means[b], mode_sigmas=mix.sigmas[b])
+            with _own_error(q, errors):
+                found = self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame)
+                out[q.item] = SuggestResult(
+                    suggestions=found,
+                    mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
+                    candidates=ranked[b][3], timings=timings, mode_means=mix.means[b],
+                    mode_sigmas=mix.sigmas[b])
+        out.update(errors)
         timings["total"] = time.perf_counter() - t0
         return [out[i] for i in range(len(items))]
 
@@ -469,7 +534,7 @@ class SuggestionEngine:
         return out
 
     def _rank(self, q: _Query, cand: np.ndarray, weights: np.ndarray, means: np.ndarray,
-              sigmas: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+              sigmas: np.ndarray) -> _Ranked:
         """Score candidates under the mixture, sort, collapse duplicates, keep the top k.
 
         Returns kept rows (k',), their log-likelihoods (k',), best modes (k',) and the number
@@ -537,6 +602,15 @@ class SuggestionEngine:
 # The one thread (per process, shared by every engine snapshot) that runs h_query beside g; the
 # executor starts it at the first submit.
 _BESIDE = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
+
+
+@contextmanager
+def _own_error(q: _Query, errors: dict[int, ServiceError]) -> Iterator[None]:
+    """Record a query's own ``ServiceError`` against it alone (its batch goes on without it)."""
+    try:
+        yield
+    except ServiceError as exc:
+        errors[q.item] = exc
 
 
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:

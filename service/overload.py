@@ -3,18 +3,27 @@
 Latency must not grow without bound when more requests arrive than the CPU can serve. Every
 request that runs inference (each POST and DELETE) passes a gate: at most ``max_inflight`` run at
 once and at most ``max_queue`` wait for a slot; past that the service answers 503
-``overloaded`` with a ``Retry-After`` estimated from recent latencies, at once and without
-reading the body. Reads (GET) are not gated. Catalog writes (``POST /parts``, ``DELETE
-/parts/...``) have a gate of their own (``max_inflight_writes``): they wait for each other on the
-database, and must not take the slots of suggestion queries while they do. ``POST /suggest``
-has one too (``max_inflight_suggest``, many slots): its requests mostly wait in the
-micro-batcher's queue (``service.batching``), whose workers bound the CPU they use, and a batch
-can only grow as large as the requests let in.
+``overloaded`` with a ``Retry-After`` estimated from recent latencies. Reads (GET) are not gated.
+
+A request takes its place in the gate only once its body is in (when the app receives the body's
+last chunk; a request without a body, and every DELETE, at once): a client that sends its body
+slowly holds no slot and keeps no other request waiting (the body's own limits bound it:
+``body_read_timeout`` without a byte, 408; the deadline below, 408 while still reading). A
+request that finds the gate full when it arrives is refused at once, before a byte of its body
+is read or parsed, so that shedding under overload costs next to nothing.
+
+Catalog writes (``POST /parts``, ``DELETE /parts/...``) have a gate of their own
+(``max_inflight_writes``): they wait for each other on the database, and must not take the slots
+of suggestion queries while they do. ``POST /suggest`` has one too (``max_inflight_suggest``,
+many slots): its requests mostly wait in the micro-batcher's queue (``service.batching``), whose
+workers bound the CPU they use, and a batch can only grow as large as the requests let in.
 
 Every request also has a deadline (``request_timeout``, queueing included). A request still
-waiting for a slot at its deadline gets 503; one still running gets 504 ``deadline_exceeded``
-at once, and its late answer is dropped. The work it started is not interrupted: ONNX Runtime
-and FAISS cannot stop halfway, and asyncio's cancellation does not reach a worker thread (it
+reading its body at its deadline gets 408 ``body_timeout``, one still waiting for a slot 503;
+one running gets 504 ``deadline_exceeded`` at once, and its late answer is dropped. The work it
+started is not interrupted (the micro-batcher stops a request's queries between its chunks and
+before each one's contact refinement; see ``service.batching``): ONNX Runtime and FAISS cannot
+stop halfway, and asyncio's cancellation does not reach a worker thread (it
 only abandons it). So the request runs to its end and keeps its slot until then: the gate counts
 the CPU really in use. A request still running after a second ``request_timeout`` (stuck on
 something asynchronous, which a thread never is) is cancelled.
@@ -27,9 +36,11 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import orjson
+from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import error_body
@@ -49,6 +60,10 @@ class InferenceGate:
         self._waiters: list[asyncio.Future[None]] = []
         # Exponentially weighted mean of gated request durations, for Retry-After.
         self.mean_seconds = 0.05
+
+    def full(self) -> bool:
+        """Whether a request arriving now would be refused (every slot taken, the queue full)."""
+        return self.inflight >= self.max_inflight and len(self._waiters) >= self.max_queue
 
     def try_enter(self) -> asyncio.Future[None] | None:
         """Take a slot now (None), or a future that resolves when one is handed over.
@@ -97,8 +112,9 @@ class OverloadMiddleware:
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
                  max_inflight_writes: int = 2, metrics: Metrics | None = None,
-                 max_inflight_suggest: int | None = None):
+                 max_inflight_suggest: int | None = None, refusal_delay: float = 0.0):
         self.app = app
+        self.refusal_delay = refusal_delay
         self.gate = InferenceGate(max_inflight, max_queue)
         self.write_gate = InferenceGate(max_inflight_writes, max_queue)
         # None: /suggest shares the inference gate.
@@ -118,11 +134,20 @@ class OverloadMiddleware:
         deadline = time.monotonic() + self.timeout
         # Queues further in (the micro-batcher) drop work whose answer would be dropped anyway.
         scope.setdefault("state", {})["deadline"] = deadline
-        gated = scope["method"] in GATED_METHODS
-        gate = self._gate_of(scope)
-        if gated and not await self._enter(gate, deadline, send):
-            return
-        start = time.monotonic()
+        admission: _Admission | None = None
+        if scope["method"] in GATED_METHODS:
+            gate = self._gate_of(scope)
+            if gate.full():  # refused before a byte of the body is read
+                self.rejected.labels("queue_full").inc()
+                await self._overloaded(gate, send, self._why_full(gate))
+                return
+            admission = _Admission(gate)
+            if scope["method"] == "DELETE" or not _has_body(scope):
+                if not await self._enter(gate, deadline, send):
+                    return
+                admission.running()
+            else:
+                receive = self._admitting(admission, receive)
         answered = started = False
 
         async def guarded_send(message: Message) -> None:
@@ -134,24 +159,77 @@ class OverloadMiddleware:
             await send(message)
 
         task = asyncio.ensure_future(self.app(scope, receive, guarded_send))
-        if gated:
-            task.add_done_callback(lambda _: gate.leave(time.monotonic() - start))
+        if admission is not None:
+            task.add_done_callback(admission.leave)
         try:
             done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
         except asyncio.CancelledError:  # the server is shutting down or the client went away
             task.cancel()
             raise
         if task in done or started:  # an answer under way cannot become a 504: let it finish
-            await task  # re-raises what the app raised
+            try:
+                await task  # re-raises what the app raised
+            except Overloaded as exc:  # raised from receive, and no exception handler answered it
+                if started:
+                    raise
+                await _send_error(send, 503, exc.code, str(exc.detail), _header_list(exc.headers))
             return
         task.add_done_callback(_consume)
+        answered = True
+        if admission is not None and admission.state != "running":
+            # Still reading its body, or queued for a slot: no work started, nothing to wait for.
+            task.cancel()
+            if admission.state == "reading":
+                self.rejected.labels("body_deadline").inc()
+                await _send_error(send, 408, "body_timeout", f"the request body was not in within "
+                                  f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT)")
+            else:
+                self.rejected.labels("queue_timeout").inc()
+                await self._overloaded(admission.gate, send, f"no slot became free within {self.timeout:g} s")
+            return
         loop = asyncio.get_running_loop()
         stuck = loop.call_later(self.timeout, task.cancel)
         task.add_done_callback(lambda _: stuck.cancel())
         self.rejected.labels("deadline").inc()
-        answered = True
         await _send_error(send, 504, "deadline_exceeded", f"the request took longer than "
                           f"{self.timeout:g} s (COMPLEMENTME_REQUEST_TIMEOUT); its answer is dropped")
+
+    def _admitting(self, admission: _Admission, receive: Receive) -> Receive:
+        """``receive`` that takes the request's gate slot when the body's last chunk arrives."""
+        async def admitting_receive() -> Message:
+            message = await receive()
+            if admission.state == "reading" and not (
+                    message["type"] == "http.request" and message.get("more_body", False)):
+                if message["type"] == "http.request":
+                    await self._admit(admission)
+                else:  # the client left: the request ends with no work to gate
+                    admission.state = "gone"
+            return message
+        return admitting_receive
+
+    async def _admit(self, admission: _Admission) -> None:
+        """Take a slot for a request whose body is in; ``Overloaded`` when the queue is full."""
+        gate = admission.gate
+        try:
+            fut = gate.try_enter()
+        except OverflowError:
+            self.rejected.labels("queue_full").inc()
+            why = self._why_full(gate)
+            await asyncio.sleep(self.refusal_delay)  # as in ``_overloaded``
+            raise Overloaded(gate, why) from None
+        admission.state = "waiting"
+        if fut is not None:
+            try:
+                await asyncio.shield(fut)
+            except asyncio.CancelledError:  # the deadline (503, see __call__) or the server stopping
+                gate.abandon(fut)
+                raise
+        admission.running()
+
+    @staticmethod
+    def _why_full(gate: InferenceGate) -> str:
+        return (f"{gate.inflight} requests are running and {gate.waiting} waiting, the most this server "
+                "accepts")
 
     def _gate_of(self, scope: Scope) -> InferenceGate:
         if _is_catalog_write(scope):
@@ -166,8 +244,7 @@ class OverloadMiddleware:
             fut = gate.try_enter()
         except OverflowError:
             self.rejected.labels("queue_full").inc()
-            await self._overloaded(gate, send, f"{gate.inflight} requests are running and "
-                                   f"{gate.waiting} waiting, the most this server accepts")
+            await self._overloaded(gate, send, self._why_full(gate))
             return False
         if fut is None:
             return True
@@ -184,9 +261,58 @@ class OverloadMiddleware:
             raise
 
     async def _overloaded(self, gate: InferenceGate, send: Send, why: str) -> None:
+        # A refusal costs the event loop about what reading a small request does; clients that
+        # retry at once (ignoring Retry-After) would make hundreds a second of them. Held a
+        # while, at no CPU cost, each such client retries a few times a second at most.
+        await asyncio.sleep(self.refusal_delay)
         retry = gate.retry_after()
         await _send_error(send, 503, "overloaded", f"the service is overloaded ({why}); retry in {retry} s",
                           [(b"retry-after", str(retry).encode())])
+
+
+class Overloaded(HTTPException):
+    """Raised from ``receive`` when a request whose body is in finds the gate's queue full: 503."""
+
+    code = "overloaded"
+
+    def __init__(self, gate: InferenceGate, why: str):
+        retry = gate.retry_after()
+        super().__init__(503, f"the service is overloaded ({why}); retry in {retry} s",
+                         headers={"Retry-After": str(retry)})
+
+
+class _Admission:
+    """A gated request's way through the gate: ``reading`` its body, ``waiting`` for a slot,
+    ``running`` (holding one) or ``gone`` (the client left before its body was in)."""
+
+    def __init__(self, gate: InferenceGate):
+        self.gate = gate
+        self.state = "reading"
+        self.entered: float | None = None
+
+    def running(self) -> None:
+        self.state = "running"
+        self.entered = time.monotonic()
+
+    def leave(self, _: object = None) -> None:
+        """Give the slot back, if the request took one (the app's task is done)."""
+        if self.entered is not None:
+            self.gate.leave(time.monotonic() - self.entered)
+            self.entered = None
+
+
+def _has_body(scope: Scope) -> bool:
+    """Whether the request announces a body (a non-zero Content-Length, or chunked)."""
+    for name, value in scope["headers"]:
+        if name == b"content-length":
+            return value.strip() not in (b"0", b"")
+        if name == b"transfer-encoding":
+            return True
+    return False
+
+
+def _header_list(headers: Mapping[str, str] | None) -> list[tuple[bytes, bytes]]:
+    return [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (headers or {}).items()]
 
 
 def _is_catalog_write(scope: Scope) -> bool:

@@ -52,6 +52,14 @@ class Preferences:
                              f"{n_modes - 1}")
         if len(set(self.exclude_modes)) >= n_modes:
             raise InputError("all_modes_excluded", "exclude_modes excludes every mode; keep at least one")
+        if self.mode_weights is not None:
+            # g's weights phi_k are a softmax, all positive: the preferences leave a mode only if
+            # they give one that is not excluded a positive factor. Checked here, before the
+            # query joins a batch, rather than found in the middle of the batch's ranking.
+            kept = [w for k, w in enumerate(self.mode_weights) if k not in self.exclude_modes]
+            if not any(w > 0 for w in kept):
+                raise InputError("all_modes_excluded", "mode_weights and exclude_modes leave no mode with "
+                                 "a positive weight; give a positive weight to at least one mode")
 
     def weights(self, phi: np.ndarray) -> np.ndarray:
         """The mixture weights after the preferences, renormalised.

@@ -71,6 +71,12 @@ class Settings(BaseSettings):
         "Longest time, in milliseconds after the oldest queued query, that the micro-batcher waits "
         "for requests still being read or parsed before it runs a partial batch. A lone request "
         "never waits: with nothing on the way the batch runs at once."))
+    batch_max_cost_ms: float = Field(default=200.0, gt=0, description=(
+        "Most estimated CPU milliseconds of queries the micro-batcher runs in one engine call "
+        "(the estimate of `max_request_cost_ms`; a single query over it runs alone). A request "
+        "whose queries do not fit runs in several calls, and between them the queries of other "
+        "requests go first: a large `/suggest/batch` delays a concurrent `/suggest` by about one "
+        "call, not by its whole run."))
     overlap_max_batch: int = Field(default=2, ge=0, le=1024, description=(
         "Engine calls of at most this many queries run the placement network's query branch "
         "(h_query) on a second thread while g, the search and the scoring run: a lone request "
@@ -190,6 +196,12 @@ class Settings(BaseSettings):
         "Most part ids plus shape ids one request may exclude."))
     max_batch_items: int = Field(default=64, ge=1, description=(
         "Most queries in one `/suggest/batch` request."))
+    max_request_cost_ms: float = Field(default=2000.0, gt=0, description=(
+        "Budget of one suggestion request (`/suggest`, `/suggest/mesh`, `/suggest/batch`) in "
+        "estimated CPU milliseconds, checked before any work starts (413 `over_budget`). Each query "
+        "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 12 ms per suggestion (k) when "
+        "`refine_contact` is on (measured on the shipped artifacts: 1.4 s for k = 100 refined). "
+        "The default admits one query of any k with refinement, and a batch of 64 without."))
     max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024, description=(
         "Largest JSON request body in bytes (checked against Content-Length before reading "
         "and enforced while reading)."))
@@ -235,6 +247,16 @@ class Settings(BaseSettings):
     max_queue: int = Field(default=32, ge=0, description=(
         "Requests that may wait for an inference slot; past this the service answers 503 with "
         "Retry-After at once."))
+    overload_refusal_delay: float = Field(default=0.5, ge=0, le=10, description=(
+        "Seconds a request refused with 503 `overloaded` waits (on no CPU) before its answer. "
+        "Clients that retry at once, ignoring Retry-After, then come back a few times a second "
+        "each instead of hundreds: 128 such clients of `/suggest` on one worker made 840 refusals a "
+        "second without it and cut goodput to 60% of that at concurrency 32."))
+    body_read_timeout: float = Field(default=10.0, gt=0, description=(
+        "Seconds a request body may go without a byte arriving; past this it is answered 408 "
+        "`body_timeout` (a client that stalls, or declared a Content-Length longer than what it "
+        "sent). Bodies are read before a request takes its place in the overload gate, so slow "
+        "clients never hold a slot."))
     request_timeout: float = Field(default=30.0, gt=0, description=(
         "Seconds a request may take (queueing included); past this it is answered 504 (503 if it "
         "was still queued) and its late answer is dropped."))

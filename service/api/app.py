@@ -65,12 +65,17 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.engine = engine
     if settings.warmup:
         engine.warmup()
-    def run_batch(items: list[tuple[np.ndarray, SuggestOptions]]) -> list[SuggestResult | ServiceError]:
+    def run_batch(items: list[tuple[np.ndarray, SuggestOptions]],
+                  deadlines: list[float | None]) -> list[SuggestResult | ServiceError]:
         # The served engine, not the one loaded here: catalog writes publish new snapshots.
-        return app.state.engine.suggest_batch(items)
+        return app.state.engine.suggest_batch(items, deadlines)
+
+    def cost(item: tuple[np.ndarray, SuggestOptions]) -> float:
+        return engine.query_cost(len(item[0]), item[1])
 
     batcher = app.state.batcher = MicroBatcher(
         run_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
+        max_cost=settings.batch_max_cost_ms, cost=cost,
         workers=settings.batch_workers, name="suggest-batcher",
         stats=BatchStats(wait=metrics.queue_wait.observe, ran=metrics.observe_batch))
     metrics.watch(metrics.queued, lambda: batcher.queued)
@@ -133,9 +138,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
                        max_inflight_suggest=settings.max_inflight_suggest,
+                       refusal_delay=settings.overload_refusal_delay,
                        metrics=app.state.metrics)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
-                       max_upload_bytes=settings.max_upload_bytes)
+                       max_upload_bytes=settings.max_upload_bytes,
+                       body_read_timeout=settings.body_read_timeout)
     if settings.cors_origins:  # browsers only; none by default
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],

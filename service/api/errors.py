@@ -25,7 +25,7 @@ MAX_DETAILS = 10
 
 _HTTP_CODES = {
     400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
-    413: "payload_too_large",
+    408: "body_timeout", 413: "payload_too_large",
     415: "unsupported_media_type", 503: "not_ready",
 }
 
@@ -83,7 +83,8 @@ async def _on_validation_error(request: Request, exc: Exception) -> OrjsonRespon
 
 async def _on_http_error(request: Request, exc: Exception) -> OrjsonResponse:
     assert isinstance(exc, StarletteHTTPException)
-    code = _HTTP_CODES.get(exc.status_code, "http_error")
+    # Errors raised from the body's receive (service.api.middleware, service.overload) carry one.
+    code = getattr(exc, "code", None) or _HTTP_CODES.get(exc.status_code, "http_error")
     if exc.status_code == 404 and exc.detail == "Not Found":
         message = f"no route {request.method} {request.url.path}"
     else:

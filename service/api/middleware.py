@@ -6,6 +6,7 @@ lets the body limit act on the raw ``receive`` stream.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 
@@ -18,27 +19,55 @@ from service.metrics import Metrics
 
 # Mesh uploads get COMPLEMENTME_MAX_UPLOAD_BYTES; other bodies COMPLEMENTME_MAX_BODY_BYTES.
 MESH_UPLOAD_PATHS = ("/suggest/mesh", "/parts")
+# The status metrics count for a request whose client disconnected before its body was in.
+CLIENT_GONE = 499
 
 
-class BodyTooLarge(HTTPException):
-    """Raised from ``receive`` once a body passes its limit; FastAPI's handlers turn it into 413."""
+class BodyRefused(HTTPException):
+    """Raised from ``receive`` when a body cannot be read; FastAPI's handlers answer it.
+
+    ``code`` is the error body's code (``service.api.errors`` answers with it).
+    """
+
+    code = "bad_request"
+
+
+class BodyTooLarge(BodyRefused):
+    """A body past its limit: 413."""
+
+    code = "payload_too_large"
 
     def __init__(self, limit: int, length: int | None = None):
         size = f"of {length} bytes " if length is not None else ""
         super().__init__(413, f"request body {size}exceeds the limit of {limit} bytes")
 
 
+class BodyTimeout(BodyRefused):
+    """A body that stopped arriving (or is shorter than its Content-Length): 408."""
+
+    code = "body_timeout"
+
+    def __init__(self, seconds: float):
+        super().__init__(408, f"no byte of the request body arrived for {seconds:g} s "
+                         "(COMPLEMENTME_BODY_READ_TIMEOUT); is the body shorter than its Content-Length?")
+
+
 class BodyLimitMiddleware:
-    """Refuse bodies over the limit: by Content-Length before reading any byte, and while reading.
+    """Refuse bodies over the limit (by Content-Length before reading any byte, and while
+    reading) and bodies that stop arriving (``body_read_timeout`` seconds without a byte).
 
     The refusal is raised from the first ``receive`` call rather than answered here, so the
-    request is routed first and metrics see its route. Mesh uploads get their own limit.
+    request is routed first and metrics see its route. Mesh uploads get their own limit. A
+    client that disconnects before its body is in is marked in the scope's state
+    (``client_gone``), so that metrics do not count the 400 its request ends with.
     """
 
-    def __init__(self, app: ASGIApp, max_body_bytes: int, max_upload_bytes: int):
+    def __init__(self, app: ASGIApp, max_body_bytes: int, max_upload_bytes: int,
+                 body_read_timeout: float = 10.0):
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.max_upload_bytes = max_upload_bytes
+        self.body_read_timeout = body_read_timeout
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
@@ -47,17 +76,28 @@ class BodyLimitMiddleware:
         limit = self.max_upload_bytes if scope["path"] in MESH_UPLOAD_PATHS else self.max_body_bytes
         declared = _content_length(scope)
         seen = 0
+        reading = True  # until the last body chunk: later receives wait for a disconnect, unbounded
         started = False
 
         async def limited_receive() -> Message:
-            nonlocal seen
+            nonlocal seen, reading
             if declared is not None and declared > limit:
                 raise BodyTooLarge(limit, declared)
-            message = await receive()
+            if not reading:
+                return await receive()
+            try:
+                async with asyncio.timeout(self.body_read_timeout):  # no task per call, unlike wait_for
+                    message = await receive()
+            except TimeoutError:
+                raise BodyTimeout(self.body_read_timeout) from None
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > limit:
                     raise BodyTooLarge(limit)
+                reading = bool(message.get("more_body", False))
+            elif message["type"] == "http.disconnect":
+                scope.setdefault("state", {})["client_gone"] = True
+                reading = False
             return message
 
         async def tracking_send(message: Message) -> None:
@@ -68,11 +108,11 @@ class BodyLimitMiddleware:
 
         try:
             await self.app(scope, limited_receive, tracking_send)
-        except BodyTooLarge as exc:  # only when no exception handler answered it
+        except BodyRefused as exc:  # only when no exception handler answered it
             if started:
                 raise
-            data = orjson.dumps(error_body("payload_too_large", str(exc.detail)))
-            await send({"type": "http.response.start", "status": 413,
+            data = orjson.dumps(error_body(exc.code, str(exc.detail)))
+            await send({"type": "http.response.start", "status": exc.status_code,
                         "headers": [(b"content-type", b"application/json"),
                                     (b"content-length", str(len(data)).encode())]})
             await send({"type": "http.response.body", "body": data})
@@ -118,4 +158,8 @@ class MetricsMiddleware:
         finally:
             # Route templates, not raw paths: part ids must not explode the label set.
             route = getattr(scope.get("route"), "path", None) or "unmatched"
+            if scope.get("state", {}).get("client_gone"):
+                # The client left before its body was in: not a bad request of its own (the 400
+                # its request ends with goes nowhere). 499, as nginx logs it.
+                status = CLIENT_GONE
             self.metrics.observe_request(scope["method"], route, status, time.perf_counter() - start)

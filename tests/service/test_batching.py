@@ -52,15 +52,18 @@ class Gated:
     def __init__(self, engine: SuggestionEngine):
         self.engine = engine
         self.sizes: list[int] = []
+        self.ks: list[list[int | None]] = []  # each call's queries' k
         self.hold = threading.Event()
         self.hold.set()
         self.entered = threading.Event()
 
-    def __call__(self, items: list[Query]) -> Sequence[SuggestResult | ServiceError]:
+    def __call__(self, items: list[Query], deadlines: list[float | None]
+                 ) -> Sequence[SuggestResult | ServiceError]:
         self.sizes.append(len(items))
+        self.ks.append([options.k for _, options in items])
         self.entered.set()
         assert self.hold.wait(60), "the test never released the batch"
-        return self.engine.suggest_batch(items)
+        return self.engine.suggest_batch(items, deadlines)
 
 
 def test_queries_queued_during_a_batch_run_together_and_equal_the_engine(
@@ -123,11 +126,11 @@ def test_an_unexpected_failure_fails_its_batch_and_the_worker_goes_on(engine: Su
                                                                        query: AssemblyQuery) -> None:
     calls: list[int] = []
 
-    def flaky(items: list[Query]) -> Sequence[SuggestResult | ServiceError]:
+    def flaky(items: list[Query], deadlines: list[float | None]) -> Sequence[SuggestResult | ServiceError]:
         calls.append(len(items))
         if len(calls) == 1:
             raise RuntimeError("engine bug")
-        return engine.suggest_batch(items)
+        return engine.suggest_batch(items, deadlines)
 
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(flaky, max_size=4, max_wait=0.0)
 
@@ -320,3 +323,86 @@ def test_requests_after_shutdown_are_refused(artifacts: Path, query: AssemblyQue
         asyncio.run(batcher.submit((query.points, SuggestOptions(k=2))))
     with TestClient(app, raise_server_exceptions=False) as client:  # a restart gets a new batcher
         assert client.post("/suggest", json=body).status_code == 200
+
+
+# ------------------------------------------------------------------ fairness and isolation
+
+
+def test_a_large_job_runs_in_chunks_and_others_go_between(engine: SuggestionEngine,
+                                                          query: AssemblyQuery) -> None:
+    """max_cost 2 (each query costs 1): a job of 6 runs 2 at a time, and a job queued while its
+    first chunk runs goes before its second."""
+    run = Gated(engine)
+    batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=32, max_wait=0.0, max_cost=2.0)
+    large = [(query.points, SuggestOptions(k=k)) for k in range(1, 7)]
+
+    async def main() -> tuple[list[Any], Any]:
+        run.hold.clear()
+        first = asyncio.ensure_future(batcher.submit_many(large))
+        await asyncio.to_thread(run.entered.wait, 60)
+        small = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=9))))
+        await asyncio.sleep(0)
+        run.hold.set()
+        return await first, await small
+
+    try:
+        answers, small = asyncio.run(main())
+    finally:
+        batcher.close()
+    assert run.ks == [[1, 2], [9, 3], [4, 5], [6]], "the small job ran right after the first chunk"
+    assert [len(a.suggestions) for a in answers] == [1, 2, 3, 4, 5, 6]
+    assert len(small.suggestions) == 9
+
+
+def test_a_deadline_stops_a_large_job_between_its_chunks(engine: SuggestionEngine,
+                                                         query: AssemblyQuery) -> None:
+    run = Gated(engine)
+    batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=2, max_wait=0.0)
+
+    async def main() -> Any:
+        run.hold.clear()
+        job = asyncio.ensure_future(batcher.submit_many([(query.points, SuggestOptions(k=2))] * 6,
+                                                        deadline=time.monotonic() + 0.3))
+        await asyncio.to_thread(run.entered.wait, 60)
+        await asyncio.sleep(0.4)  # past the deadline while the first chunk runs
+        run.hold.set()
+        return (await asyncio.gather(job, return_exceptions=True))[0]
+
+    try:
+        outcome = asyncio.run(main())
+    finally:
+        batcher.close()
+    assert isinstance(outcome, DeadlineError)
+    assert run.sizes == [2], "no chunk ran past the deadline"
+
+
+def test_a_failing_request_fails_alone_when_its_batch_breaks(engine: SuggestionEngine,
+                                                             query: AssemblyQuery) -> None:
+    """An unexpected exception caused by one request's query: the batch runs again job by job."""
+    hold = threading.Event()
+    entered = threading.Event()
+
+    def fragile(items: list[Query], deadlines: list[float | None]) -> Sequence[SuggestResult | ServiceError]:
+        entered.set()
+        assert hold.wait(60)
+        if any(options.k == 13 for _, options in items):
+            raise RuntimeError("engine bug on k = 13")
+        return engine.suggest_batch(items, deadlines)
+
+    batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(fragile, max_size=32, max_wait=0.0)
+
+    async def main() -> list[Any]:
+        warm = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=1))))
+        await asyncio.to_thread(entered.wait, 60)
+        jobs = [asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=k))))
+                for k in (2, 13, 3)]
+        await asyncio.sleep(0)
+        hold.set()
+        return list(await asyncio.gather(warm, *jobs, return_exceptions=True))
+
+    try:
+        warm, two, bad, three = asyncio.run(main())
+    finally:
+        batcher.close()
+    assert isinstance(bad, RuntimeError)
+    assert [len(a.suggestions) for a in (warm, two, three)] == [1, 2, 3]

@@ -121,3 +121,47 @@ def test_real_app_deadline_and_gate(artifacts: Path, query: AssemblyQuery) -> No
                                              verify_checksums=False))) as c:
         assert c.post("/suggest", json=body).status_code == 200  # one at a time is fine
         assert "complementme_inflight_requests 0.0" in c.get("/metrics").text
+
+
+def test_a_full_gate_refuses_before_reading_and_slow_bodies_hold_no_slot() -> None:
+    """A request whose body is still arriving holds no slot; one arriving at a full gate is
+    refused without a byte of its body read."""
+    reads: list[str] = []
+
+    async def app(scope: Scope, receive: Receive, send: Send) -> None:
+        while True:
+            message = await receive()
+            reads.append(scope["path"])
+            if not message.get("more_body", False):
+                break
+        await asyncio.sleep(0.3)
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"done"})
+
+    mw = OverloadMiddleware(app, max_inflight=1, max_queue=0, timeout=10)
+
+    async def main() -> list[int]:
+        transport = httpx.ASGITransport(app=mw)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            release = asyncio.Event()
+
+            async def slow_body() -> Any:
+                yield b"{"
+                await release.wait()
+                yield b"}"
+
+            slow = asyncio.ensure_future(client.post("/slow", content=slow_body()))
+            await asyncio.sleep(0.05)
+            assert mw.gate.inflight == 0, "a body still arriving holds no slot"
+            fast = asyncio.ensure_future(client.post("/fast", content=b"{}"))
+            await asyncio.sleep(0.05)
+            assert mw.gate.inflight == 1 and mw.gate.full()
+            refused = await client.post("/refused", content=b"{}")
+            release.set()
+            answers = [await fast, refused, await slow]
+            return [a.status_code for a in answers]
+
+    statuses = asyncio.run(main())
+    assert statuses[:2] == [200, 503]
+    assert statuses[2] in (200, 503)  # its body came in while the fast one still ran
+    assert "/refused" not in reads, "the refused request's body was never read"

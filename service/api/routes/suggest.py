@@ -31,7 +31,7 @@ from service.api.schemas import (
     SuggestRequest,
     SuggestResponse,
 )
-from service.engine import SuggestOptions
+from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
 from service.inputs import mesh_format, points_from_mesh
 
@@ -61,8 +61,9 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
                        settings: SettingsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
-    result = await batcher.submit((points, body.to_options()), batch_ticket(request),
-                                  request_deadline(request))
+    options = body.to_options()
+    engine.check_budget(engine.check_query(len(points), options))
+    result = await batcher.submit((points, options), batch_ticket(request), request_deadline(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
@@ -89,13 +90,14 @@ async def post_suggest_mesh(
     except ValidationError as exc:
         raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
                                       for e in exc.errors()]) from None
+    options_out = opts.to_options()
+    engine.check_budget(engine.check_query(engine.artifacts.n_points, options_out))
     data = await file.read()
     points = await run_in_threadpool(
         points_from_mesh, data, fmt, n=engine.artifacts.n_points, seed=settings.seed,
         name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
         max_faces=settings.max_mesh_faces)
-    result = await batcher.submit((points, opts.to_options()), batch_ticket(request),
-                                  request_deadline(request))
+    result = await batcher.submit((points, options_out), batch_ticket(request), request_deadline(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
 
@@ -109,7 +111,8 @@ async def post_suggest_batch(body: BatchRequest, request: Request, engine: Engin
     if len(body.items) > settings.max_batch_items:
         raise InputError("too_many_items", f"{len(body.items)} items given, at most "
                          f"{settings.max_batch_items} are accepted")
-    results, valid, queries = await run_in_threadpool(_decode_items, body.items, settings.max_points)
+    engine.check_budget(sum(_estimated_cost(engine, raw) for raw in body.items), len(body.items))
+    results, valid, queries = await run_in_threadpool(_decode_items, body.items, engine, settings.max_points)
     answers = (await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
                if queries else [])
     for i, answer in zip(valid, answers, strict=True):
@@ -120,7 +123,22 @@ async def post_suggest_batch(body: BatchRequest, request: Request, engine: Engin
     return OrjsonResponse({"model_version": engine.model_version, "results": results})
 
 
-def _decode_items(items: list[Any], max_points: int
+def _estimated_cost(engine: SuggestionEngine, raw: Any) -> float:
+    """A batch item's estimated cost from its raw JSON, before anything is decoded.
+
+    Malformed fields count as their defaults (the item fails validation on its own later), and
+    ``k`` is clamped to its range (an item out of range fails alone with ``k_out_of_range``).
+    """
+    if not isinstance(raw, dict):
+        return engine.query_cost(0, SuggestOptions())
+    points, b64, k, refine = (raw.get(f) for f in ("points", "points_base64", "k", "refine_contact"))
+    n = len(points) if isinstance(points, list) else len(b64) * 3 // 4 // 12 if isinstance(b64, str) else 0
+    k = min(max(k, 1), engine.settings.max_k) if isinstance(k, int) and not isinstance(k, bool) else None
+    refine = refine if isinstance(refine, bool) else None
+    return engine.query_cost(n, SuggestOptions(k=k, refine_contact=refine))
+
+
+def _decode_items(items: list[Any], engine: SuggestionEngine, max_points: int
                   ) -> tuple[list[dict[str, Any] | None], list[int], list[tuple[np.ndarray, SuggestOptions]]]:
     """Validate batch items one by one: error entries for the bad, (points, options) for the rest."""
     results: list[dict[str, Any] | None] = [None] * len(items)
@@ -128,7 +146,9 @@ def _decode_items(items: list[Any], max_points: int
     for i, raw in enumerate(items):
         try:
             req = SuggestRequest.model_validate(raw)
-            queries.append((req.to_points(max_points), req.to_options()))
+            points, options = req.to_points(max_points), req.to_options()
+            engine.check_query(len(points), options)  # bad options fail here, before the batch
+            queries.append((points, options))
             valid.append(i)
         except ValidationError as exc:
             results[i] = {"index": i, "ok": False, "error": validation_error(exc)[1]["error"]}

@@ -1,0 +1,103 @@
+"""Soak under mixed hostile load (issue 16): goodput, /healthz p99 and RSS of a live server.
+
+One worker on the shipped artifacts, loopback only, about a minute in all. Three phases of
+``SECONDS`` each, every one with a /healthz probe every 50 ms:
+
+1. ``/suggest`` at concurrency 32, closed loop (a 503 is retried at once);
+2. the same at concurrency 128: shedding must be cheap, so goodput stays at least 80% of (1)
+   and /healthz answers promptly (p99 under 50 ms on a quiet machine);
+3. (1) beside hostile clients: 20 slow bodies on /place and 20 on /suggest, 2 clients whose
+   options fail in the ranking (mode_weights all zero), and one costly /suggest/batch after
+   another (8 refined k = 20 queries).
+
+The numbers are printed (``pytest -s``) and go in docs/performance.md, "Hostile load".
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import orjson
+import pytest
+from catalog_testkit import LiveServer
+from load_testkit import LoadResult, closed_loop, http_request, probe, slow_clients
+from service_testkit import AssemblyQuery
+
+from service.engine import SuggestionEngine
+from service.inputs import points_to_base64
+
+pytestmark = pytest.mark.slow
+
+SECONDS = 8.0
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS in /proc/{pid}/status")
+
+
+def _post(path: str, body: dict[str, Any]) -> bytes:
+    return http_request("POST", path, orjson.dumps(body))
+
+
+async def _with_health(port: int, load: Any) -> tuple[Any, list[float]]:
+    health = http_request("GET", "/healthz")
+    return tuple(await asyncio.gather(load, probe(port, health, every=0.05, seconds=SECONDS)))  # type: ignore[return-value]
+
+
+def test_soak_under_mixed_hostile_load(artifacts: Path, tmp_path: Path, engine: SuggestionEngine,
+                                       query: AssemblyQuery) -> None:
+    server = LiveServer(artifacts, tmp_path / "data").start()
+    assert server.proc is not None
+    pid, port = server.proc.pid, server.port
+    points = points_to_base64(query.points)
+    suggest = _post("/suggest", {"points_base64": points, "k": 10})
+    poison = _post("/suggest", {"points_base64": points, "k": 10,
+                                "mode_weights": [0] * engine.artifacts.n_modes})
+    heavy = _post("/suggest/batch", {"items": [{"points_base64": points, "k": 20,
+                                                "refine_contact": True}] * 8})
+    place = _post("/place", {"points_base64": points, "part_ids": [query.kept[0]]})
+    rows: list[tuple[str, LoadResult, list[float], float]] = []
+    try:
+        asyncio.run(closed_loop(port, suggest, 8, 2.0))  # warm: caches, allocator
+        rss_start = _rss_mb(pid)
+        for name, concurrency in (("c=32", 32), ("c=128", 128)):
+            result, health = asyncio.run(_with_health(port, closed_loop(port, suggest, concurrency, SECONDS)))
+            rows.append((name, result, health, _rss_mb(pid)))
+
+        async def hostile() -> tuple[LoadResult, LoadResult, LoadResult]:
+            async with slow_clients(port, place, 20, 0.5), slow_clients(port, suggest, 20, 0.5):
+                return tuple(await asyncio.gather(  # type: ignore[return-value]
+                    closed_loop(port, suggest, 32, SECONDS), closed_loop(port, poison, 2, SECONDS),
+                    closed_loop(port, heavy, 1, SECONDS)))
+
+        (normal, poisoned, costly), health = asyncio.run(_with_health(port, hostile()))
+        rows.append(("c=32 + hostile", normal, health, _rss_mb(pid)))
+    finally:
+        server.stop()
+
+    print(f"\nRSS after warm-up: {rss_start:.0f} MB")
+    print("| Load | /suggest goodput (req/s) | p50 | p99 | 503s | /healthz p99 | RSS after |")
+    for name, result, health, rss in rows:
+        print(f"| {name} | {result.goodput:.1f} | {1000 * result.p(50):.0f} ms | "
+              f"{1000 * result.p(99):.0f} ms | {result.statuses[503]} | "
+              f"{1000 * np.percentile(health, 99):.1f} ms | {rss:.0f} MB |")
+    print(f"hostile: poison {dict(poisoned.statuses)}, heavy batches {dict(costly.statuses)}")
+
+    (_, at32, _, _), (_, at128, health128, _), (_, mixed, health_mixed, rss_end) = rows
+    for result in (at32, at128, mixed):
+        assert set(result.statuses) <= {200, 503} and result.errors == 0, (result.statuses, result.errors)
+    assert set(poisoned.statuses) == {422} and set(costly.statuses) <= {200, 503}
+    assert at128.goodput >= 0.8 * at32.goodput, (f"goodput {at128.goodput:.0f} at c=128, "
+                                                 f"{at32.goodput:.0f} at c=32")
+    # The target is 50 ms on a machine of its own; with model training on both cores of the
+    # 2-core machine of docs/performance.md it measured 64-74 ms. The bound here catches a
+    # blocked event loop (the 1.4-4.7 s of the issue), not scheduling noise.
+    assert np.percentile(health128, 99) < 0.25 and np.percentile(health_mixed, 99) < 0.25
+    assert mixed.statuses[200] > 0
+    assert rss_end - rss_start < 150, f"RSS grew from {rss_start:.0f} to {rss_end:.0f} MB"
