@@ -197,3 +197,27 @@ def test_commit_window_decides_once() -> None:
     assert on_time.may_commit() is True and on_time.expire() is False, "a started commit is waited for"
     given_up = CommitWindow(time.monotonic() + 60)
     assert given_up.expire() is True and given_up.may_commit() is False
+
+
+def test_recover_reports_lost_changes_and_never_reissues_their_numbers(tmp_path: Path) -> None:
+    """An index ahead of the database by changes no file records (lost deletes): refused; recover
+    says how many are lost, and later changes are numbered past them."""
+    import numpy as np
+    from test_store import _new_part
+
+    from service.snapshot import write_index_file
+    from service.store import CatalogStore
+
+    store = CatalogStore(tmp_path)
+    for seed in range(3):
+        store.add(_new_part(seed), None)
+    write_index_file(store.index_path, 9, "m1", [1, 2], np.zeros((2, 8), np.float32), 1)
+    with pytest.raises(CatalogDamagedError, match="reflects change 9, the database ends at change 3"):
+        store.check_folder()
+    store.close()
+    code, out = _run_cli("recover", str(tmp_path))
+    assert code == 1 and "6 change(s) (deletes or re-embeddings) cannot be rebuilt" in out, out
+    store = CatalogStore(tmp_path)
+    store.check_folder()
+    assert store.add(_new_part(7), None).added_seq == 10
+    store.close()
