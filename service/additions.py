@@ -2,7 +2,9 @@
 
 ``CatalogWriter.open`` runs at start when ``COMPLEMENTME_DATA_DIR`` is set:
 
-1. open the store (SQLite WAL) and remove geometry files of adds that never committed;
+1. open the store (SQLite WAL) and check the folder (``CatalogStore.check_folder``): a database
+   that lost commits the other files prove (a deleted WAL, an older database put back) refuses
+   to start, naming the files; files of adds that never committed move to ``quarantine/``;
 2. re-embed added parts computed by another model version (their geometry is kept, so a new
    model never loses them);
 3. load every live part (a part whose geometry file is missing or damaged, or whose id now
@@ -89,7 +91,7 @@ class CatalogWriter:
         store = CatalogStore(settings.data_dir)
         writer = cls(store, base, settings, publish)
         try:
-            store.remove_orphans()
+            store.check_folder()
             writer._reembed_stale()
             writer._load_all()
             writer._reconcile_index()
@@ -162,18 +164,22 @@ class CatalogWriter:
         self._write_index()
 
     # ------------------------------------------------------------------ writes
-    def add(self, part: NewPart, shape_id: str | None) -> StoredPart:
+    def add(self, part: NewPart, shape_id: str | None,
+            may_commit: Callable[[], bool] | None = None) -> StoredPart:
         """Store a prepared part and serve it; returns its row (with its new ``part_id``).
+
+        ``may_commit`` is asked just before the commit (``CatalogStore.add``): False stores nothing.
 
         Raises:
             InputError: bad category or shape id; ConflictError: a shipped shape id;
-            StorageFullError: the data folder holds ``max_added_parts`` parts.
+            StorageFullError: the data folder holds ``max_added_parts`` parts;
+            CommitRefusedError: ``may_commit`` said no.
         """
         self._check_names(part.category, shape_id)
         if self.store.counts()[0] >= self.settings.max_added_parts:
             raise StorageFullError("catalog_full", f"the data folder holds {self.settings.max_added_parts} "
                                    "added parts, the most COMPLEMENTME_MAX_ADDED_PARTS allows")
-        stored = self.store.add(part, shape_id)
+        stored = self.store.add(part, shape_id, may_commit)
         self.catch_up(stored.added_seq)
         return stored
 

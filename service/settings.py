@@ -232,6 +232,11 @@ class Settings(BaseSettings):
     catalog_poll_seconds: float = Field(default=2.0, ge=0, description=(
         "How often the server looks for additions made by other processes on the same data folder "
         "(other workers, `complementme catalog add --data-dir`); 0: never."))
+    write_commit_margin: float = Field(default=5.0, ge=0, description=(
+        "Seconds of its deadline (`request_timeout`) that an addition must still have when it is "
+        "about to commit (at most half the timeout is used): a later one is rolled back and answered "
+        "504 with nothing stored, so that a 504 never hides a stored part. What follows the commit "
+        "(a rename, the snapshot swap, the answer) takes milliseconds."))
 
     # --- overload ---------------------------------------------------------------------------
     max_inflight: int = Field(default=4, ge=1, description=(

@@ -1,16 +1,21 @@
-"""`complementme catalog ...`: add a folder of shapes to the catalog, back up a data folder.
+"""`complementme catalog ...`: add a folder of shapes to the catalog; back up, verify and
+recover a data folder.
 
-Thin wrappers over ``training.catalog_import`` and ``service.store``.
+Thin wrappers over ``training.catalog_import``, ``service.store`` and ``service.recovery``.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
-catalog_app = typer.Typer(help="The growing catalog: import shapes, back up the data folder.",
+if TYPE_CHECKING:
+    from service.recovery import Report
+
+catalog_app = typer.Typer(help="The growing catalog: import shapes; back up, verify, recover a data folder.",
                           no_args_is_help=True)
 
 
@@ -89,3 +94,52 @@ def backup_cmd(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(f"{data_dir} -> {dest}: database and {files - 1} geometry file(s) copied")
+
+
+def _print_report(report: Report) -> None:
+    for line in report.restored:
+        typer.echo(f"restored: {line}")
+    for line in report.notes:
+        typer.echo(f"note: {line}")
+    for line in report.problems:
+        typer.echo(f"problem: {line}", err=True)
+
+
+@catalog_app.command("verify")
+def verify_cmd(
+    data_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="The data folder to check."),
+) -> None:
+    """Check database, geometry files and index against each other (changes nothing).
+
+    Exits with 1 when anything does not match (each problem names its file).
+    """
+    from service.recovery import verify
+
+    report = verify(data_dir)
+    _print_report(report)
+    typer.echo(f"{data_dir}: " + ("ok" if report.ok else f"{len(report.problems)} problem(s)"))
+    if not report.ok:
+        raise typer.Exit(1)
+
+
+@catalog_app.command("recover")
+def recover_cmd(
+    data_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="The data folder to repair."),
+) -> None:
+    """Rebuild rows the database lost (a deleted catalog.sqlite3-wal, an older database put back)
+    from the copies the geometry files carry. Stop every server of the folder first.
+
+    Exits with 1 when something could not be restored (listed), 2 when the folder cannot be opened.
+    """
+    from service.recovery import recover
+    from service.store import StoreError
+
+    try:
+        report = recover(data_dir)
+    except StoreError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    _print_report(report)
+    typer.echo(f"{data_dir}: {len(report.restored)} part(s) restored")
+    if not report.ok:
+        raise typer.Exit(1)

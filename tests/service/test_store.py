@@ -74,12 +74,15 @@ def test_store_keeps_rows_files_and_a_change_log(tmp_path: Path) -> None:
     store.close()
 
 
-def test_damaged_geometry_is_detected_and_orphans_removed(tmp_path: Path) -> None:
+def test_damaged_geometry_is_detected_and_uncommitted_files_quarantined(tmp_path: Path) -> None:
     store = CatalogStore(tmp_path)
     p = store.add(_new_part(1), None)
-    orphan = store.geometry_dir / "00000099.npz"
+    assert sorted(x.name for x in store.geometry_dir.iterdir()) == [p.geometry], "no pending name left"
+    orphan = store.geometry_dir / "00000099.npz.pending"
     orphan.write_bytes(b"left by a crash before the commit")
-    assert store.remove_orphans() == 1 and not orphan.exists()
+    assert store.check_folder() == 1 and not orphan.exists()
+    assert (tmp_path / "quarantine" / orphan.name).read_bytes() == b"left by a crash before the commit"
+    assert store.add(_new_part(2), None).id == 100, "the quarantined file's id is not issued again"
     path = store.geometry_dir / p.geometry
     path.write_bytes(path.read_bytes()[:-10])
     with pytest.raises(StoreError, match="does not match its checksum"):
