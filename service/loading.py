@@ -25,8 +25,8 @@ from service.artifacts import (
     GRAPH_FILES,
     GRAPH_INPUTS,
     GRAPH_OUTPUTS,
-    OPTIONAL_OUTPUTS,
     INDEX_FILE,
+    OPTIONAL_OUTPUTS,
     ArtifactError,
     read_manifest,
 )
