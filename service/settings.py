@@ -145,6 +145,39 @@ class Settings(BaseSettings):
         "Most query points used as the assembly in contact tests (more are subsampled, seeded)."))
     contact_cache_parts: int = Field(default=4096, ge=1, description=(
         "Catalog parts whose contact samples are kept in memory (least recently used dropped)."))
+    suggest_order: Literal["share", "likelihood"] = Field(default="share", description=(
+        "Order of suggestions. `share`: the k slots are dealt to g's modes in proportion to their "
+        "weights (largest quotient first), each mode giving its own best parts: the paper's "
+        "sampling from the mixture, made deterministic, so a seat alone gets backs, legs and arms "
+        "in the shares g gives them. `likelihood`: by mixture likelihood alone, where the mode "
+        "whose parts lie closest to its mean takes every slot. A request's `diversity` still "
+        "asks for the round-robin gallery."))
+    share_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
+        "In the `share` order, modes lighter than this get slots only after the others ran out."))
+    infer_category: bool = Field(default=True, description=(
+        "When a suggestion request names no category and the model has a category head, infer "
+        "the category from the partial assembly, report it (`inferred_category`) and keep the "
+        "suggestions in it when the inference is sure enough."))
+    category_min_confidence: float = Field(default=0.5, ge=0, le=1, description=(
+        "Inferred-category probability from which suggestions are kept in that category; below "
+        "it the answer is unfiltered and carries a `category_unsure` warning."))
+    fit_scale: bool = Field(default=True, description=(
+        "Fit suggested and placed parts in size (per-axis scale from the placement network's "
+        "scale head) when a request does not send `fit_scale`. The catalog geometry never changes."))
+    scale_min: float = Field(default=0.5, gt=0, le=1, description=(
+        "Smallest fitted scale per axis (larger shrinkage is clipped)."))
+    scale_max: float = Field(default=2.0, ge=1, le=10, description=(
+        "Largest fitted scale per axis (larger growth is clipped)."))
+    ood_max_extent: float = Field(default=2.5, gt=1, description=(
+        "A query whose points reach further than this from their box centre in the model's frame "
+        "(unit radius; a whole object reaches 1) is far outside what the model knows: the answer "
+        "carries a `frame` warning (set `frame.radius` and `frame.center`)."))
+    ood_min_extent: float = Field(default=0.05, gt=0, lt=1, description=(
+        "A query smaller than this in the model's frame gets the same `frame` warning."))
+    ood_max_mode_distance: float = Field(default=6.0, gt=0, description=(
+        "A query whose best suggestion lies further than this from its mode's mean, in that "
+        "mode's sigmas (root mean square over the embedding's dimensions), gets an `unfamiliar` "
+        "warning: nothing in the catalog is like what the model expects to complement it."))
     diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
         "ran out of parts."))

@@ -85,6 +85,10 @@ class SuggestOptionsIn(_Strict):
         "Place the best-ranked candidates and move those lying mostly on the query's own surface "
         "(parts it already has) behind the others. Omitted: COMPLEMENTME_SUGGEST_COMPLEMENT_CHECK "
         "(true unless configured)."))
+    fit_scale: Flag | None = Field(default=None, description=(
+        "Fit each part in size to the query (per-axis `scale` from the placement network, applied "
+        "about the part's centre; the placed box is the scaled one). Omitted: "
+        "COMPLEMENTME_FIT_SCALE (true unless configured)."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
@@ -98,7 +102,7 @@ class SuggestOptionsIn(_Strict):
                               collapse_duplicates=self.collapse_duplicates,
                               frame=self.frame.to_frame() if self.frame else Frame(),
                               refine_contact=self.refine_contact, complement_check=self.complement_check,
-                              styles=tuple(styles),
+                              fit_scale=self.fit_scale, styles=tuple(styles),
                               preferences=self.preferences())
 
 
@@ -151,6 +155,8 @@ class PlaceRequest(PointsIn):
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
     refine_contact: Flag = Field(default=True, description=(
         "Nudge each placement so the part touches the query without sinking into it."))
+    fit_scale: Flag | None = Field(default=None, description=(
+        "Fit each part in size (per-axis `scale`). Omitted: COMPLEMENTME_FIT_SCALE."))
 
 
 class BatchRequest(_Strict):
@@ -215,9 +221,29 @@ class SuggestionOut(BaseModel):
     translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
     contact_offset: Vec3 = Field(..., description=(
         "The contact refinement's share of the translation (zero when off or not needed)."))
-    bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame).")
+    bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame), after scaling.")
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (caller frame axes) that fits the part to the query, about its centre; "
+        "[1, 1, 1] when fitting is off or the model has no scale head. The catalog geometry is "
+        "never changed: apply it when placing the part."))
     links: PartLinks
+
+
+class InferredCategoryOut(BaseModel):
+    category: str = Field(..., description="The category read from the partial assembly.")
+    confidence: float = Field(..., description="The model's probability of that category.")
+    applied: bool = Field(..., description=(
+        "The suggestions were kept in that category (confidence at least "
+        "COMPLEMENTME_CATEGORY_MIN_CONFIDENCE)."))
+
+
+class WarningOut(BaseModel):
+    code: str = Field(..., description=(
+        "`frame` (the points are far from the model's unit-radius frame), `category_unsure` (no "
+        "category is likely enough) or `unfamiliar` (nothing in the catalog is like what the model "
+        "expects)."))
+    message: str = Field(..., description="What is wrong and how to fix it.")
 
 
 class ModeOut(BaseModel):
@@ -246,6 +272,10 @@ class SuggestResponse(BaseModel):
     candidates: int = Field(..., description="Distinct catalog parts re-scored before ranking.")
     modes: list[ModeOut]
     suggestions: list[SuggestionOut]
+    inferred_category: InferredCategoryOut | None = Field(default=None, description=(
+        "When the request named no category: the category the model reads from the query."))
+    warnings: list[WarningOut] = Field(default_factory=list, description=(
+        "What makes this answer doubtful (the status stays 200)."))
 
 
 class PlacementOut(BaseModel):
@@ -255,6 +285,8 @@ class PlacementOut(BaseModel):
         "The contact refinement's share of the translation (zero when off or not needed)."))
     bbox_min: Vec3
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (caller frame axes) that fits the part, about its centre."))
     links: PartLinks
 
 

@@ -113,6 +113,9 @@ class StepOut(BaseModel):
     contact_offset: Vec3 = Field(..., description="The contact refinement's share of the translation.")
     bbox_min: Vec3
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (the request's frame axes) that fits the part, about its centre; the box "
+        "above is the scaled one."))
     stop_reason: str | None = Field(..., description="On a leaf: why its branch ended.")
     links: PartLinks
 
@@ -161,7 +164,12 @@ class ExportItemIn(_Strict):
     part_id: str = Field(..., description="Catalog part id.")
     translation: tuple[Finite, Finite, Finite] = Field(..., description=(
         "Where the part's bounding-box centre goes (the request's frame), as /suggest answers it."))
-    scale: Finite = Field(default=1.0, gt=0, le=1000, description="Uniform scale about the part's centre.")
+    scale: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] | tuple[
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]] = Field(default=1.0, description=(
+            "Scale about the part's centre: one number, or per axis of the request's frame as "
+            "/suggest, /place and /assemble answer it (`scale`)."))
 
 
 class ExportRequest(_Strict):

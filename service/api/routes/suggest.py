@@ -163,7 +163,7 @@ def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
                metrics: MetricsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
     result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None,
-                          refine_contact=body.refine_contact)
+                          refine_contact=body.refine_contact, fit_scale=body.fit_scale)
     metrics.observe_engine(result.timings, 1, [])
     return OrjsonResponse(render_place(result, engine.model_version))
 
