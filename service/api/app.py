@@ -23,6 +23,7 @@ from fastapi.middleware.cors import CORSMiddleware
 
 from service import __version__
 from service.api.errors import install_error_handlers
+from service.api.json_body import JsonBodyMiddleware
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
@@ -31,6 +32,7 @@ from service.artifacts import ArtifactError
 from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
+from service.inputs import MeshUploads
 from service.loading import load_served_artifacts
 from service.metrics import Metrics
 from service.overload import OverloadMiddleware
@@ -108,14 +110,17 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app; artifacts load when its lifespan starts (uvicorn, or ``with TestClient(app)``)."""
     settings = settings or get_settings()
+    # FastAPI's OpenTelemetry would add OTLP exporters when FASTAPI_OTEL_AUTO_CONFIGURE is set in
+    # the environment: the service exports nothing unless its own code is told to.
     app = FastAPI(title="ComplementMe suggestion service", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, telemetry={"auto_configure": False})
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.engine = None
     app.state.batcher = None
     app.state.writer = None
     app.state.ready = False
+    app.state.uploads = MeshUploads(settings)
     install_error_handlers(app)
     app.include_router(suggest.router)
     app.include_router(parts.router)
@@ -134,6 +139,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
                        max_inflight_suggest=settings.max_inflight_suggest,
                        metrics=app.state.metrics)
+    app.add_middleware(JsonBodyMiddleware, max_body_points=settings.max_body_points)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes)
     if settings.cors_origins:  # browsers only; none by default

@@ -83,7 +83,8 @@ async def _on_validation_error(request: Request, exc: Exception) -> OrjsonRespon
 
 async def _on_http_error(request: Request, exc: Exception) -> OrjsonResponse:
     assert isinstance(exc, StarletteHTTPException)
-    code = _HTTP_CODES.get(exc.status_code, "http_error")
+    # Refusals raised while a body is read carry their own code (service.api.json_body).
+    code = getattr(exc, "code", None) or _HTTP_CODES.get(exc.status_code, "http_error")
     if exc.status_code == 404 and exc.detail == "Not Found":
         message = f"no route {request.method} {request.url.path}"
     else:

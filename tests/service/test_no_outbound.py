@@ -57,9 +57,9 @@ def outbound(trace: str) -> list[str]:
         if addr is None:
             continue  # a send on a connected socket: its connect was checked
         family, rest = addr.groups()
-        if _DNS.search(rest) or (family in ("AF_INET", "AF_INET6") and not _LOOPBACK.search(rest)):
-            bad.append(line)
-        elif family not in ("AF_INET", "AF_INET6", "AF_UNIX", "AF_NETLINK"):
+        remote = family in ("AF_INET", "AF_INET6") and not _LOOPBACK.search(rest)
+        unknown = family not in ("AF_INET", "AF_INET6", "AF_UNIX", "AF_NETLINK")
+        if _DNS.search(rest) or remote or unknown:
             bad.append(line)
     return bad
 
@@ -68,7 +68,8 @@ def test_outbound_filter_sees_a_lookup_and_a_remote_connect() -> None:
     trace = "\n".join([
         '12 connect(5, {sa_family=AF_INET, sin_port=htons(8000), sin_addr=inet_addr("127.0.0.1")}, 16) = 0',
         '12 connect(6, {sa_family=AF_INET, sin_port=htons(53), sin_addr=inet_addr("127.0.0.53")}, 16) = 0',
-        '12 sendto(7, "x", 1, 0, {sa_family=AF_INET, sin_port=htons(443), sin_addr=inet_addr("1.2.3.4")}, 16)',
+        '12 sendto(7, "x", 1, 0, {sa_family=AF_INET, sin_port=htons(443), '
+        'sin_addr=inet_addr("1.2.3.4")}, 16)',
         '12 connect(8, {sa_family=AF_UNIX, sun_path="/var/run/nscd/socket"}, 110) = -1 ENOENT',
     ])
     assert len(outbound(trace)) == 3
