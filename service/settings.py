@@ -25,7 +25,9 @@ DEFAULT_ARTIFACTS = Path(__file__).resolve().parent.parent / "exported"
 class Settings(BaseSettings):
     """Every setting of the service; each field's description is its documentation."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
+    # Errors name the setting and the problem but never echo its value: a too-short API key was
+    # printed in the start-up error (and so in logs).
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", hide_input_in_errors=True)
 
     # --- where and how to serve -------------------------------------------------------------
     artifacts: Path = Field(default=DEFAULT_ARTIFACTS, description=(

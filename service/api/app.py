@@ -22,7 +22,9 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from service import __version__
+from service.api.access_log import install_access_log_redaction
 from service.api.errors import install_error_handlers
+from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from service.api.openapi_extras import add_common_responses
@@ -121,6 +123,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.writer = None
     app.state.ready = False
     app.state.uploads = MeshUploads(settings)
+    install_access_log_redaction()
     install_error_handlers(app)
     app.include_router(suggest.router)
     app.include_router(parts.router)
@@ -148,4 +151,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["X-Model-Version"])
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
+    app.add_middleware(HeadAsGetMiddleware)
     return app
