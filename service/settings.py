@@ -25,7 +25,9 @@ DEFAULT_ARTIFACTS = Path(__file__).resolve().parent.parent / "exported"
 class Settings(BaseSettings):
     """Every setting of the service; each field's description is its documentation."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
+    # Errors name the setting and the problem but never echo its value: a too-short API key was
+    # printed in the start-up error (and so in logs).
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", hide_input_in_errors=True)
 
     # --- where and how to serve -------------------------------------------------------------
     artifacts: Path = Field(default=DEFAULT_ARTIFACTS, description=(
@@ -243,6 +245,23 @@ class Settings(BaseSettings):
     max_mesh_vertices: int = Field(default=2_000_000, ge=3, description=(
         "Most vertices an uploaded mesh may have."))
     max_mesh_faces: int = Field(default=2_000_000, ge=1, description="Most faces an uploaded mesh may have.")
+    max_mesh_nodes: int = Field(default=10_000, ge=1, description=(
+        "Most scene nodes an uploaded mesh may have and reach (glTF nodes, counted once per path "
+        "from a scene root, so instancing counts; OBJ groups and objects); checked before a scene is "
+        "built: a 2 MB GLB of 100k instancing nodes took 28 s of CPU to build."))
+    max_mesh_nesting: int = Field(default=64, ge=4, description=(
+        "Deepest nesting of an uploaded glTF's JSON and of its node tree, checked before either is "
+        "read: a 4 KB glTF nested 2,000 deep crashed the JSON reader, a 40k-deep node chain took 34 s."))
+    max_concurrent_uploads: int = Field(default=2, ge=1, description=(
+        "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per worker process; more "
+        "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "
+        "so this bounds the memory uploads can take."))
+    max_body_points: int = Field(default=100_000, ge=1, description=(
+        "Most `[x, y, z]` triples one JSON body may hold, all `/suggest/batch` items together (by "
+        "default as many as one query may have: 100k points take orjson about 30 ms to parse). "
+        "Counted by the body's `[` while it is read, so a larger body is refused (422 "
+        "`too_many_points`) before any of it is parsed: an 8.3 MB body of 1.04M points held the "
+        "event loop (and `/healthz`) for 1.4-1.7 s."))
     max_page_size: int = Field(default=500, ge=1, description="Largest `limit` of a `GET /parts` page.")
 
     # --- catalog additions (docs/catalog.md) --------------------------------------------------

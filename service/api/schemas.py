@@ -26,6 +26,13 @@ Number = Annotated[float, Field(strict=True)]
 Count = Annotated[int, Field(strict=True)]
 Flag = Annotated[bool, Field(strict=True)]
 Vec3 = tuple[float, float, float]
+# Largest |coordinate| of a frame's centre and largest radius: with the catalog's extents a
+# placed box then stays far inside float64 (centre -1.7e308 with radius 1.7e308 answered 200
+# with null translations: the sums overflowed to infinity, which JSON cannot hold).
+FRAME_MAX = 1e15
+# Largest seed: numpy's generators take any non-negative integer, JSON carries at most 64 bits.
+SEED_MAX = 2**63 - 1
+FrameCoord = Annotated[float, Field(allow_inf_nan=False, strict=True, ge=-FRAME_MAX, le=FRAME_MAX)]
 # JSON points: checked and converted in one pass (``points_from_json``), documented as numbers.
 PointRows = Annotated[Any, PlainValidator(points_from_json, json_schema_input_type=list[list[float]])]
 
@@ -42,9 +49,11 @@ class _Strict(BaseModel):
 class FrameIn(_Strict):
     """The caller's frame; omit for the canonical frame (y up, object centred, unit radius)."""
 
-    center: tuple[Finite, Finite, Finite] = Field(
-        default=(0.0, 0.0, 0.0), description="Centre of the complete object in caller units.")
-    radius: Finite = Field(default=1.0, gt=0, description="Radius of the complete object in caller units.")
+    center: tuple[FrameCoord, FrameCoord, FrameCoord] = Field(
+        default=(0.0, 0.0, 0.0), description=f"Centre of the complete object in caller units (each at most "
+        f"{FRAME_MAX:g} in size).")
+    radius: Finite = Field(default=1.0, gt=0, le=FRAME_MAX, description=(
+        f"Radius of the complete object in caller units (at most {FRAME_MAX:g})."))
     up_axis: Literal["y", "z"] = Field(default="y", description="The caller's up axis.")
 
     def to_frame(self) -> Frame:
