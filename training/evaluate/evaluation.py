@@ -344,6 +344,7 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
             p = ours.engine.place(q.points, [top[0]], refine_contact=False, fit_scale=fit).placements[0]
             rec[f"iou_{name}"] = box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
-            rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / np.maximum(true_hi - true_lo, 1e-6)))))
+            true_ext = np.maximum(true_hi - true_lo, 1e-6)
+            rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
         out.append(rec)
     return out
