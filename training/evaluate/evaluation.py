@@ -110,6 +110,9 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
             top_func = np.array([labels[r] == q.label for r in top.tolist()], dtype=bool)
             n_func = relevant_in_pool(pool_func, pool, group)
             rec["functional_ap"] = average_precision_at_k(top_func, n_func, k)
+            # With the pool "all" the method must find the category itself (the service infers it).
+            rec["in_category"] = (float(np.mean(cat.category_of[top] == cat.category_codes([q.category])[0]))
+                                  if len(top) else math.nan)
             removed_pts = removed_part_points(index, q.removed)
             dists = [hausdorff_distance(removed_pts, index.samples[r]) for r in top.tolist()]
             rec["hausdorff"] = float(np.mean(dists)) if dists else math.nan

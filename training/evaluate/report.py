@@ -280,6 +280,21 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
         L += [f"![{key}]({_rel(path, base)})", ""]
         charts.append((key, path))
 
+    extra = [("in_category_top5", "Share of the top 5 from the query's category (all-but-one queries; "
+              "with pool \"all\" the method finds the category itself)", True),
+             ("missing_label_coverage_top10", "Missing-label coverage of the top 10 (one part present, "
+              "two or more labels missing)", True),
+             ("distinct_labels_top10", "Distinct labels in the top 10 (same queries)", True),
+             ("live_modes", "Modes of g with weight >= 0.05 (same queries)", True)]
+    for key, title, higher in extra:
+        rows = ordered(tables.get(key, {}))
+        if rows:
+            L += [f"## {title}", "", *method_table(rows, cats, higher), "", _counts_line(rows, cats), ""]
+    if "size_fit" in tables:
+        L += ["## Size fitting: the top suggestion of each all-but-one query placed by the service, its box "
+              "against the removed part's (IoU higher is better; scale error mean |log extent ratio|, "
+              "lower is better)", "", *method_table(tables["size_fit"], cats, None, first="Measure"), ""]
+
     if "placement_error" in tables:
         pe = tables["placement_error"]
         rows = {"Train error": pe["train"], "Test error": pe["test"]}

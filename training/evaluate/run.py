@@ -21,8 +21,12 @@ Layout of ``results.json`` (undefined values are null)::
     pool:      {category: catalog parts of that category}
     tables:
       functional_map, hausdorff, style_map_all_but_one, style_map_single,
-      recall@1, recall@10, median_percentile_rank:
+      recall@1, recall@10, median_percentile_rank, in_category_top5 (share of the top 5 from the
+      query's category), missing_label_coverage_top10, distinct_labels_top10, live_modes (one-part
+      queries with two or more labels missing):
                  {method: {category: value, ..., "mean": mean of categories, "n": {category: count}}}
+      size_fit: {"placed-box IoU, fitting on" | ... off | "scale error, fitting on" | ... off:
+                 {category: value, ...}} (the top suggestion of each all-but-one query, placed)
       placement_error, placement_error_refined (after contact refinement):
                         {"train" | "test": {category: value, ..., "mean": ..., "n": {...}}}
       plausibility:     {"top1" | "top1_refined" | "true_h" | "true_h_refined" | "true_gt":
@@ -56,9 +60,11 @@ from training.evaluate.baselines import CK10Method, Method, RandomMethod
 from training.evaluate.evaluation import (
     ContactSettings,
     RetrievalSettings,
+    evaluate_coverage,
     evaluate_placement,
     evaluate_plausibility,
     evaluate_retrieval,
+    evaluate_size_fit,
     median_table,
     plausibility_table,
     table,
@@ -273,6 +279,18 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
         for k in s.retrieval.recall_ks:
             tables[f"recall@{k}"][name] = table(abo, f"recall@{k}", cats)
         tables["median_percentile_rank"][name] = median_table(abo, "percentile", cats)
+        tables.setdefault("in_category_top5", {})[name] = table(abo, "in_category", cats)
+
+    # One part present, at least two labels missing: what the top 10 offer (model v3's aim).
+    coverage: dict[str, list[dict[str, Any]]] = {}
+    for name, m in methods.items():
+        t = time.monotonic()
+        coverage[name] = evaluate_coverage(m, queries["single"], index, s.retrieval, progress=s.progress)
+        lap(f"coverage {name}", t)
+        tables.setdefault("missing_label_coverage_top10", {})[name] = table(coverage[name], "coverage", cats)
+        tables.setdefault("distinct_labels_top10", {})[name] = table(coverage[name], "distinct_labels", cats)
+        if any("live_modes" in r for r in coverage[name]):
+            tables.setdefault("live_modes", {})[name] = table(coverage[name], "live_modes", cats)
 
     placement: list[dict[str, Any]] = []
     plaus: dict[str, list[dict[str, Any]]] = {}
@@ -286,6 +304,14 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
             sp: table([r for r in placement if r["split"] == sp], "error_refined", cats)
             for sp in ("train", "test")}
         lap("placement", t)
+        t = time.monotonic()
+        fits = evaluate_size_fit(ours, queries["all_but_one"], per_query["Ours"]["all_but_one"], index,
+                                 s.progress)
+        tables["size_fit"] = {"placed-box IoU, fitting on": table(fits, "iou_on", cats),
+                              "placed-box IoU, fitting off": table(fits, "iou_off", cats),
+                              "scale error, fitting on": table(fits, "scale_error_on", cats),
+                              "scale error, fitting off": table(fits, "scale_error_off", cats)}
+        lap("size fit", t)
         t = time.monotonic()
         chosen = _first_per_category(queries["all_but_one"], s.plausibility_queries_per_category)
         chosen_ids = {q.qid for q in chosen}

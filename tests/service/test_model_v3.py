@@ -1,0 +1,138 @@
+"""Model v3 as the service serves it: the inferred category, the mode share of the suggestions,
+size fitting and the warnings of queries the model does not know (docs/modeling.md).
+
+These run on the shipped artifacts (exported/); labels are read here only to measure.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from service_testkit import assembly_query
+
+from service.catalog import Catalog
+from service.engine import SuggestionEngine, SuggestOptions
+from service.frames import Frame
+from service.preferences import share_order
+
+
+def _held_out_shapes(catalog: Catalog, per_category: int) -> list[str]:
+    counts = np.bincount(catalog.shape_of)
+    by_cat: dict[str, list[str]] = {}
+    for i, r in enumerate(catalog.records):
+        if r.get("split") == "test" and counts[catalog.shape_of[i]] >= 3:
+            ids = by_cat.setdefault(r["category"], [])
+            if r["shape_id"] not in ids and len(ids) < per_category:
+                ids.append(r["shape_id"])
+    return [sid for ids in by_cat.values() for sid in ids]
+
+
+def _needs_heads(engine: SuggestionEngine) -> None:
+    if not (engine.networks.has_category_head and engine.networks.has_scale_head):
+        pytest.skip("these artifacts predate model v3 (no category or scale head)")
+
+
+def test_share_order_deals_slots_in_proportion_to_the_weights() -> None:
+    modes = np.repeat([0, 1, 2, 3], 10)                   # 10 candidates per mode, any order
+    rng = np.random.default_rng(0)
+    modes = modes[rng.permutation(len(modes))]
+    order = share_order(modes, np.array([0.5, 0.3, 0.17, 0.03]), min_weight=0.05)
+    first10 = modes[order[:10]]
+    assert [int(np.sum(first10 == k)) for k in range(4)] == [5, 3, 2, 0]
+    assert sorted(order.tolist()) == list(range(len(modes)))   # a permutation
+    light = np.flatnonzero(modes[order] == 3)
+    assert light.min() == 30                                  # the light mode comes after the others
+    within = [p for p in order.tolist() if modes[p] == 0]
+    assert within == sorted(within)                           # each mode keeps its likelihood order
+
+
+def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catalog: Catalog) -> None:
+    _needs_heads(engine)
+    shapes = _held_out_shapes(catalog, 2)
+    right = 0
+    for sid in shapes:
+        last = [r["part_id"] for r in catalog.records if r["shape_id"] == sid][-1]
+        q = assembly_query(catalog, sid, last, 1000)
+        truth = catalog.records[catalog.lookup(last)]["category"]
+        result = engine.suggest(q.points, SuggestOptions(k=5, exclude_shapes=(sid,)))
+        inferred = result.inferred_category
+        assert inferred is not None and 0 <= inferred.confidence <= 1
+        right += inferred.category == truth
+        if inferred.applied:
+            assert {s.category for s in result.suggestions} == {inferred.category}
+        else:
+            assert any(w.code == "category_unsure" for w in result.warnings)
+    assert right >= 0.9 * len(shapes), f"{right} of {len(shapes)} held-out queries got their category"
+    named = engine.suggest(q.points, SuggestOptions(k=5, categories=("chair",)))
+    assert named.inferred_category is None and {s.category for s in named.suggestions} == {"chair"}
+
+
+def test_a_seat_alone_gets_several_kinds_of_part(engine: SuggestionEngine, catalog: Catalog) -> None:
+    _needs_heads(engine)
+    kinds = []
+    for sid in _held_out_shapes(catalog, 6):
+        rows = [i for i, r in enumerate(catalog.records) if r["shape_id"] == sid]
+        seat = [i for i in rows if catalog.records[i]["label"] == "seat"]
+        if catalog.records[rows[0]]["category"] != "chair" or not seat:
+            continue
+        points = catalog.part_points(seat[0]) + catalog.translations[seat[0]]
+        result = engine.suggest(points, SuggestOptions(k=10, categories=("chair",), exclude_shapes=(sid,)))
+        kinds.append(len({s.label for s in result.suggestions}))
+        assert int(np.sum(result.mode_weights >= 0.05)) >= 2
+    assert kinds and min(kinds) >= 2, kinds
+
+
+def test_a_query_in_the_wrong_frame_is_answered_with_a_warning(engine: SuggestionEngine,
+                                                              query: object) -> None:
+    points = np.asarray(query.points) * 250.0 + 40.0          # type: ignore[attr-defined]
+    plain = engine.suggest(points, SuggestOptions(k=3))
+    assert any(w.code == "frame" and "frame.radius" in w.message for w in plain.warnings)
+    framed = engine.suggest(points, SuggestOptions(k=3, frame=Frame(center=np.full(3, 40.0), radius=250.0)))
+    assert not any(w.code == "frame" for w in framed.warnings)
+
+
+def test_fitting_scales_the_placed_box_and_can_be_turned_off(engine: SuggestionEngine,
+                                                             catalog: Catalog, query: object) -> None:
+    _needs_heads(engine)
+    points = query.points                                     # type: ignore[attr-defined]
+    ids = [s.part_id for s in engine.suggest(points, SuggestOptions(k=10)).suggestions]
+    on = engine.place(points, ids, refine_contact=False, fit_scale=True).placements
+    off = engine.place(points, ids, refine_contact=False, fit_scale=False).placements
+    s = engine.settings
+    for a, b in zip(on, off, strict=True):
+        i = catalog.lookup(a.part_id)
+        extent = (catalog.bbox_max[i] - catalog.bbox_min[i]).astype(np.float64)
+        np.testing.assert_allclose(b.scale, 1.0)
+        np.testing.assert_allclose(np.asarray(b.bbox_max) - b.bbox_min, extent, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(a.bbox_max) - a.bbox_min, extent * a.scale, rtol=1e-5,
+                                   atol=1e-6)
+        np.testing.assert_allclose(a.translation, b.translation)  # fitting scales about the centre
+        assert np.all((a.scale >= s.scale_min - 1e-9) & (a.scale <= s.scale_max + 1e-9))
+    assert max(float(np.abs(np.log(p.scale)).max()) for p in on) > 0.01   # the head is not inert
+
+
+def test_api_answers_carry_the_new_fields(client: TestClient, query: object) -> None:
+    points = np.asarray(query.points).tolist()               # type: ignore[attr-defined]
+    body = client.post("/suggest", json={"points": points, "k": 3}).json()
+    assert "warnings" in body and "inferred_category" in body
+    assert all(len(s["scale"]) == 3 for s in body["suggestions"])
+    pid = body["suggestions"][0]["part_id"]
+    placed = client.post("/place", json={"points": points, "part_ids": [pid], "fit_scale": False}).json()
+    assert placed["placements"][0]["scale"] == [1.0, 1.0, 1.0]
+
+
+def test_export_applies_a_per_axis_scale(client: TestClient, catalog: Catalog) -> None:
+    pid = catalog.part_ids[0]
+    sizes = []
+    for scale in (1.0, [2.0, 1.0, 0.5]):
+        part = {"part_id": pid, "translation": [0, 0, 0], "scale": scale}
+        r = client.post("/export", json={"format": "obj", "frame": {"up_axis": "z"}, "parts": [part]})
+        assert r.status_code == 200, r.text
+        mesh = trimesh.load(io.BytesIO(r.content), file_type="obj", force="mesh", process=False)
+        sizes.append(mesh.extents)
+    # Per axis of the request's frame (z up): x doubled, y kept, z halved.
+    np.testing.assert_allclose(sizes[1] / sizes[0], [2.0, 1.0, 0.5], rtol=1e-3)
