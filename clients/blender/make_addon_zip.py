@@ -1,6 +1,6 @@
 """Package the add-on as the zip a user installs from Blender (Preferences > Add-ons > Install).
 
-Run from anywhere: ``python3 clients/blender/build.py`` writes
+Run from anywhere: ``python3 clients/blender/make_addon_zip.py`` writes
 ``clients/blender/dist/complementme_blender.zip`` (or ``--out FILE``) and prints its path. The
 zip holds the ``complementme_blender/`` folder with its Python files only, with fixed
 timestamps, so that the same sources give the same bytes.
