@@ -18,10 +18,10 @@ Vec3 = tuple[float, float, float]
 
 # How the request frame (the complete object's centre and radius) is found from the selection.
 FRAME_MODES = (
-    ("GROUND", "Standing on the ground",
+    ("GROUND", "On the ground",
      "The complete object stands on the ground (z = 0) under the selection: its box is the "
      "selection's box extended down to z = 0"),
-    ("SELECTION", "Selection is complete",
+    ("SELECTION", "Whole selection",
      "The selection already spans the complete object (its box is the object's box)"),
     ("MANUAL", "Manual", "Give the complete object's centre and radius"),
 )

@@ -70,7 +70,7 @@ class ComplementMeSettings(bpy.types.PropertyGroup):
 
     category: StringProperty(name="Category", default="",  # type: ignore[valid-type]
                              description="Only parts of this category (empty: any)")
-    k: IntProperty(name="Suggestions", default=5, min=1, max=50,  # type: ignore[valid-type]
+    k: IntProperty(name="Count", default=5, min=1, max=50,  # type: ignore[valid-type]
                    description="How many suggestions to ask for")
     max_parts: IntProperty(name="Parts to add", default=0, min=0, max=24,  # type: ignore[valid-type]
                            description="Auto-complete: parts to add (0: the service's default)")
@@ -291,29 +291,30 @@ class COMPLEMENTME_PT_panel(bpy.types.Panel):  # noqa: N801 - Blender\'s naming 
         layout = self.layout
         prefs = context.preferences.addons[ADDON].preferences
         settings = context.scene.complementme
-        col = layout.column(align=True)
-        col.prop(prefs, "server_url", text="")
-        col.prop(prefs, "api_key")
+        layout.use_property_split = True
+        layout.use_property_decorate = False
         col = layout.column()
+        col.prop(prefs, "server_url", text="Server")
+        col.prop(prefs, "api_key", text="Key")
         col.prop(settings, "category")
-        col.prop(settings, "k")
         col.prop(settings, "frame_mode")
         if settings.frame_mode == "MANUAL":
             col.prop(settings, "frame_center")
             col.prop(settings, "frame_radius")
-        row = layout.row(align=True)
-        row.scale_y = 1.3
-        row.operator(COMPLEMENTME_OT_suggest.bl_idname, icon="VIEWZOOM")
-        row.operator(COMPLEMENTME_OT_autocomplete.bl_idname, icon="MOD_BUILD")
-        layout.prop(settings, "max_parts")
+        col.prop(settings, "k")
+        col.operator(COMPLEMENTME_OT_suggest.bl_idname, icon="VIEWZOOM")
+        col.separator()
+        col.prop(settings, "max_parts")
+        col.operator(COMPLEMENTME_OT_autocomplete.bl_idname, icon="MOD_BUILD")
         if not settings.suggestions:
             layout.label(text="Select the parts you have, then Suggest.", icon="INFO")
             return
-        # The service has no thumbnail route: each row shows rank, label and score.
+        # The service has no thumbnail route: each row shows rank, label, score and the part id.
         box = layout.box()
+        box.use_property_split = False
         for i, s in enumerate(settings.suggestions):
             row = box.row()
-            row.label(text=f"{s.rank}. {s.label or s.category or 'part'}   {s.score:.1f}")
+            row.label(text=f"{s.rank}. {s.label or s.category or 'part'}  {s.score:.1f}")
             op = row.operator(COMPLEMENTME_OT_import_suggestion.bl_idname, text="Import", icon="IMPORT")
             op.index = i
             box.label(text=f"    {s.part_id}")
