@@ -40,22 +40,24 @@ def assert_close(found: list[float], expected: list[float], tol: float, what: st
     assert worst <= tol, f"{what}: found {found}, expected {expected} (off by {worst:.2e} > {tol:.2e})"
 
 
-def assert_upright(obj: bpy.types.Object, url: str, part_id: str, scale: float,
-                   translation: list[float], tol: float) -> None:
+def assert_upright(obj: bpy.types.Object, url: str, entry: dict[str, Any], scale: float, tol: float) -> None:
     """Every vertex is where a z-up scene must draw the part's canonical vertex (x, y, z):
-    at translation + scale * (x, -z, y) (y up becomes z up, front +x stays +x).
+    at translation + scale * (x, -z, y) (y up becomes z up, front +x stays +x), with the part's
+    own per-axis ``scale`` (when the answer has one) applied to (x, y, z) first.
 
     Read from the service's OBJ here, vertex by vertex, so that a mirrored or turned part fails
     even where its box would look the same.
     """
+    part_id = entry["part_id"]
+    sx, sy, sz = entry.get("scale") or (1.0, 1.0, 1.0)
     path = "/parts/" + urllib.parse.quote(part_id, safe="/") + "/mesh?format=obj"
     with urllib.request.urlopen(url + path, timeout=30) as answer:
         canonical = [tuple(map(float, line.split()[1:4])) for line in answer.read().decode().splitlines()
                      if line.startswith("v ")]
     assert len(canonical) == len(obj.data.vertices), (len(canonical), len(obj.data.vertices))
-    tx, ty, tz = translation
+    tx, ty, tz = entry["translation"]
     for v, c in zip(obj.data.vertices, canonical, strict=True):
-        expected = [tx + scale * c[0], ty - scale * c[2], tz + scale * c[1]]
+        expected = [tx + scale * sx * c[0], ty - scale * sz * c[2], tz + scale * sy * c[1]]
         assert_close(list(obj.matrix_world @ v.co), expected, tol, f"{part_id} vertex {v.index}")
 
 
@@ -144,7 +146,7 @@ def main() -> None:
     assert_close(found_lo, first["bbox_min"], tol, f"{first['part_id']} box min")
     assert_close(found_hi, first["bbox_max"], tol, f"{first['part_id']} box max")
     assert_close(list(new[0].matrix_world.translation), first["translation"], tol, "object origin")
-    assert_upright(new[0], os.environ["CM_URL"], first["part_id"], radius, first["translation"], tol)
+    assert_upright(new[0], os.environ["CM_URL"], first, radius, tol)
     result["imported"] = {"name": new[0].name, "bbox_min": found_lo, "bbox_max": found_hi}
 
     # Auto-complete from seat and back: every step becomes an object on its step's box.
@@ -165,7 +167,7 @@ def main() -> None:
         found_lo, found_hi = world_box(obj)
         assert_close(found_lo, step["bbox_min"], tol, f"step {step['part_id']} box min")
         assert_close(found_hi, step["bbox_max"], tol, f"step {step['part_id']} box max")
-        assert_upright(obj, os.environ["CM_URL"], step["part_id"], radius, step["translation"], tol)
+        assert_upright(obj, os.environ["CM_URL"], step, radius, tol)
     result["assembled"] = [(s["part_id"], s["label"]) for s in steps]
 
     # Errors, in the report area: the service's 4xx message ...
