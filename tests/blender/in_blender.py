@@ -96,10 +96,12 @@ def main() -> None:
     from complementme_blender import service_client
 
     calls: list[tuple[str, bytes, dict[str, Any], dict[str, Any]]] = []
+    attempts: list[str] = []
     for name in ("suggest_mesh", "assemble_mesh"):
         real = getattr(service_client.Client, name)
 
         def spy(self: Any, glb: bytes, options: dict[str, Any], _real: Any = real, _name: str = name) -> Any:
+            attempts.append(_name)
             answer = _real(self, glb, options)
             calls.append((_name, glb, options, answer))
             return answer
@@ -180,6 +182,19 @@ def main() -> None:
         silent.listen(4)
         prefs.server_url, prefs.timeout = f"http://127.0.0.1:{silent.getsockname()[1]}", 1.0
         result["error_timeout"] = expect_error(bpy.ops.complementme.suggest, "no answer within 1 s")
+    # ... Blender's online-access preference (4.2+; faked here on older Blender): no call at all ...
+    from complementme_blender import ui
+
+    class _Offline:
+        class app:  # noqa: N801 - stands for bpy.app
+            online_access = False
+
+    real_bpy, ui.bpy, n_attempts = ui.bpy, _Offline(), len(attempts)
+    try:
+        result["error_offline"] = expect_error(bpy.ops.complementme.suggest, "online access is disabled")
+    finally:
+        ui.bpy = real_bpy
+    assert len(attempts) == n_attempts, "a call was attempted with online access off"
     # ... and the real server, stopped.
     prefs.server_url, prefs.timeout = os.environ["CM_URL"], 30.0
     stop_server(int(os.environ["CM_SERVER_PID"]), os.environ["CM_URL"])

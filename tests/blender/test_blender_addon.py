@@ -124,5 +124,5 @@ def test_addon_suggests_imports_completes_and_reports_errors_in_blender(
     assert len(result["suggestions"]) == 5 and result["imported"]["name"] == result["suggestions"][0][1]
     assert result["assembled"], "auto-complete imported no part"
     assert proc.wait(timeout=30) is not None, "the in-Blender script stopped the service"
-    for key in ("error_4xx", "error_timeout", "error_stopped", "error_import_stopped"):
+    for key in ("error_4xx", "error_timeout", "error_offline", "error_stopped", "error_import_stopped"):
         assert result[key].count("\n") == 0 and result[key].startswith("Error: ComplementMe:"), result[key]
