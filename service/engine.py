@@ -48,7 +48,7 @@ from service.inputs import check_points
 from service.loading import Artifacts
 from service.mixture import mixture_log_likelihood
 from service.neighbours import BruteForceNeighbours
-from service.preferences import Preferences, diverse_order
+from service.preferences import Preferences, diverse_order, share_order
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -78,6 +78,7 @@ class SuggestOptions:
                                              # None: the setting suggest_refine_contact
     complement_check: bool | None = None     # demote parts the query already has (service.complement);
                                              # None: the setting suggest_complement_check
+    fit_scale: bool | None = None            # fit parts in size (h's scale head); None: setting fit_scale
     styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
     preferences: Preferences = field(default_factory=Preferences)  # mode weights, exclusions, gallery
 
@@ -104,6 +105,24 @@ class Suggestion:
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))  # per axis, about the part's centre
+
+
+@dataclass(frozen=True)
+class InferredCategory:
+    """The category g's category head reads from a query that named none."""
+
+    category: str
+    confidence: float     # the head's probability of that category
+    applied: bool         # the suggestions were kept in it (confidence >= category_min_confidence)
+
+
+@dataclass(frozen=True)
+class QueryWarning:
+    """Something about a query that the answer should not hide (status stays 200)."""
+
+    code: str             # "frame", "category_unsure", "unfamiliar"
+    message: str          # what is wrong and how to fix it
 
 
 @dataclass
@@ -122,6 +141,8 @@ class SuggestResult:
     timings: dict[str, float] = field(default_factory=dict)  # seconds per stage (whole batch)
     mode_means: np.ndarray | None = None
     mode_sigmas: np.ndarray | None = None
+    inferred_category: InferredCategory | None = None
+    warnings: list[QueryWarning] = field(default_factory=list)
 
 
 @dataclass
@@ -138,6 +159,7 @@ class Placement:
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))  # per axis, about the part's centre
 
 
 @dataclass
@@ -165,6 +187,8 @@ class _Query:
     k: int
     allowed: np.ndarray | None         # (P,) bool, None when nothing is filtered
     filter_key: tuple[tuple[str, ...], ...]
+    inferred: InferredCategory | None = None
+    warnings: list[QueryWarning] = field(default_factory=list)
 
 
 class SuggestionEngine:
@@ -243,7 +267,48 @@ class SuggestionEngine:
         key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
                tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)))
         full = self.canonical(points, options.frame)
-        return _Query(item, self.resample(full), full, len(points), options, k, allowed, key)
+        return _Query(item, self.resample(full), full, len(points), options, k, allowed, key,
+                      warnings=self._frame_warnings(full))
+
+    def _frame_warnings(self, canonical: np.ndarray) -> list[QueryWarning]:
+        """A ``frame`` warning when the points are far from the model's unit-radius frame.
+
+        Shapes:
+            canonical: (M, 3) float32.
+        """
+        s = self.settings
+        lo, hi = canonical.min(axis=0), canonical.max(axis=0)
+        reach = float(np.linalg.norm(canonical - (lo + hi) / 2, axis=1).max())
+        if s.ood_min_extent <= reach <= s.ood_max_extent:
+            return []
+        return [QueryWarning("frame", f"the points reach {reach:.3g} from their centre in the model's frame, "
+                             "where a whole object reaches 1: the answer is unlikely to fit; give "
+                             "frame.radius (the object's radius in your units) and frame.center")]
+
+    def _infer_category(self, q: _Query, probs: np.ndarray | None) -> None:
+        """Read the query's category from g's head when it named none; filter when sure enough.
+
+        Shapes:
+            probs: (C,) over the manifest's categories, or None without a head.
+        """
+        s, cat = self.settings, self.catalog
+        names = self.artifacts.manifest.get("categories") or []
+        if probs is None or q.options.categories or not s.infer_category or len(names) != len(probs):
+            return
+        best = int(np.argmax(probs))
+        name, confidence = str(names[best]), float(probs[best])
+        in_catalog = name in cat.categories
+        applied = confidence >= s.category_min_confidence and in_catalog
+        q.inferred = InferredCategory(name, confidence, applied)
+        if applied:
+            keep = cat.category_of == cat.category_codes([name])[0]
+            q.allowed = keep if q.allowed is None else q.allowed & keep
+            q.filter_key = ((name,), *q.filter_key[1:])
+        else:
+            q.warnings.append(QueryWarning(
+                "category_unsure", f"the partial assembly looks most like a {name} (probability "
+                f"{confidence:.2f}), which is not sure enough to keep the suggestions in one category; "
+                "name the category (categories) or check the frame"))
 
     def _style_mask(self, styles: tuple[str, ...]) -> np.ndarray:
         """Parts whose catalog ``style`` is one of ``styles``; ``InputError`` naming unknown styles."""
@@ -347,6 +412,8 @@ class SuggestionEngine:
                   if len(queries) <= self.settings.overlap_max_batch else None)
         t = time.perf_counter()
         mix = self.networks.mixture(batch)
+        for b, q in enumerate(queries):
+            self._infer_category(q, None if mix.category_probs is None else mix.category_probs[b])
         timings["g"] = time.perf_counter() - t
         t = time.perf_counter()
         candidates = self._search(queries, mix.means)
@@ -366,17 +433,20 @@ class SuggestionEngine:
         rows = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(r[0]), b) for b, r in ranked.items()]
                               ).astype(np.int64)
         parts = np.concatenate([np.zeros(0, np.int64)] + [r[0] for r in ranked.values()]).astype(np.int64)
-        translations = (self.networks.place(qf[rows], self.catalog.part_features[parts])
-                        if len(parts) else np.zeros((0, 3), np.float32))
+        translations, scales = (np.zeros((0, 3), np.float32), np.ones((0, 3), np.float32))
+        if len(parts):
+            translations, scales = self.networks.place_and_fit(qf[rows], self.catalog.part_features[parts])
         timings["h_head"] = time.perf_counter() - t
         t = time.perf_counter()
         placed: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        fitted: dict[int, np.ndarray] = {}
         for b, (idx, scores, modes, _) in ranked.items():
             q = queries[b]
             tr = translations[rows == b]
             with _own_error(q, errors):
                 order = self._complement_order(q, idx, tr)
                 placed[b] = (idx[order], scores[order], modes[order], tr[order])
+                fitted[b] = self._fitted(scales[rows == b][order], q.options.fit_scale)
         timings["complement"] = time.perf_counter() - t
         t = time.perf_counter()
         offsets: dict[int, np.ndarray] = {}
@@ -396,18 +466,20 @@ class SuggestionEngine:
             q = queries[b]
             idx, scores, modes, tr = placed[b]
             with _own_error(q, errors):
-                found = self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame)
+                found = self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame,
+                                          fitted[b])
                 out[q.item] = SuggestResult(
                     suggestions=found,
                     mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
                     candidates=ranked[b][3], timings=timings, mode_means=mix.means[b],
-                    mode_sigmas=mix.sigmas[b])
+                    mode_sigmas=mix.sigmas[b], inferred_category=q.inferred,
+                    warnings=q.warnings + self._familiarity_warnings(idx, modes, mix.means[b], mix.sigmas[b]))
         out.update(errors)
         timings["total"] = time.perf_counter() - t0
         return [out[i] for i in range(len(items))]
 
     def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None,
-              refine_contact: bool = True) -> PlaceResult:
+              refine_contact: bool = True, fit_scale: bool | None = None) -> PlaceResult:
         """Translations (and placed boxes) of chosen parts next to a partial assembly.
 
         Shapes:
@@ -428,14 +500,18 @@ class SuggestionEngine:
         qf = self.networks.query_features(canonical[None])
         timings["h_query"] = time.perf_counter() - t
         t = time.perf_counter()
-        tr = self.networks.place(np.repeat(qf, len(idx), axis=0), self.catalog.part_features[idx])
+        tr, raw_scale = self.networks.place_and_fit(np.repeat(qf, len(idx), axis=0),
+                                                    self.catalog.part_features[idx])
+        scale = self._fitted(raw_scale, fit_scale)
         timings["h_head"] = time.perf_counter() - t
         t = time.perf_counter()
         off = self.contact_offsets(full, idx, tr) if refine_contact else np.zeros((len(idx), 3))
         timings["contact"] = time.perf_counter() - t
-        trans, lo, hi = self._placed(idx, tr + off, frame)
+        trans, lo, hi = self._placed(idx, tr + off, frame, scale)
         off_caller = off @ frame.rotation * frame.radius
-        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j], off_caller[j])
+        scale_caller = _caller_scale(scale, frame)
+        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j], off_caller[j],
+                                scale_caller[j])
                       for j, i in enumerate(idx)]
         return PlaceResult(placements, frame, len(points), timings)
 
@@ -563,6 +639,8 @@ class SuggestionEngine:
             keep = np.arange(len(cand))
         if prefs.diversity:
             keep = keep[diverse_order(mode[keep], w, self.settings.diversity_min_mode_weight)]
+        elif self.settings.suggest_order == "share":
+            keep = keep[share_order(mode[keep], w, self.settings.share_min_mode_weight)]
         keep = keep[:self._shortlist(q)]
         return cand[keep], ll[keep], mode[keep], n_scored
 
@@ -575,18 +653,60 @@ class SuggestionEngine:
         share = covered_share(q.points, samples, translations.astype(np.float32), s.complement_cover_distance)
         return demote_covered(share, s.complement_cover_share)[:q.k]
 
-    def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame
+    def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame, scales: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Canonical translations of parts to caller-frame translations and placed boxes."""
+        """Canonical translations of parts to caller-frame translations and placed boxes.
+
+        The box is the part's catalog box scaled about its centre (the translation) by its
+        fitted per-axis scale.
+
+        Shapes:
+            idx (P,), translations (P, 3), scales (P, 3) canonical axes -> (P, 3) x 3, caller frame.
+        """
         t = translations.astype(np.float64)
-        lo, hi = frame.box_from_canonical(t + self.catalog.bbox_min[idx], t + self.catalog.bbox_max[idx])
+        sc = scales.astype(np.float64)
+        cat = self.catalog
+        lo, hi = frame.box_from_canonical(t + sc * cat.bbox_min[idx], t + sc * cat.bbox_max[idx])
         return frame.from_canonical(t), lo, hi
 
+    def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
+        """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
+
+        Shapes:
+            raw (P, 3) -> (P, 3) float64.
+        """
+        s = self.settings
+        if not _or_default(asked, s.fit_scale):
+            return np.ones((len(raw), 3))
+        return np.clip(raw.astype(np.float64), s.scale_min, s.scale_max)
+
+    def _familiarity_warnings(self, idx: np.ndarray, modes: np.ndarray, means: np.ndarray,
+                              sigmas: np.ndarray) -> list[QueryWarning]:
+        """An ``unfamiliar`` warning when even the best suggestion is far from its mode's mean.
+
+        Shapes:
+            idx (P,) ranked rows, modes (P,); means, sigmas (K, D).
+        """
+        if len(idx) == 0:
+            return []
+        k = int(modes[0])
+        z = (self.catalog.embeddings[int(idx[0])] - means[k]) / sigmas[k]
+        distance = float(np.sqrt(np.mean(np.square(z))))
+        if distance <= self.settings.ood_max_mode_distance:
+            return []
+        return [QueryWarning("unfamiliar", f"the best suggestion lies {distance:.1f} sigmas from what the "
+                             "model expects (in-distribution queries stay within "
+                             f"{self.settings.ood_max_mode_distance:g}): the partial assembly is unlike "
+                             "anything the model was trained on; check the frame (frame.radius, "
+                             "frame.center, frame.up) and the category")]
+
     def _suggestions(self, idx: np.ndarray, scores: np.ndarray, modes: np.ndarray, weights: np.ndarray,
-                     translations: np.ndarray, offsets: np.ndarray, frame: Frame) -> list[Suggestion]:
+                     translations: np.ndarray, offsets: np.ndarray, frame: Frame, scales: np.ndarray
+                     ) -> list[Suggestion]:
         cat = self.catalog
-        trans, lo, hi = self._placed(idx, translations + offsets, frame)
+        trans, lo, hi = self._placed(idx, translations + offsets, frame, scales)
         off_caller = offsets @ frame.rotation * frame.radius
+        scale_caller = _caller_scale(scales, frame)
         out = []
         for r, i in enumerate(idx.tolist()):
             rec = cat.records[i]
@@ -595,7 +715,7 @@ class SuggestionEngine:
                 category=rec["category"], label=rec["label"], score=float(scores[r]),
                 mode=int(modes[r]), mode_weight=float(weights[modes[r]]),
                 duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
-                contact_offset=off_caller[r]))
+                contact_offset=off_caller[r], scale=scale_caller[r]))
         return out
 
 
@@ -611,6 +731,16 @@ def _own_error(q: _Query, errors: dict[int, ServiceError]) -> Iterator[None]:
         yield
     except ServiceError as exc:
         errors[q.item] = exc
+
+
+def _caller_scale(scales: np.ndarray, frame: Frame) -> np.ndarray:
+    """Per-axis scales from the model's axes to the caller's: exact for the axis-swapping frames
+    (``up``) the API offers, whose rotations are signed permutations.
+
+    Shapes:
+        scales (P, 3) -> (P, 3) float64.
+    """
+    return np.asarray(scales, dtype=np.float64) @ np.abs(frame.rotation)
 
 
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:

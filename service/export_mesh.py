@@ -32,7 +32,7 @@ class ExportItem:
 
     part_id: str
     translation: tuple[float, float, float]
-    scale: float = 1.0
+    scale: float | tuple[float, float, float] = 1.0   # uniform, or per axis of the caller's frame
 
 
 def placed_meshes(catalog: Catalog, items: list[ExportItem], frame: Frame
@@ -45,7 +45,9 @@ def placed_meshes(catalog: Catalog, items: list[ExportItem], frame: Frame
     out = []
     for n, (it, i) in enumerate(zip(items, rows, strict=True)):
         v, f = catalog.mesh(i)
-        placed = frame.radius * ((it.scale * v.astype(np.float64)) @ frame.part_rotation.T) + np.asarray(
+        # A per-axis scale is given along the caller's axes; the catalog mesh is in the model's.
+        scale = np.broadcast_to(np.asarray(it.scale, dtype=np.float64), (3,)) @ np.abs(frame.rotation).T
+        placed = frame.radius * ((scale * v.astype(np.float64)) @ frame.part_rotation.T) + np.asarray(
             it.translation, dtype=np.float64)
         # Mesh files store float32: coordinates must stay finite there too.
         if not np.all(np.abs(placed) < np.finfo(np.float32).max):

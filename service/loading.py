@@ -25,8 +25,8 @@ from service.artifacts import (
     GRAPH_FILES,
     GRAPH_INPUTS,
     GRAPH_OUTPUTS,
-    OPTIONAL_OUTPUTS,
     INDEX_FILE,
+    OPTIONAL_OUTPUTS,
     ArtifactError,
     read_manifest,
 )
@@ -85,6 +85,10 @@ def session_options(threads: int) -> ort.SessionOptions:
 
 def open_session(path: Path, graph: str, threads: int) -> ort.InferenceSession:
     """Open one graph and check its input and output names against the artifact contract."""
+    # onnxruntime's telemetry is off (ORT_DISABLE_TELEMETRY, set in service/__init__.py); this
+    # also stops the events of a build that honours only the API. (training/export.py builds its
+    # own sessions; it imports service first, so the variable covers it too.)
+    ort.disable_telemetry_events()
     if not path.is_file():
         raise ArtifactError(f"artifact file missing: {path}")
     try:

@@ -21,6 +21,7 @@ from prometheus_client import (
     Counter,
     Gauge,
     Histogram,
+    ProcessCollector,
     disable_created_metrics,
     generate_latest,
 )
@@ -53,6 +54,8 @@ class Metrics:
         self._live: list[tuple[Gauge, Callable[[], float]]] = []
         self._model_version: str | None = None
         r = self.registry
+        # process_resident_memory_bytes and friends: memory that uploads leave behind shows here.
+        ProcessCollector(registry=r)
         self.requests = Counter("complementme_http_requests", "HTTP requests by method, route and status.",
                                 ["method", "route", "status"], registry=r)
         self.latency = Histogram("complementme_http_request_duration_seconds",
@@ -154,4 +157,5 @@ class Metrics:
         self.refresh_live()
         merged = CollectorRegistry()
         MultiProcessCollector(merged)
+        ProcessCollector(registry=merged)  # this worker's own RSS, CPU and open files
         return generate_latest(merged)

@@ -101,3 +101,37 @@ def diverse_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> 
         for r in range(depth):
             order.extend(q[r] for q in queues if r < len(q))
     return np.asarray(order, dtype=np.int64)
+
+
+def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> np.ndarray:
+    """Slots dealt to modes in proportion to their weights: positions into ``modes``.
+
+    The paper suggests parts sampled from g's mixture: a mode of weight phi_k gives a share
+    phi_k of the suggestions. This is that draw made deterministic (D'Hondt's largest quotient):
+    each next slot goes to the mode with the largest ``phi_k / (slots_k + 1)`` that still has
+    candidates, and takes that mode's best remaining part. Modes below ``min_weight`` get slots
+    only after every other mode ran out, in likelihood order.
+
+    Args:
+        modes: (C,) each candidate's mode, candidates sorted by likelihood (best first).
+        weights: (K,) the (reweighted) mode weights.
+        min_weight: modes lighter than this come last.
+    Returns:
+        (C,) int64 positions: the suggestion order.
+    """
+    modes = np.asarray(modes)
+    w = np.asarray(weights, dtype=np.float64)
+    queues = {int(k): np.flatnonzero(modes == k).tolist() for k in np.unique(modes) if w[k] >= min_weight}
+    heads = dict.fromkeys(queues, 0)
+    taken = dict.fromkeys(queues, 0)
+    order: list[int] = []
+    while True:
+        open_modes = [k for k in queues if heads[k] < len(queues[k])]
+        if not open_modes:
+            break
+        k = max(open_modes, key=lambda m: (w[m] / (taken[m] + 1), -m))
+        order.append(queues[k][heads[k]])
+        heads[k] += 1
+        taken[k] += 1
+    rest = np.setdiff1d(np.arange(len(modes)), np.asarray(order, dtype=np.int64), assume_unique=True)
+    return np.concatenate([np.asarray(order, dtype=np.int64), rest.astype(np.int64)])

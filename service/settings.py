@@ -25,7 +25,9 @@ DEFAULT_ARTIFACTS = Path(__file__).resolve().parent.parent / "exported"
 class Settings(BaseSettings):
     """Every setting of the service; each field's description is its documentation."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore")
+    # Errors name the setting and the problem but never echo its value: a too-short API key was
+    # printed in the start-up error (and so in logs).
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", hide_input_in_errors=True)
 
     # --- where and how to serve -------------------------------------------------------------
     artifacts: Path = Field(default=DEFAULT_ARTIFACTS, description=(
@@ -145,6 +147,39 @@ class Settings(BaseSettings):
         "Most query points used as the assembly in contact tests (more are subsampled, seeded)."))
     contact_cache_parts: int = Field(default=4096, ge=1, description=(
         "Catalog parts whose contact samples are kept in memory (least recently used dropped)."))
+    suggest_order: Literal["share", "likelihood"] = Field(default="share", description=(
+        "Order of suggestions. `share`: the k slots are dealt to g's modes in proportion to their "
+        "weights (largest quotient first), each mode giving its own best parts: the paper's "
+        "sampling from the mixture, made deterministic, so a seat alone gets backs, legs and arms "
+        "in the shares g gives them. `likelihood`: by mixture likelihood alone, where the mode "
+        "whose parts lie closest to its mean takes every slot. A request's `diversity` still "
+        "asks for the round-robin gallery."))
+    share_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
+        "In the `share` order, modes lighter than this get slots only after the others ran out."))
+    infer_category: bool = Field(default=True, description=(
+        "When a suggestion request names no category and the model has a category head, infer "
+        "the category from the partial assembly, report it (`inferred_category`) and keep the "
+        "suggestions in it when the inference is sure enough."))
+    category_min_confidence: float = Field(default=0.5, ge=0, le=1, description=(
+        "Inferred-category probability from which suggestions are kept in that category; below "
+        "it the answer is unfiltered and carries a `category_unsure` warning."))
+    fit_scale: bool = Field(default=True, description=(
+        "Fit suggested and placed parts in size (per-axis scale from the placement network's "
+        "scale head) when a request does not send `fit_scale`. The catalog geometry never changes."))
+    scale_min: float = Field(default=0.5, gt=0, le=1, description=(
+        "Smallest fitted scale per axis (larger shrinkage is clipped)."))
+    scale_max: float = Field(default=2.0, ge=1, le=10, description=(
+        "Largest fitted scale per axis (larger growth is clipped)."))
+    ood_max_extent: float = Field(default=2.5, gt=1, description=(
+        "A query whose points reach further than this from their box centre in the model's frame "
+        "(unit radius; a whole object reaches 1) is far outside what the model knows: the answer "
+        "carries a `frame` warning (set `frame.radius` and `frame.center`)."))
+    ood_min_extent: float = Field(default=0.05, gt=0, lt=1, description=(
+        "A query smaller than this in the model's frame gets the same `frame` warning."))
+    ood_max_mode_distance: float = Field(default=6.0, gt=0, description=(
+        "A query whose best suggestion lies further than this from its mode's mean, in that "
+        "mode's sigmas (root mean square over the embedding's dimensions), gets an `unfamiliar` "
+        "warning: nothing in the catalog is like what the model expects to complement it."))
     diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
         "ran out of parts."))
@@ -210,6 +245,23 @@ class Settings(BaseSettings):
     max_mesh_vertices: int = Field(default=2_000_000, ge=3, description=(
         "Most vertices an uploaded mesh may have."))
     max_mesh_faces: int = Field(default=2_000_000, ge=1, description="Most faces an uploaded mesh may have.")
+    max_mesh_nodes: int = Field(default=10_000, ge=1, description=(
+        "Most scene nodes an uploaded mesh may have and reach (glTF nodes, counted once per path "
+        "from a scene root, so instancing counts; OBJ groups and objects); checked before a scene is "
+        "built: a 2 MB GLB of 100k instancing nodes took 28 s of CPU to build."))
+    max_mesh_nesting: int = Field(default=64, ge=4, description=(
+        "Deepest nesting of an uploaded glTF's JSON and of its node tree, checked before either is "
+        "read: a 4 KB glTF nested 2,000 deep crashed the JSON reader, a 40k-deep node chain took 34 s."))
+    max_concurrent_uploads: int = Field(default=2, ge=1, description=(
+        "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per worker process; more "
+        "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "
+        "so this bounds the memory uploads can take."))
+    max_body_points: int = Field(default=100_000, ge=1, description=(
+        "Most `[x, y, z]` triples one JSON body may hold, all `/suggest/batch` items together (by "
+        "default as many as one query may have: 100k points take orjson about 30 ms to parse). "
+        "Counted by the body's `[` while it is read, so a larger body is refused (422 "
+        "`too_many_points`) before any of it is parsed: an 8.3 MB body of 1.04M points held the "
+        "event loop (and `/healthz`) for 1.4-1.7 s."))
     max_page_size: int = Field(default=500, ge=1, description="Largest `limit` of a `GET /parts` page.")
 
     # --- catalog additions (docs/catalog.md) --------------------------------------------------

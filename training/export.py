@@ -35,9 +35,9 @@ from service.artifacts import (
     CATALOG_JSON,
     GRAPH_FILES,
     GRAPH_INPUTS,
-    graph_outputs,
     INDEX_FILE,
     MANIFEST,
+    graph_outputs,
     write_manifest,
 )
 from service.catalog import load_catalog, partial_assemblies

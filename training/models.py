@@ -216,7 +216,8 @@ class PlacementNet(nn.Module):
     def part_dim(self) -> int:
         return self.part.out_dim
 
-    def forward(self, query: torch.Tensor, part: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, query: torch.Tensor, part: torch.Tensor
+                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         return self.head(self.query(query), self.part(part))
 
 

@@ -58,7 +58,8 @@ SUMMARY_FILE = "summary.json"
 LOSS_FIELDS = ["step", "elapsed_s", "lr", "triplet_loss", "e_pos", "e_neg", "batch_triplet_accuracy",
                "placement_loss", "category_loss", "scale_loss", "placement_lr", "seconds_per_step"]
 # Settings a resumed run may change; anything else must match the checkpoint.
-RESUMABLE = {"steps", "minutes", "max_minutes", "val_every", "ckpt_every", "log_every", "num_workers", "threads", "run"}
+RESUMABLE = {"steps", "minutes", "max_minutes", "val_every", "ckpt_every", "log_every", "num_workers",
+             "threads", "run"}
 
 
 @dataclass
@@ -203,7 +204,8 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
 
     if cfg.category_weight > 0 and cfg.model.n_categories == 0:
         # The head's classes are the collection's category folders (ProcessedDataset.categories).
-        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, n_categories=len(ds.categories())))
+        n_categories = len(ds.categories())
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, n_categories=n_categories))
     if cfg.model.n_categories not in (0, len(ds.categories())):
         raise ValueError(f"{cfg.data}: the dataset has {len(ds.categories())} categories, the model's "
                          f"category head {cfg.model.n_categories}")

@@ -22,7 +22,10 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
 from service import __version__
+from service.api.access_log import install_access_log_redaction
 from service.api.errors import install_error_handlers
+from service.api.head import HeadAsGetMiddleware
+from service.api.json_body import JsonBodyMiddleware
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
@@ -31,6 +34,7 @@ from service.artifacts import ArtifactError
 from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
+from service.inputs import MeshUploads
 from service.loading import load_served_artifacts
 from service.metrics import Metrics
 from service.overload import OverloadMiddleware
@@ -113,14 +117,18 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app; artifacts load when its lifespan starts (uvicorn, or ``with TestClient(app)``)."""
     settings = settings or get_settings()
+    # FastAPI's OpenTelemetry would add OTLP exporters when FASTAPI_OTEL_AUTO_CONFIGURE is set in
+    # the environment: the service exports nothing unless its own code is told to.
     app = FastAPI(title="ComplementMe suggestion service", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, telemetry={"auto_configure": False})
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.engine = None
     app.state.batcher = None
     app.state.writer = None
     app.state.ready = False
+    app.state.uploads = MeshUploads(settings)
+    install_access_log_redaction()
     install_error_handlers(app)
     app.include_router(suggest.router)
     app.include_router(parts.router)
@@ -140,6 +148,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        max_inflight_suggest=settings.max_inflight_suggest,
                        refusal_delay=settings.overload_refusal_delay,
                        metrics=app.state.metrics)
+    app.add_middleware(JsonBodyMiddleware, max_body_points=settings.max_body_points)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes,
                        body_read_timeout=settings.body_read_timeout)
@@ -149,4 +158,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["X-Model-Version"])
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
+    app.add_middleware(HeadAsGetMiddleware)
     return app

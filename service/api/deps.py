@@ -12,7 +12,8 @@ from fastapi import Depends, Request
 
 from service.batching import MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
-from service.errors import NotReadyError
+from service.errors import InputError, NotReadyError
+from service.inputs import MeshUploads
 from service.metrics import Metrics
 from service.settings import Settings
 
@@ -42,7 +43,26 @@ async def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+async def get_uploads(request: Request) -> MeshUploads:
+    return request.app.state.uploads
+
+
+async def unique_form_fields(request: Request) -> None:
+    """Refuse a multipart form that repeats a field: which copy counts would be a guess.
+
+    FastAPI's ``File``/``Form`` parameters silently take the last copy; the form is parsed (and
+    cached by Starlette) before dependencies run, so this costs a pass over its field names.
+    """
+    form = await request.form()
+    seen: set[str] = set()
+    for key, _ in form.multi_items():
+        if key in seen:
+            raise InputError("duplicate_field", f"form field {key!r} is given more than once")
+        seen.add(key)
+
+
 BatcherDep = Annotated[SuggestBatcher, Depends(get_batcher)]
 EngineDep = Annotated[SuggestionEngine, Depends(get_engine)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+UploadsDep = Annotated[MeshUploads, Depends(get_uploads)]

@@ -18,7 +18,7 @@ from service.api.errors import error_body
 from service.metrics import Metrics
 
 # Mesh uploads get COMPLEMENTME_MAX_UPLOAD_BYTES; other bodies COMPLEMENTME_MAX_BODY_BYTES.
-MESH_UPLOAD_PATHS = ("/suggest/mesh", "/parts")
+MESH_UPLOAD_PATHS = ("/suggest/mesh", "/assemble/mesh", "/parts")
 # The status metrics count for a request whose client disconnected before its body was in.
 CLIENT_GONE = 499
 

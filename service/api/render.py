@@ -49,8 +49,13 @@ def render_suggest(result: SuggestResult, model_version: str) -> dict[str, Any]:
             "label": s.label, "score": s.score, "mode": s.mode, "mode_weight": s.mode_weight,
             "duplicates": s.duplicates, "translation": _vec(s.translation),
             "contact_offset": _vec(s.contact_offset), "bbox_min": _vec(s.bbox_min),
-            "bbox_max": _vec(s.bbox_max), "links": part_links(s.part_id),
+            "bbox_max": _vec(s.bbox_max), "scale": _vec(s.scale), "links": part_links(s.part_id),
         } for s in result.suggestions],
+        "inferred_category": (None if result.inferred_category is None else {
+            "category": result.inferred_category.category,
+            "confidence": result.inferred_category.confidence,
+            "applied": result.inferred_category.applied}),
+        "warnings": [{"code": w.code, "message": w.message} for w in result.warnings],
     }
 
 
@@ -61,7 +66,7 @@ def render_place(result: PlaceResult, model_version: str) -> dict[str, Any]:
         "placements": [{
             "part_id": p.part_id, "translation": _vec(p.translation),
             "contact_offset": _vec(p.contact_offset), "bbox_min": _vec(p.bbox_min),
-            "bbox_max": _vec(p.bbox_max), "links": part_links(p.part_id),
+            "bbox_max": _vec(p.bbox_max), "scale": _vec(p.scale), "links": part_links(p.part_id),
         } for p in result.placements],
     }
 

@@ -21,14 +21,16 @@ def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> di
     s = n.suggestion
     i = s.part_index
     t = n.translation.reshape(1, 3)
-    lo, hi = frame.box_from_canonical(t + cat.bbox_min[i], t + cat.bbox_max[i])
+    sc = np.asarray(s.scale, dtype=np.float64)   # the assembly suggests in the canonical frame
+    lo, hi = frame.box_from_canonical(t + sc * cat.bbox_min[i], t + sc * cat.bbox_max[i])
     return {
         "node": n.node, "parent": n.parent, "depth": n.depth, "part_id": s.part_id, "shape_id": s.shape_id,
         "category": s.category, "label": s.label, "score": s.score, "mode": s.mode,
         "mode_weight": s.mode_weight, "distance": n.distance,
         "translation": _vec(frame.from_canonical(t)[0]),
         "contact_offset": _vec(n.contact_offset @ frame.rotation * frame.radius),
-        "bbox_min": _vec(lo[0]), "bbox_max": _vec(hi[0]), "stop_reason": n.stop_reason,
+        "bbox_min": _vec(lo[0]), "bbox_max": _vec(hi[0]), "scale": _vec(sc @ np.abs(frame.rotation)),
+        "stop_reason": n.stop_reason,
         "links": part_links(s.part_id),
     }
 

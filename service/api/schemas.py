@@ -26,6 +26,13 @@ Number = Annotated[float, Field(strict=True)]
 Count = Annotated[int, Field(strict=True)]
 Flag = Annotated[bool, Field(strict=True)]
 Vec3 = tuple[float, float, float]
+# Largest |coordinate| of a frame's centre and largest radius: with the catalog's extents a
+# placed box then stays far inside float64 (centre -1.7e308 with radius 1.7e308 answered 200
+# with null translations: the sums overflowed to infinity, which JSON cannot hold).
+FRAME_MAX = 1e15
+# Largest seed: numpy's generators take any non-negative integer, JSON carries at most 64 bits.
+SEED_MAX = 2**63 - 1
+FrameCoord = Annotated[float, Field(allow_inf_nan=False, strict=True, ge=-FRAME_MAX, le=FRAME_MAX)]
 # JSON points: checked and converted in one pass (``points_from_json``), documented as numbers.
 PointRows = Annotated[Any, PlainValidator(points_from_json, json_schema_input_type=list[list[float]])]
 
@@ -42,9 +49,11 @@ class _Strict(BaseModel):
 class FrameIn(_Strict):
     """The caller's frame; omit for the canonical frame (y up, object centred, unit radius)."""
 
-    center: tuple[Finite, Finite, Finite] = Field(
-        default=(0.0, 0.0, 0.0), description="Centre of the complete object in caller units.")
-    radius: Finite = Field(default=1.0, gt=0, description="Radius of the complete object in caller units.")
+    center: tuple[FrameCoord, FrameCoord, FrameCoord] = Field(
+        default=(0.0, 0.0, 0.0), description=f"Centre of the complete object in caller units (each at most "
+        f"{FRAME_MAX:g} in size).")
+    radius: Finite = Field(default=1.0, gt=0, le=FRAME_MAX, description=(
+        f"Radius of the complete object in caller units (at most {FRAME_MAX:g})."))
     up_axis: Literal["y", "z"] = Field(default="y", description="The caller's up axis.")
 
     def to_frame(self) -> Frame:
@@ -85,6 +94,10 @@ class SuggestOptionsIn(_Strict):
         "Place the best-ranked candidates and move those lying mostly on the query's own surface "
         "(parts it already has) behind the others. Omitted: COMPLEMENTME_SUGGEST_COMPLEMENT_CHECK "
         "(true unless configured)."))
+    fit_scale: Flag | None = Field(default=None, description=(
+        "Fit each part in size to the query (per-axis `scale` from the placement network, applied "
+        "about the part's centre; the placed box is the scaled one). Omitted: "
+        "COMPLEMENTME_FIT_SCALE (true unless configured)."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
@@ -98,7 +111,7 @@ class SuggestOptionsIn(_Strict):
                               collapse_duplicates=self.collapse_duplicates,
                               frame=self.frame.to_frame() if self.frame else Frame(),
                               refine_contact=self.refine_contact, complement_check=self.complement_check,
-                              styles=tuple(styles),
+                              fit_scale=self.fit_scale, styles=tuple(styles),
                               preferences=self.preferences())
 
 
@@ -151,6 +164,8 @@ class PlaceRequest(PointsIn):
     frame: FrameIn | None = Field(default=None, description="The frame of the points and of the answer.")
     refine_contact: Flag = Field(default=True, description=(
         "Nudge each placement so the part touches the query without sinking into it."))
+    fit_scale: Flag | None = Field(default=None, description=(
+        "Fit each part in size (per-axis `scale`). Omitted: COMPLEMENTME_FIT_SCALE."))
 
 
 class BatchRequest(_Strict):
@@ -215,9 +230,29 @@ class SuggestionOut(BaseModel):
     translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
     contact_offset: Vec3 = Field(..., description=(
         "The contact refinement's share of the translation (zero when off or not needed)."))
-    bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame).")
+    bbox_min: Vec3 = Field(..., description="Placed bounding box (caller frame), after scaling.")
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (caller frame axes) that fits the part to the query, about its centre; "
+        "[1, 1, 1] when fitting is off or the model has no scale head. The catalog geometry is "
+        "never changed: apply it when placing the part."))
     links: PartLinks
+
+
+class InferredCategoryOut(BaseModel):
+    category: str = Field(..., description="The category read from the partial assembly.")
+    confidence: float = Field(..., description="The model's probability of that category.")
+    applied: bool = Field(..., description=(
+        "The suggestions were kept in that category (confidence at least "
+        "COMPLEMENTME_CATEGORY_MIN_CONFIDENCE)."))
+
+
+class WarningOut(BaseModel):
+    code: str = Field(..., description=(
+        "`frame` (the points are far from the model's unit-radius frame), `category_unsure` (no "
+        "category is likely enough) or `unfamiliar` (nothing in the catalog is like what the model "
+        "expects)."))
+    message: str = Field(..., description="What is wrong and how to fix it.")
 
 
 class ModeOut(BaseModel):
@@ -246,6 +281,10 @@ class SuggestResponse(BaseModel):
     candidates: int = Field(..., description="Distinct catalog parts re-scored before ranking.")
     modes: list[ModeOut]
     suggestions: list[SuggestionOut]
+    inferred_category: InferredCategoryOut | None = Field(default=None, description=(
+        "When the request named no category: the category the model reads from the query."))
+    warnings: list[WarningOut] = Field(default_factory=list, description=(
+        "What makes this answer doubtful (the status stays 200)."))
 
 
 class PlacementOut(BaseModel):
@@ -255,6 +294,8 @@ class PlacementOut(BaseModel):
         "The contact refinement's share of the translation (zero when off or not needed)."))
     bbox_min: Vec3
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (caller frame axes) that fits the part, about its centre."))
     links: PartLinks
 
 

@@ -10,28 +10,38 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.api.schemas import _RING, FrameIn, FrameOut, PartLinks, PointsIn, Vec3, _Strict
+from service.api.schemas import (
+    _RING,
+    SEED_MAX,
+    Count,
+    Finite,
+    Flag,
+    FrameIn,
+    FrameOut,
+    PartLinks,
+    PointsIn,
+    Vec3,
+    _Strict,
+)
 from service.assembly import AssembleOptions
 from service.export_mesh import ExportItem
 from service.frames import Frame
 from service.preferences import Preferences
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-
 
 class AssembleOptionsIn(_Strict):
     """How to grow the assembly (all optional)."""
 
-    max_parts: int | None = Field(default=None, description=(
+    max_parts: Count | None = Field(default=None, description=(
         "Parts to add to the start (default COMPLEMENTME_ASSEMBLE_MAX_PARTS, at most "
         "COMPLEMENTME_MAX_ASSEMBLE_PARTS); fewer when no candidate is likely enough."))
     strategy: Literal["greedy", "sample"] = Field(default="greedy", description=(
         "greedy: the most likely eligible part at every step; sample: a mode drawn by its weight "
         "(seeded), then that mode's most likely part."))
-    seed: int = Field(default=0, description="Seed of the sampler.")
+    seed: Count = Field(default=0, ge=0, le=SEED_MAX, description="Seed of the sampler (0 to 2**63 - 1).")
     temperature: Finite = Field(default=1.0, gt=0, description=(
         "sample: mode probabilities proportional to weight ** (1 / temperature); > 1 flattens."))
-    branching: int = Field(default=1, ge=1, description=(
+    branching: Count = Field(default=1, ge=1, description=(
         "Children per state: 1 gives one chain; 2 gives the paper's binary tree of possibilities "
         "(at most COMPLEMENTME_ASSEMBLE_MAX_NODES parts over the tree)."))
     category: str | list[str] | None = Field(default=None, description=(
@@ -39,10 +49,10 @@ class AssembleOptionsIn(_Strict):
     style: str | list[str] | None = Field(default=None, description="Only parts of this catalog style.")
     exclude_shapes: list[str] = Field(default_factory=list, description=(
         "Source shapes never to take parts from."))
-    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] | None = Field(
+    mode_weights: list[Annotated[float, Field(ge=0, allow_inf_nan=False, strict=True)]] | None = Field(
         default=None, description="One factor per mixture mode multiplying g's mode weights at every step.")
-    exclude_modes: list[int] = Field(default_factory=list, description="Mixture modes never added.")
-    refine_contact: bool = Field(default=True, description=(
+    exclude_modes: list[Count] = Field(default_factory=list, description="Mixture modes never added.")
+    refine_contact: Flag = Field(default=True, description=(
         "Nudge each placed part into contact with the parts placed before it."))
     frame: FrameIn | None = Field(default=None, description=(
         "The frame of the start points and parts, and of the answer."))
@@ -113,6 +123,9 @@ class StepOut(BaseModel):
     contact_offset: Vec3 = Field(..., description="The contact refinement's share of the translation.")
     bbox_min: Vec3
     bbox_max: Vec3
+    scale: Vec3 = Field(default=(1.0, 1.0, 1.0), description=(
+        "Per-axis scale (the request's frame axes) that fits the part, about its centre; the box "
+        "above is the scaled one."))
     stop_reason: str | None = Field(..., description="On a leaf: why its branch ended.")
     links: PartLinks
 
@@ -161,7 +174,12 @@ class ExportItemIn(_Strict):
     part_id: str = Field(..., description="Catalog part id.")
     translation: tuple[Finite, Finite, Finite] = Field(..., description=(
         "Where the part's bounding-box centre goes (the request's frame), as /suggest answers it."))
-    scale: Finite = Field(default=1.0, gt=0, le=1000, description="Uniform scale about the part's centre.")
+    scale: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] | tuple[
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)],
+        Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]] = Field(default=1.0, description=(
+            "Scale about the part's centre: one number, or per axis of the request's frame as "
+            "/suggest, /place and /assemble answer it (`scale`)."))
 
 
 class ExportRequest(_Strict):

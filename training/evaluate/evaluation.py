@@ -276,3 +276,75 @@ def plausibility_table(records: list[dict[str, Any]], categories: list[str]) -> 
                                  if n and all("worse_than_truth" in r for r in rs) else None),
         }
     return out
+
+
+def evaluate_coverage(method: Method, queries: list[Query], index: ShapeIndex, settings: RetrievalSettings,
+                      k: int = 10, min_missing: int = 2, progress: bool = False) -> list[dict[str, Any]]:
+    """What a designer sees first for "one part, several missing": coverage of the missing labels.
+
+    For each ``single`` query (one labelled part present) whose shape lacks at least
+    ``min_missing`` labels: the share of those labels among the labels of the top ``k``, the
+    number of distinct labels there, and (for a method with a mixture) how many of g's modes
+    weigh at least 0.05. The pool is the settings' (the query's category, or all).
+    """
+    cat = index.catalog
+    group = cat.group if settings.collapse_duplicates else None
+    out: list[dict[str, Any]] = []
+    mixture = getattr(method, "mixture", None)
+    for q in tqdm(queries, desc=f"{method.name} coverage", disable=not progress, leave=False):
+        missing = {index.labels[r] for r in q.removed.tolist()} - {None, q.label}
+        if len(missing) < min_missing:
+            continue
+        pool = candidate_pool(index, q.shape_id, q.category, settings.pool_scope)
+        top = finalize_ranking(method.rank(q, pool, k), pool, group, k)
+        shown = [index.labels[r] for r in top.tolist()]
+        rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "shape_id": q.shape_id,
+                               "top": [cat.part_ids[r] for r in top.tolist()],
+                               "coverage": len(missing & set(shown)) / len(missing),
+                               "distinct_labels": float(len({lab for lab in shown if lab is not None}))}
+        if mixture is not None:
+            weights = mixture(q)[0]
+            rec["live_modes"] = float(np.sum(np.asarray(weights) >= 0.05))
+        out.append(rec)
+    return out
+
+
+def box_iou(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
+    """Intersection over union of two axis-aligned boxes.
+
+    Shapes:
+        each (3,) -> float.
+    """
+    inter = np.prod(np.clip(np.minimum(hi_a, hi_b) - np.maximum(lo_a, lo_b), 0, None))
+    union = np.prod(hi_a - lo_a) + np.prod(hi_b - lo_b) - inter
+    return float(inter / union) if union > 0 else math.nan
+
+
+def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str, Any]], index: ShapeIndex,
+                      progress: bool = False) -> list[dict[str, Any]]:
+    """Size fitting of the top suggestion of each all-but-one query, on and off.
+
+    The top-ranked part is placed next to the query by the engine (``place``, contact
+    refinement off) with and without the fitting scale; its placed box is compared with the
+    removed part's true box (the union of its components' boxes at their catalog translations):
+    box IoU, and the scale error ``mean |log(placed extents / true extents)|`` over the axes.
+    """
+    cat = index.catalog
+    tops = {r["qid"]: r["top"] for r in per_query}
+    out: list[dict[str, Any]] = []
+    for q in tqdm(queries, desc="size fit", disable=not progress, leave=False):
+        top = tops.get(q.qid) or []
+        if not top:
+            continue
+        rows = q.removed
+        true_lo = np.min(cat.translations[rows] + cat.bbox_min[rows], axis=0).astype(np.float64)
+        true_hi = np.max(cat.translations[rows] + cat.bbox_max[rows], axis=0).astype(np.float64)
+        rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "part_id": top[0]}
+        for name, fit in (("on", True), ("off", False)):
+            p = ours.engine.place(q.points, [top[0]], refine_contact=False, fit_scale=fit).placements[0]
+            rec[f"iou_{name}"] = box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)
+            ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
+            true_ext = np.maximum(true_hi - true_lo, 1e-6)
+            rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
+        out.append(rec)
+    return out

@@ -6,7 +6,7 @@
 #   training/recipes/shipped.sh                 # defaults below
 #   OUT=exported training/recipes/shipped.sh
 #
-# The preset fixes the number of steps (4,000): the same seed gives the same model on any host.
+# The preset fixes the number of steps (3,000): the same seed gives the same model on any host.
 # Its time guard (max_minutes, 95) only stops a run that is far slower than planned, with a
 # warning in the log. The runs train one after the other on every core. If one is interrupted,
 # `python -m training train --resume --run "$RUN"` continues it.

@@ -9,12 +9,14 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
-from service.api.deps import EngineDep, SettingsDep
+from service.api.batched_route import request_deadline
+from service.api.deps import EngineDep, SettingsDep, UploadsDep, unique_form_fields
 from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
@@ -23,8 +25,7 @@ from service.assembly import Assembler, Start
 from service.engine import SuggestionEngine
 from service.export_mesh import MEDIA_TYPES, export_assembly
 from service.frames import Frame
-from service.geometry import load_mesh_bytes, mesh_area
-from service.inputs import mesh_format, points_from_mesh
+from service.inputs import mesh_format
 
 router = APIRouter(tags=["modeling"])
 
@@ -71,13 +72,15 @@ def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDe
 
 
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
-    "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE, responses={
+    "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE,
+    dependencies=[Depends(unique_form_fields)], responses={
     413: {"model": ErrorResponse, "description": "Upload or mesh over the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
-    422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
+    422: {"model": ErrorResponse, "description": (
+        "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
 })
-def post_assemble_mesh(
-    engine: EngineDep, settings: SettingsDep,
+async def post_assemble_mesh(
+    request: Request, engine: EngineDep, settings: SettingsDep, uploads: UploadsDep,
     file: UploadFile = File(..., description=(
         "The start mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF.")),
     options: str | None = Form(None, description="Assembly options as JSON (the options of /assemble).",
@@ -92,17 +95,14 @@ def post_assemble_mesh(
     except ValidationError as exc:
         raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
                                       for e in exc.errors()]) from None
-    data = file.file.read()
-    name = file.filename or "upload"
+    data = await file.read()
     n = max(engine.artifacts.n_points, settings.contact_part_samples)
-    points = points_from_mesh(data, fmt, n=n, seed=settings.seed, name=name,
-                              max_vertices=settings.max_mesh_vertices, max_faces=settings.max_mesh_faces)
-    mesh = load_mesh_bytes(data, fmt, name=name, max_vertices=settings.max_mesh_vertices,
-                           max_faces=settings.max_mesh_faces, ignore_obj_materials=True)
+    points, area = await run_in_threadpool(uploads.sample, data, fmt, n=n, name=file.filename or "upload",
+                                           deadline=request_deadline(request))
+    del data
     frame = opts.to_options().frame
-    area = mesh_area(mesh.vertices, mesh.faces) / frame.radius ** 2
-    start = Start(kind="mesh", points=engine.canonical(points, frame), area=area)
-    result = Assembler(engine).assemble(start, opts.to_options())
+    start = Start(kind="mesh", points=engine.canonical(points, frame), area=area / frame.radius ** 2)
+    result = await run_in_threadpool(Assembler(engine).assemble, start, opts.to_options())
     return OrjsonResponse(render_assemble(result, engine, opts.strategy))
 
 

@@ -129,7 +129,9 @@ class CatalogStatus(BaseModel):
 
 
 async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
-    form = await request.form(max_files=1, max_fields=16)
+    # Two files allowed here so that a repeated "file" is answered 422 duplicate_field below (with
+    # max_files=1 Starlette refused it first with a plain 400).
+    form = await request.form(max_files=2, max_fields=16)
     fields: dict[str, str] = {}
     upload: UploadFile | None = None
     for key, value in form.multi_items():

@@ -40,9 +40,10 @@ def list_parts(
     category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
     shape_id: str | None = Query(None, description="Only parts of this source shape.",
                                  examples=["chair-0007"]),
-    offset: int = Query(0, ge=0, description="Parts to skip.", examples=[0]),
-    limit: int = Query(50, ge=1, description="Parts per page (at most COMPLEMENTME_MAX_PAGE_SIZE).",
-                       examples=[50]),
+    # Bounded so that the page can echo it: JSON numbers past 64 bits answered 500 (orjson).
+    offset: int = Query(0, ge=0, le=2**63 - 1, description="Parts to skip.", examples=[0]),
+    limit: int = Query(50, ge=1, le=2**63 - 1, examples=[50],
+                       description="Parts per page (at most COMPLEMENTME_MAX_PAGE_SIZE)."),
 ) -> OrjsonResponse:
     if limit > settings.max_page_size:
         raise InputError("limit_out_of_range",

@@ -11,13 +11,13 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from service.api.batched_route import BatchedRoute, batch_ticket, request_deadline
-from service.api.deps import BatcherDep, EngineDep, MetricsDep, SettingsDep
+from service.api.deps import BatcherDep, EngineDep, MetricsDep, SettingsDep, UploadsDep, unique_form_fields
 from service.api.errors import service_error_body, validation_error
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
@@ -33,7 +33,7 @@ from service.api.schemas import (
 )
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
-from service.inputs import mesh_format, points_from_mesh
+from service.inputs import mesh_format
 
 router = APIRouter(tags=["suggest"])
 batched = APIRouter(tags=["suggest"], route_class=BatchedRoute)  # the routes that go through the batcher
@@ -69,14 +69,15 @@ async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep
 
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
     "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
-    responses={
+    dependencies=[Depends(unique_form_fields)], responses={
     413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
-          "with more vertices or faces than the limits."},
+          "with more vertices, faces, nodes or nesting than the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
-    422: {"model": ErrorResponse, "description": "Corrupt, empty or zero-area mesh; bad options."},
+    422: {"model": ErrorResponse, "description": (
+        "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
 })
 async def post_suggest_mesh(
-    request: Request, engine: EngineDep, batcher: BatcherDep, settings: SettingsDep,
+    request: Request, engine: EngineDep, batcher: BatcherDep, uploads: UploadsDep,
     file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
     options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
                                examples=['{"k": 5, "category": "chair"}']),
@@ -93,10 +94,9 @@ async def post_suggest_mesh(
     options_out = opts.to_options()
     engine.check_budget(engine.check_query(engine.artifacts.n_points, options_out))
     data = await file.read()
-    points = await run_in_threadpool(
-        points_from_mesh, data, fmt, n=engine.artifacts.n_points, seed=settings.seed,
-        name=file.filename or "upload", max_vertices=settings.max_mesh_vertices,
-        max_faces=settings.max_mesh_faces)
+    points, _ = await run_in_threadpool(uploads.sample, data, fmt, n=engine.artifacts.n_points,
+                                        name=file.filename or "upload", deadline=request_deadline(request))
+    del data  # the upload's bytes are not needed while the query waits for its batch
     result = await batcher.submit((points, options_out), batch_ticket(request), request_deadline(request))
     return OrjsonResponse(render_suggest(result, engine.model_version))
 
@@ -163,7 +163,7 @@ def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
                metrics: MetricsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
     result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None,
-                          refine_contact=body.refine_contact)
+                          refine_contact=body.refine_contact, fit_scale=body.fit_scale)
     metrics.observe_engine(result.timings, 1, [])
     return OrjsonResponse(render_place(result, engine.model_version))
 
