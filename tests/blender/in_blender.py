@@ -42,8 +42,8 @@ def assert_close(found: list[float], expected: list[float], tol: float, what: st
 
 def assert_upright(obj: bpy.types.Object, url: str, entry: dict[str, Any], scale: float, tol: float) -> None:
     """Every vertex is where a z-up scene must draw the part's canonical vertex (x, y, z):
-    at translation + scale * (x, -z, y) (y up becomes z up, front +x stays +x), with the part's
-    own per-axis ``scale`` (when the answer has one) applied to (x, y, z) first.
+    at translation + scale * (x, -z, y) (y up becomes z up, front +x stays +x), times the part's
+    per-axis fitting ``scale`` (along the scene's axes; [1, 1, 1] when the answer has none).
 
     Read from the service's OBJ here, vertex by vertex, so that a mirrored or turned part fails
     even where its box would look the same.
@@ -57,7 +57,7 @@ def assert_upright(obj: bpy.types.Object, url: str, entry: dict[str, Any], scale
     assert len(canonical) == len(obj.data.vertices), (len(canonical), len(obj.data.vertices))
     tx, ty, tz = entry["translation"]
     for v, c in zip(obj.data.vertices, canonical, strict=True):
-        expected = [tx + scale * sx * c[0], ty - scale * sz * c[2], tz + scale * sy * c[1]]
+        expected = [tx + scale * sx * c[0], ty - scale * sy * c[2], tz + scale * sz * c[1]]
         assert_close(list(obj.matrix_world @ v.co), expected, tol, f"{part_id} vertex {v.index}")
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from service.export_mesh import ExportItem, placed_meshes
 from service.frames import Frame
 from service.geometry import load_mesh_bytes
 
@@ -42,6 +43,19 @@ def test_glb_is_read_by_the_service_loader_unchanged() -> None:
     np.testing.assert_array_equal(mesh.faces, faces)
 
 
+class _OnePart:
+    """Stands in for the catalog in ``placed_meshes``: one part with the given vertices."""
+
+    def __init__(self, vertices: np.ndarray) -> None:
+        self.vertices = vertices
+
+    def lookup(self, part_id: str) -> int:
+        return 0
+
+    def mesh(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices, np.array([[0, 1, 0]])
+
+
 @pytest.mark.parametrize("up_axis", ["y", "z"])
 def test_placement_matrix_is_the_service_frame_formula(up_axis: str) -> None:
     frame = Frame(center=np.array([0.1, -2.0, 3.0]), radius=0.7, up_axis=up_axis)  # type: ignore[arg-type]
@@ -53,10 +67,11 @@ def test_placement_matrix_is_the_service_frame_formula(up_axis: str) -> None:
     placed = v @ m[:3, :3].T + m[:3, 3]
 
     np.testing.assert_allclose(placed, frame.radius * v @ frame.part_rotation.T + t)
-    # A part's own scale acts in its canonical axes, before the turn into the caller's.
+    # A part's fitting scale is along the caller's axes, about its centre: what /export applies.
     m = np.array(geometry.placement_matrix(answer_frame, t, (2.0, 1.0, 0.5)))
-    np.testing.assert_allclose(v @ m[:3, :3].T + m[:3, 3],
-                               frame.radius * (v * [2.0, 1.0, 0.5]) @ frame.part_rotation.T + t)
+    (_, mesh), = placed_meshes(_OnePart(v), [ExportItem("p", (1.0, 2.0, 3.0), (2.0, 1.0, 0.5))],
+                               frame)
+    np.testing.assert_allclose(v @ m[:3, :3].T + m[:3, 3], mesh.vertices)
 
 
 def test_request_frame_modes() -> None:

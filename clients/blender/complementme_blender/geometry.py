@@ -124,7 +124,7 @@ def parse_obj(text: str) -> tuple[list[Vec3], list[tuple[int, ...]]]:
 
 
 def part_scale(entry: dict[str, object]) -> Vec3:
-    """The per-axis ``scale`` of a suggestion or step (canonical axes), (1, 1, 1) when absent."""
+    """The per-axis ``scale`` of a suggestion or step (caller axes), (1, 1, 1) when absent."""
     s = entry.get("scale")
     if s is None:
         return (1.0, 1.0, 1.0)
@@ -135,21 +135,22 @@ def part_scale(entry: dict[str, object]) -> Vec3:
 
 
 def placement_matrix(frame: dict[str, object], translation: Sequence[float],
-                     scale: Vec3 = (1.0, 1.0, 1.0)) -> list[list[float]]:
-    """The 4x4 world matrix of a catalog part: ``frame.scale * rotation @ (scale * v) + translation``.
+                     scale: Sequence[float] = (1.0, 1.0, 1.0)) -> list[list[float]]:
+    """The 4x4 world matrix of a catalog part: ``scale * (frame.scale * rotation @ v) + translation``.
 
     The part's mesh is centred and in canonical units (``GET /parts/{id}/mesh``); the answer's
     ``frame`` gives ``scale`` and ``rotation`` into the caller's axes, its ``translation`` where
-    the part's box centre goes. ``scale`` (a part's own per-axis scale, when the service gives
-    one) acts in the part's canonical axes, before the rotation.
+    the part's box centre goes. ``scale`` (the part's per-axis fitting scale, when the service
+    gives one) is along the caller's axes, about the part's centre, as ``POST /export`` applies it.
 
     Shapes:
-        frame["rotation"]: (3, 3); translation: (3,) -> (4, 4) row-major.
+        frame["rotation"]: (3, 3); translation, scale: (3,) -> (4, 4) row-major.
     """
     s = float(frame["scale"])  # type: ignore[arg-type]
     rot = frame["rotation"]
     assert isinstance(rot, list) and len(rot) == 3, f"frame rotation must be 3x3, found {rot!r}"
-    rows = [[s * float(rot[i][j]) * scale[j] for j in range(3)] + [float(translation[i])] for i in range(3)]
+    rows = [[s * float(scale[i]) * float(rot[i][j]) for j in range(3)] + [float(translation[i])]
+            for i in range(3)]
     return [*rows, [0.0, 0.0, 0.0, 1.0]]
 
 
