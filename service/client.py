@@ -26,6 +26,7 @@ from service.inputs import points_to_base64
 log = logging.getLogger(__name__)
 
 POINT_SUFFIXES = (".npy", ".xyz", ".pts", ".txt")
+REQUEST_SUFFIXES = (".json",)  # a POST /suggest body, e.g. examples/chair-without-legs.json
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
 
@@ -209,16 +210,49 @@ def read_points_file(path: Path) -> np.ndarray:
     return arr.astype(np.float32)
 
 
+def read_request_file(path: Path) -> dict[str, Any]:
+    """A ``POST /suggest`` body saved as JSON: an object with ``points`` or ``points_base64``."""
+    path = Path(path)
+    try:
+        body = orjson.loads(path.read_bytes())
+    except orjson.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(body, dict) or not ({"points", "points_base64"} & body.keys()):
+        raise ValueError(f"{path}: not a /suggest request (a JSON object with \"points\" or "
+                         "\"points_base64\")")
+    return body
+
+
+QUERY_SUFFIXES = POINT_SUFFIXES + MESH_SUFFIXES + REQUEST_SUFFIXES
+
+
 def query_files(folder: Path) -> list[Path]:
-    """Mesh and point files directly inside ``folder``, sorted by name."""
-    suffixes = POINT_SUFFIXES + MESH_SUFFIXES
-    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    """Mesh, point and request files directly inside ``folder``, sorted by name."""
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in QUERY_SUFFIXES)
+
+
+def skipped_files(folder: Path) -> list[tuple[Path, str]]:
+    """What ``query_files`` leaves out of ``folder``, each with the reason, sorted by name."""
+    skipped = []
+    for p in sorted(Path(folder).iterdir()):
+        if p.is_dir():
+            skipped.append((p, "a folder (sub-folders are not read)"))
+        elif p.suffix.lower() not in QUERY_SUFFIXES:
+            skipped.append((p, f"not a mesh, point or request file ({p.suffix or 'no suffix'})"))
+    return skipped
 
 
 def suggest_file(client: ComplementMeClient, path: Path, **options: Any) -> dict[str, Any]:
-    """Suggestions for one file: meshes are uploaded, point files sent as base64 points."""
-    if Path(path).suffix.lower() in MESH_SUFFIXES:
+    """Suggestions for one file: meshes are uploaded, point files sent as base64 points.
+
+    A ``.json`` request file is sent as it is, with ``options`` that are not None replacing its own.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix in MESH_SUFFIXES:
         return client.suggest_mesh(path, **options)
+    if suffix in REQUEST_SUFFIXES:
+        body = {**read_request_file(path), **_drop_none(options)}
+        return client.request("POST", "/suggest", json=body).json()
     return client.suggest(read_points_file(path), **options)
 
 
