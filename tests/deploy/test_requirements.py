@@ -62,7 +62,8 @@ def test_constraints_pin_every_requirement_within_pyprojects_bounds() -> None:
         if req.marker is not None and not req.marker.evaluate():
             continue
         key = re.sub(r"[-_.]+", "-", req.name).lower()
-        assert key in pins, f"{req.name} is not pinned in docker/constraints.txt: run `python docker/make_requirements.py`"
+        assert key in pins, (f"{req.name} is not pinned in docker/constraints.txt: "
+                             "run `python docker/make_requirements.py`")
         assert req.specifier.contains(pins[key], prereleases=True), (
             f"docker/constraints.txt pins {key}=={pins[key]}, outside pyproject's {line!r}")
 
@@ -73,4 +74,5 @@ def test_constraints_are_the_versions_installed_here() -> None:
     committed = (REPO / "docker" / "constraints.txt").read_text()
     assert committed == load_generator().render_constraints(REPO / "pyproject.toml"), (
         "docker/constraints.txt differs from the packages installed here: run "
-        "`python docker/make_requirements.py` in the project's venv (after `pip install -e \".[train,test]\"`)")
+        "`python docker/make_requirements.py` in the project's venv "
+        "(after `pip install -e \".[train,test]\"`)")
