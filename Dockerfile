@@ -24,14 +24,15 @@ RUN --mount=type=cache,target=/root/.cache/pip \
     python -m venv "$VIRTUAL_ENV" \
     && "$VIRTUAL_ENV/bin/pip" install -r docker/requirements-service.txt -c docker/constraints.txt
 
-# --- stage 2: a wheel of the project's code (the `service` and `training` packages; training
-# imports torch only inside its commands, and torch is not installed in the image)
+# --- stage 2: a wheel of the project's code (the `service`, `training` and `complementme_client`
+# packages; training imports torch only inside its commands, and torch is not installed in the image)
 FROM python:3.11-slim AS wheel
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /build
 COPY pyproject.toml README.md LICENSE ./
 COPY service/ service/
 COPY training/ training/
+COPY clients/python/complementme_client/ clients/python/complementme_client/
 RUN --mount=type=cache,target=/root/.cache/pip \
     python -m pip wheel --no-deps --wheel-dir dist .
 
