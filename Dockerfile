@@ -13,24 +13,26 @@
 # except through $VIRTUAL_ENV, and keep system steps (user creation) in the one RUN that starts
 # with `groupadd`.
 
-# --- stage 1: the service's dependencies, cached until docker/requirements-service.txt changes
+# --- stage 1: the service's dependencies, at the versions CI tested (docker/constraints.txt),
+# cached until docker/requirements-service.txt or docker/constraints.txt changes
 FROM python:3.11-slim AS deps
 ENV VIRTUAL_ENV=/opt/venv \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /build
-COPY docker/requirements-service.txt docker/requirements-service.txt
+COPY docker/requirements-service.txt docker/constraints.txt docker/
 RUN --mount=type=cache,target=/root/.cache/pip \
     python -m venv "$VIRTUAL_ENV" \
-    && "$VIRTUAL_ENV/bin/pip" install -r docker/requirements-service.txt
+    && "$VIRTUAL_ENV/bin/pip" install -r docker/requirements-service.txt -c docker/constraints.txt
 
-# --- stage 2: a wheel of the project's code (the `service` and `training` packages; training
-# imports torch only inside its commands, and torch is not installed in the image)
+# --- stage 2: a wheel of the project's code (the `service`, `training` and `complementme_client`
+# packages; training imports torch only inside its commands, and torch is not installed in the image)
 FROM python:3.11-slim AS wheel
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /build
 COPY pyproject.toml README.md LICENSE ./
 COPY service/ service/
 COPY training/ training/
+COPY clients/python/complementme_client/ clients/python/complementme_client/
 RUN --mount=type=cache,target=/root/.cache/pip \
     python -m pip wheel --no-deps --wheel-dir dist .
 

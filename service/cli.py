@@ -20,7 +20,14 @@ LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
 def quiet_libraries() -> None:
-    """Keep per-request and loader chatter of libraries out of the CLI's INFO log."""
+    """Keep per-request and loader chatter of libraries out of the CLI's INFO log (shown with -v).
+
+    faiss's loader logs at INFO that it "Could not load library with AVX2 support ...
+    ModuleNotFoundError" whenever the wheel's generic build is the one that loads, which reads
+    like an error but is not one; httpx logs one INFO line per request (inside progress bars).
+    """
+    if logging.getLogger().getEffectiveLevel() <= logging.DEBUG:
+        return
     for name in ("httpx", "httpcore", "faiss.loader"):
         logging.getLogger(name).setLevel(logging.WARNING)
 
@@ -50,9 +57,14 @@ def _frame_options(up_axis: str | None, center: str | None, radius: float | None
 
 def _file_geometry(path: Path) -> np.ndarray:
     """Vertices or points of a query file, for ``--fit``."""
-    from service.client import MESH_SUFFIXES, read_points_file
+    from service.client import MESH_SUFFIXES, REQUEST_SUFFIXES, read_points_file, read_request_file
     from service.geometry import load_mesh_bytes
 
+    if path.suffix.lower() in REQUEST_SUFFIXES:
+        body = read_request_file(path)
+        if "points" not in body:
+            raise ValueError(f"{path}: --fit needs the request's \"points\"")
+        return np.asarray(body["points"], dtype=np.float64).reshape(-1, 3)
     if path.suffix.lower() in MESH_SUFFIXES:
         mesh = load_mesh_bytes(path.read_bytes(), path.suffix, name=str(path), max_vertices=10_000_000,
                                max_faces=10_000_000, ignore_obj_materials=True)
@@ -130,9 +142,12 @@ def register_service_commands(app: typer.Typer) -> None:
     @app.command()
     def suggest(
         file: Path = typer.Argument(..., exists=True, dir_okay=False, help=(
-            "A mesh (.obj .ply .stl .off .glb .gltf) or points (.npy .xyz .pts).")),
+            "A mesh (.obj .ply .stl .off .glb .gltf), points (.npy; .xyz .pts .txt: x y z per line) "
+            "or a saved /suggest request (.json, e.g. examples/chair-without-legs.json).")),
         url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
-        k: int | None = typer.Option(None, "--k", "-k", help="Suggestions to show."),
+        k: int | None = typer.Option(None, "--k", "-k", help=(
+            "Suggestions to show [default: the request file's k, else the service's "
+            "COMPLEMENTME_DEFAULT_K, 10].")),
         category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
         exclude_shape: list[str] | None = typer.Option(None, help="Never parts of this shape (repeatable)."),
         up_axis: str | None = typer.Option(None, help="The file's up axis: y or z."),
@@ -148,23 +163,27 @@ def register_service_commands(app: typer.Typer) -> None:
         quiet_libraries()
         from service.client import ClientError, ComplementMeClient, suggest_file
 
-        options = _options(k, category, exclude_shape, _frame_options(up_axis, center, radius, fit, file))
         with ComplementMeClient(url, timeout=timeout) as client:
             try:
+                options = _options(k, category, exclude_shape,
+                                   _frame_options(up_axis, center, radius, fit, file))
                 answer = suggest_file(client, file, **options)
-            except ClientError as exc:
+            except (ClientError, ValueError, OSError) as exc:  # the service's refusal, or a bad file
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(1) from None
         typer.echo(orjson.dumps(answer, option=orjson.OPT_INDENT_2).decode() if as_json else _table(answer))
 
     @app.command()
     def batch(
-        folder: Path = typer.Argument(..., exists=True, file_okay=False,
-                                      help="Folder of meshes or point files."),
+        folder: Path = typer.Argument(..., exists=True, file_okay=False, help=(
+            "Folder of meshes, point files and .json requests (the files `suggest` takes); "
+            "other files and sub-folders are listed as skipped.")),
         url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
         out: Path = typer.Option(Path("results.jsonl"), help="JSON Lines output, one line per file."),
         concurrency: int = typer.Option(4, min=1, max=256, help="Requests in flight at once."),
-        k: int | None = typer.Option(None, "--k", "-k", help="Suggestions per file."),
+        k: int | None = typer.Option(None, "--k", "-k", help=(
+            "Suggestions per file [default: a request file's k, else the service's COMPLEMENTME_DEFAULT_K, "
+            "10].")),
         category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
         up_axis: str | None = typer.Option(None, help="The files' up axis: y or z."),
         timeout: float = typer.Option(60.0, help="Seconds per request."),
@@ -176,9 +195,12 @@ def register_service_commands(app: typer.Typer) -> None:
         from tqdm import tqdm
 
         quiet_libraries()
-        from service.client import ComplementMeClient, query_files, run_batch
+        from service.client import ComplementMeClient, query_files, run_batch, skipped_files
 
         files = query_files(folder)
+        skipped = skipped_files(folder)
+        for path, reason in skipped:
+            typer.echo(f"skipped {path}: {reason}", err=True)
         if not files:
             typer.echo(f"error: no mesh or point files in {folder}", err=True)
             raise typer.Exit(1)
@@ -186,6 +208,6 @@ def register_service_commands(app: typer.Typer) -> None:
         with ComplementMeClient(url, timeout=timeout) as client, tqdm(total=len(files), unit="file") as bar:
             ok, failed = run_batch(client, files, out, concurrency=concurrency, progress=bar,
                                    **_options(k, category, None, frame))
-        typer.echo(f"{ok} answered, {failed} failed; wrote {out}")
+        typer.echo(f"{ok} answered, {failed} failed, {len(skipped)} skipped; wrote {out}")
         if failed:
             raise typer.Exit(1)

@@ -1,5 +1,5 @@
 """``python -m training``: the `complementme` CLI, e.g. under ``torchrun -m training train ...``."""
 
-from training.cli import app
+from training.cli import run
 
-app()
+run()

@@ -15,11 +15,16 @@ import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import anyio
+import fastapi_offline
 import numpy as np
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+from fastapi.staticfiles import StaticFiles
+from starlette.responses import HTMLResponse
 
 from service import __version__
 from service.api.access_log import install_access_log_redaction
@@ -114,13 +119,47 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.engine = None
 
 
+# /docs and /redoc load Swagger UI and ReDoc from the service itself, not from a CDN, so the API
+# reference works without internet: the files ship in the fastapi-offline package (MIT).
+DOCS_ASSETS = Path(fastapi_offline.__file__).resolve().parent / "static"
+DOCS_ASSETS_URL = "/docs-assets"
+
+
+def install_offline_docs(app: FastAPI) -> None:
+    """Serve ``/docs`` (Swagger UI) and ``/redoc`` (ReDoc) with their scripts under ``/docs-assets``."""
+    app.mount(DOCS_ASSETS_URL, StaticFiles(directory=DOCS_ASSETS), name="docs-assets")
+    title = app.title
+
+    @app.get("/docs", include_in_schema=False)
+    def get_swagger_ui(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_swagger_ui_html(
+            openapi_url=f"{root}{app.openapi_url}", title=f"{title} - Swagger UI",
+            oauth2_redirect_url=f"{root}/docs/oauth2-redirect",
+            swagger_js_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}{DOCS_ASSETS_URL}/swagger-ui.css",
+            swagger_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png")
+
+    @app.get("/docs/oauth2-redirect", include_in_schema=False)
+    def get_swagger_ui_redirect() -> HTMLResponse:
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @app.get("/redoc", include_in_schema=False)
+    def get_redoc(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "")
+        return get_redoc_html(
+            openapi_url=f"{root}{app.openapi_url}", title=f"{title} - ReDoc",
+            redoc_js_url=f"{root}{DOCS_ASSETS_URL}/redoc.standalone.js",
+            redoc_favicon_url=f"{root}{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app; artifacts load when its lifespan starts (uvicorn, or ``with TestClient(app)``)."""
     settings = settings or get_settings()
     # FastAPI's OpenTelemetry would add OTLP exporters when FASTAPI_OTEL_AUTO_CONFIGURE is set in
     # the environment: the service exports nothing unless its own code is told to.
     app = FastAPI(title="ComplementMe suggestion service", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan, telemetry={"auto_configure": False})
+                  lifespan=lifespan, telemetry={"auto_configure": False}, docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.engine = None
@@ -137,6 +176,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     add_common_responses(app)
     app.include_router(assemble.router)
     install_page(app)
+    install_offline_docs(app)
 
     def model_version() -> str | None:
         engine = app.state.engine

@@ -16,6 +16,9 @@ from typing import Any
 from fastapi import FastAPI
 
 _ERROR = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
+# FastAPI declares its own {"detail": [...]} body for a 422; service.api.errors answers every
+# validation error with the ErrorResponse envelope instead (code validation_error).
+_FASTAPI_422 = "#/components/schemas/HTTPValidationError"
 # Probes answer without the artifacts and without a deadline that could matter.
 _ALWAYS_UP = ("/healthz", "/metrics")
 
@@ -46,6 +49,13 @@ def add_common_responses(app: FastAPI) -> None:
                     responses = op.setdefault("responses", {})
                     for status, description in _common(path, op).items():
                         responses.setdefault(status, {"description": description, "content": _ERROR})
+                    for response in responses.values():
+                        if response.get("content", {}).get("application/json", {}).get("schema") == {
+                                "$ref": _FASTAPI_422}:
+                            response["content"] = _ERROR
+            schemas = schema.get("components", {}).get("schemas", {})
+            for unused in ("HTTPValidationError", "ValidationError"):
+                schemas.pop(unused, None)
         return app.openapi_schema or generate()
 
     app.openapi = openapi  # type: ignore[method-assign]

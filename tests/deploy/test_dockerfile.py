@@ -128,9 +128,9 @@ def test_artifacts_are_copied_after_dependencies_and_before_code() -> None:
     artifacts = order.index(("", "exported/"))
     code = order.index(("wheel", "/build/dist/"))
     assert venv < artifacts < code, order
-    # The dependency stage sees only the requirements file, so code edits keep its cache.
+    # The dependency stage sees only the requirements and constraints, so code edits keep its cache.
     deps_sources = [src for src, _ in copy_sources(stages()[0])]
-    assert deps_sources == ["docker/requirements-service.txt"], deps_sources
+    assert deps_sources == ["docker/requirements-service.txt", "docker/constraints.txt"], deps_sources
 
 
 def test_image_runs_as_a_non_root_user_with_a_health_check() -> None:

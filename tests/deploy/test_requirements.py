@@ -1,4 +1,5 @@
-"""docker/requirements-service.txt must list exactly pyproject.toml's service dependencies."""
+"""docker/requirements-service.txt lists exactly pyproject.toml's service dependencies; docker/constraints.txt
+locks every package they, and the train and test extras, pull in."""
 
 from __future__ import annotations
 
@@ -45,3 +46,33 @@ def test_generator_follows_a_changed_pyproject(tmp_path) -> None:
     fake.write_text('[project]\nname = "x"\ndependencies = ["numpy>=2", "orjson"]\n')
     text = load_generator().render(fake)
     assert [line for line in text.splitlines() if not line.startswith("#")] == ["numpy>=2", "orjson"]
+
+
+def test_constraints_pin_every_requirement_within_pyprojects_bounds() -> None:
+    from packaging.requirements import Requirement
+
+    with open(REPO / "pyproject.toml", "rb") as fh:
+        project = tomllib.load(fh)["project"]
+    lines = (REPO / "docker" / "constraints.txt").read_text().splitlines()
+    pins = dict(line.split("==", 1) for line in lines if line and not line.startswith("#"))
+    needed = [*project["dependencies"], *project["optional-dependencies"]["train"],
+              *project["optional-dependencies"]["test"]]
+    for line in needed:
+        req = Requirement(line)
+        if req.marker is not None and not req.marker.evaluate():
+            continue
+        key = re.sub(r"[-_.]+", "-", req.name).lower()
+        assert key in pins, (f"{req.name} is not pinned in docker/constraints.txt: "
+                             "run `python docker/make_requirements.py`")
+        assert req.specifier.contains(pins[key], prereleases=True), (
+            f"docker/constraints.txt pins {key}=={pins[key]}, outside pyproject's {line!r}")
+
+
+def test_constraints_are_the_versions_installed_here() -> None:
+    # CI installs with `-c docker/constraints.txt`, so there the environment is the lock; a lock
+    # that names a package nothing needs any more, or misses a new one, fails here.
+    committed = (REPO / "docker" / "constraints.txt").read_text()
+    assert committed == load_generator().render_constraints(REPO / "pyproject.toml"), (
+        "docker/constraints.txt differs from the packages installed here: run "
+        "`python docker/make_requirements.py` in the project's venv "
+        "(after `pip install -e \".[train,test]\"`)")

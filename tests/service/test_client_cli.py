@@ -160,3 +160,46 @@ def test_batch_command_writes_json_lines(live_url: str, cli: typer.Typer, tmp_pa
     assert by_file["d.ply"]["error"]["code"] == "corrupt_mesh"
     assert len(by_file["a.npy"]["result"]["suggestions"]) == 2
     assert "3 answered, 1 failed" in result.output
+
+
+EXAMPLE_REQUEST = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.json"
+
+
+def test_suggest_command_reads_the_example_request(live_url: str, cli: typer.Typer,
+                                                   client: TestClient) -> None:
+    # The README's shipped request file: sent as it is (its k and category), -k overriding its k.
+    request = json.loads(EXAMPLE_REQUEST.read_text())
+    result = CliRunner().invoke(cli, ["suggest", str(EXAMPLE_REQUEST), "--url", live_url, "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output) == client.post("/suggest", json=request).json()
+    fewer = CliRunner().invoke(cli, ["suggest", str(EXAMPLE_REQUEST), "--url", live_url, "--json", "-k", "2"])
+    assert len(json.loads(fewer.output)["suggestions"]) == 2
+
+
+def test_suggest_command_refuses_a_bad_file_in_one_line(live_url: str, cli: typer.Typer,
+                                                        tmp_path: Path) -> None:
+    for name, text in (("other.json", '{"items": []}'), ("broken.json", "{"), ("bad.xyz", "1 2\n")):
+        (tmp_path / name).write_text(text)
+        result = CliRunner().invoke(cli, ["suggest", str(tmp_path / name), "--url", live_url])
+        assert result.exit_code == 1, result.output
+        assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
+        assert result.output.startswith(f"error: {tmp_path / name}: ") and result.output.count("\n") == 1
+
+
+def test_batch_command_lists_what_it_skipped(live_url: str, cli: typer.Typer, tmp_path: Path,
+                                             query: AssemblyQuery) -> None:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    np.save(folder / "a.npy", query.points)
+    (folder / "b.json").write_text(json.dumps({"points": query.points.tolist(), "k": 3}))
+    (folder / "notes.md").write_text("not a query")
+    (folder / "more").mkdir()
+    out = tmp_path / "results.jsonl"
+    result = CliRunner().invoke(cli, ["batch", str(folder), "--url", live_url, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    by_file = {Path(line["file"]).name: line for line in map(json.loads, out.read_text().splitlines())}
+    assert sorted(by_file) == ["a.npy", "b.json"]
+    assert len(by_file["b.json"]["result"]["suggestions"]) == 3
+    assert f"skipped {folder / 'more'}: a folder" in result.output
+    assert f"skipped {folder / 'notes.md'}: not a mesh, point or request file (.md)" in result.output
+    assert "2 answered, 0 failed, 2 skipped" in result.output

@@ -1,8 +1,9 @@
 """Read a user's shape collection into the built-in raw format (one GLB + sidecar per shape).
 
 Accepted inputs, one shape per file:
-- OBJ: each group (``g``) or object (``o``) is a piece; a file without groups is split into
-  its connected components.
+- OBJ: each group (``g``) or object (``o``) is a piece, labelled by its name (``leg``,
+  ``leg.001`` and ``leg_2`` all label a ``leg``) unless a sidecar gives labels; a file without
+  groups is split into its connected components (unlabelled).
 - GLB / glTF: each scene-graph leaf is a piece. A sidecar ``<stem>.json`` (see
   ``training.data.shapes``) supplies shape id, category, style, labels and geometry keys; the
   built-in generator writes exactly that, so this is also how preprocessing reads it.
@@ -111,9 +112,27 @@ def _mesh_pieces(path: Path, config: IngestConfig, meta: dict[str, Any] | None) 
         raise ShapeFileError(path, err.message.removeprefix(f"{path}: "), err.code) from err
     labels = (meta or {}).get("labels", {})
     keys = (meta or {}).get("geometry_keys", {})
+    named = path.suffix.lower() == ".obj"
     return [RawPiece(name=leaf.name, vertices=leaf.vertices, faces=leaf.faces,
-                     geometry_key=keys.get(leaf.name) or leaf.geometry, label=labels.get(leaf.name))
+                     geometry_key=keys.get(leaf.name) or leaf.geometry,
+                     label=labels.get(leaf.name) or (obj_label(leaf.name) if named else None))
             for leaf in leaves]
+
+
+# trimesh names the geometry of an OBJ without groups "geometry"; components get "/<i>".
+_UNNAMED_OBJ = "geometry"
+
+
+def obj_label(leaf_name: str) -> str | None:
+    """The part label an OBJ group or object name gives, or None for an unnamed piece.
+
+    ``seat`` -> ``seat``; ``leg.001`` (Blender's copies), ``leg_2`` and ``leg/1`` (one group
+    split into connected components) -> ``leg``.
+    """
+    base = leaf_name.split("/", 1)[0]
+    if base == _UNNAMED_OBJ:
+        return None
+    return re.sub(r"[._]\d+$", "", base) or None
 
 
 def _segment_file(path: Path) -> Path | None:
