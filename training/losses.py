@@ -87,3 +87,29 @@ def placement_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         pred (B, 3), target (B, 3) -> ().
     """
     return (pred - target).square().sum(dim=1).mean()
+
+
+def matched_modes(nll: torch.Tensor, owner: torch.Tensor, n_queries: int) -> torch.Tensor:
+    """Each query's complements matched one-to-one to modes, by least total per-mode NLL.
+
+    The set version of winner-takes-all: where WTA lets one central mode win every complement
+    of a query (and the others die), the matching gives a query's different complements
+    different modes (Hungarian assignment per query; a query with more complements than modes
+    reuses modes in rounds).
+
+    Shapes:
+        nll (M, K) per-mode NLL of every complement, owner (M,) its query -> (M,) int64 mode.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    cost = nll.detach().cpu().numpy()
+    rows_of = owner.cpu().numpy()
+    out = torch.empty(len(cost), dtype=torch.int64)
+    k = cost.shape[1]
+    for q in range(n_queries):
+        rows = (rows_of == q).nonzero()[0]
+        for start in range(0, len(rows), k):     # rounds of at most K complements
+            chunk = rows[start:start + k]
+            r, c = linear_sum_assignment(cost[chunk])
+            out[torch.as_tensor(chunk[r])] = torch.as_tensor(c, dtype=torch.int64)
+    return out.to(nll.device)

@@ -37,7 +37,14 @@ from training.batches import batch_stream
 from training.checkpoint import checkpoint_path, load_checkpoint, make_state, save_checkpoint
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
 from training.data.processed import ProcessedDataset
-from training.losses import mixture_nll, placement_loss, relaxed_wta_pull, triplet_loss
+from training.losses import (
+    component_log_density,
+    matched_modes,
+    mixture_nll,
+    placement_loss,
+    relaxed_wta_pull,
+    triplet_loss,
+)
 from training.models import build_models, count_parameters
 from training.plots import (
     LOSSES_CSV,
@@ -137,6 +144,14 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
     if cfg.wta_weight:
         pull = relaxed_wta_pull(y_fit, means[owner], log_s[owner], cfg.wta_epsilon)
         loss = loss + cfg.wta_weight * (share * pull).sum()
+    if cfg.match_weight or cfg.match_weight_ce:
+        per_mode = -component_log_density(y_fit, means[owner], log_s[owner])        # (M, K)
+        mode = matched_modes(per_mode, owner, b)                                      # (M,)
+        rows = torch.arange(len(mode))
+        # Each matched mode is pulled onto its complement, and the weights learn the shares of
+        # the matching: a seat alone whose complements are a back and legs gets two live modes.
+        loss = loss + cfg.match_weight * (share * per_mode[rows, mode]).sum()
+        loss = loss - cfg.match_weight_ce * (share * log_w[owner, mode]).sum()
     return loss, hinge, e_pos, e_neg
 
 
