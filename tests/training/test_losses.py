@@ -145,3 +145,19 @@ def test_relaxed_wta_pull_weights_the_nearest_mode():
     assert got.item() == pytest.approx(expected.item(), rel=1e-6)
     # epsilon 0: the nearest mode alone, and the mixture weights play no part.
     assert relaxed_wta_pull(y, means, log_s, 0.0).item() == pytest.approx(per_mode[1].item(), rel=1e-6)
+
+
+def test_matched_modes_give_a_query_s_complements_distinct_modes():
+    """Two complements both nearest to mode 0: WTA would pull mode 0 onto both, the matching
+    gives the second to the next-best mode; a third query's single complement keeps its best."""
+    from training.losses import matched_modes
+
+    nll = torch.tensor([[1.0, 5.0, 9.0],     # query 0, complement a: best mode 0
+                        [2.0, 3.0, 9.0],     # query 0, complement b: best mode 0 too
+                        [9.0, 1.0, 2.0]])    # query 1: best mode 1
+    owner = torch.tensor([0, 0, 1])
+    assert matched_modes(nll, owner, 2).tolist() == [0, 1, 1]
+    # More complements than modes: matched in rounds, every complement gets a mode.
+    many = torch.rand(5, 2)
+    got = matched_modes(many, torch.zeros(5, dtype=torch.int64), 1)
+    assert got.shape == (5,) and sorted(got[:2].tolist()) == [0, 1]
