@@ -65,8 +65,9 @@ def test_mode_weights_favour_a_mode(engine: SuggestionEngine, query: AssemblyQue
     base = engine.suggest(query.points, SuggestOptions(k=20, refine_contact=False))
     modes = [s.mode for s in base.suggestions]
     rare = next((m for m in reversed(modes) if m != modes[0]), None)
-    if rare is None:
-        pytest.skip("every suggestion comes from one mode on these artifacts")
+    # Model v3's mixture has several live modes (the shipped model before it had one, and this
+    # test could only skip): the top 20 must hold more than one.
+    assert rare is not None, f"every one of the top 20 suggestions comes from mode {modes[0]}"
     K = engine.artifacts.n_modes
     only = [0.0] * K
     only[rare] = 1.0
