@@ -42,6 +42,7 @@ from service.artifacts import (
 )
 from service.catalog import load_catalog, partial_assemblies
 from service.indexing import IndexKind, build_index, index_entry
+from service.loading import session_options
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained
 from training.config import config_to_dict
@@ -147,10 +148,9 @@ def export_graphs(pair: RetrievalPair, placement: PlacementNet, folder: Path, op
 
 
 def open_session(path: Path) -> ort.InferenceSession:
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = max(1, torch.get_num_threads())
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    """A graph opened with the service's session options (one owner: ``service.loading``)."""
+    return ort.InferenceSession(str(path), sess_options=session_options(max(1, torch.get_num_threads())),
+                                providers=["CPUExecutionProvider"])
 
 
 def run_chunked(session: ort.InferenceSession, points: np.ndarray, chunk: int) -> np.ndarray:

@@ -45,22 +45,6 @@ def rank_by_scores(scores: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return rows[np.lexsort((rows, -np.asarray(scores, dtype=np.float64)))]
 
 
-def mixture_log_likelihood(emb: np.ndarray, weights: np.ndarray, means: np.ndarray,
-                           sigmas: np.ndarray) -> np.ndarray:
-    """log sum_k phi_k N(e | mu_k, sigma_k^2) for each embedding (log-sum-exp, paper Appendix).
-
-    Shapes:
-        emb (P, D), weights (K,), means (K, D), sigmas (K, D) -> (P,) float64.
-    """
-    e = np.asarray(emb, dtype=np.float64)[:, None, :]
-    mu, sd = np.asarray(means, np.float64)[None], np.asarray(sigmas, np.float64)[None]
-    z = (e - mu) / sd
-    comp = -(0.5 * z**2 + np.log(sd)).sum(axis=2) - 0.5 * e.shape[2] * np.log(2 * np.pi)   # (P, K)
-    comp = comp + np.log(np.clip(np.asarray(weights, np.float64), 1e-300, None))[None]
-    top = comp.max(axis=1, keepdims=True)
-    return (top + np.log(np.exp(comp - top).sum(axis=1, keepdims=True)))[:, 0]
-
-
 class ScoredMethod:
     """A method whose ranking is its scores sorted over the pool."""
 

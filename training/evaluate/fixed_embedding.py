@@ -34,10 +34,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from service.mixture import mixture_log_likelihood
 from training.config import ModelConfig, config_to_dict
 from training.data.processed import ProcessedDataset
 from training.data.sampling import TripletSampler, sample_assembly
-from training.evaluate.baselines import ScoredMethod, mixture_log_likelihood
+from training.evaluate.baselines import ScoredMethod
 from training.evaluate.descriptors import DESCRIPTOR_NAME, PCAProjection, Standardizer, descriptors
 from training.evaluate.protocol import Query
 from training.losses import triplet_loss
@@ -263,4 +264,4 @@ class FixedEmbeddingMethod(ScoredMethod):
 
     def scores(self, query: Query, rows: np.ndarray) -> np.ndarray:
         w, mu, sd = self._mixture(query)
-        return mixture_log_likelihood(self.embeddings[np.asarray(rows, np.int64)], w, mu, sd)
+        return mixture_log_likelihood(self.embeddings[np.asarray(rows, np.int64)], w, mu, sd)[0]
