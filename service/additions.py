@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from service.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import ConflictError, InputError, NotFoundError, StorageFullError
 from service.geometry import resample_points
@@ -55,8 +56,6 @@ def added_record(p: StoredPart) -> dict[str, Any]:
 
 def stored_part_out(p: StoredPart, n_points: int) -> dict[str, Any]:
     """A stored part as the API's ``PartOut`` (what ``POST /parts`` answers)."""
-    from service.api.render import part_links  # the API layer's link format, kept in one place
-
     return {**{k: v for k, v in added_record(p).items()}, "duplicates": 1, "n_points": n_points,
             "n_vertices": p.n_vertices, "n_faces": p.n_faces, "links": part_links(p.part_id)}
 

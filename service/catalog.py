@@ -10,8 +10,10 @@ import json
 import logging
 import zipfile
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 
@@ -264,3 +266,18 @@ def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 
         pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows if i != drop])
         out.append(resample_points(pts, n_points, int(rng.integers(2**31))).astype(np.float32))
     return out
+
+
+@lru_cache(maxsize=1 << 16)
+def _part_path(part_id: str) -> str:
+    return "/parts/" + quote(part_id, safe="/")
+
+
+def part_links(part_id: str) -> dict[str, str]:
+    """Links to a part's record, mesh and points (ids keep their slash; other characters quoted).
+
+    The API's link format, owned here so that the catalog writer (service.additions) and the
+    HTTP layer share it without the core importing the HTTP layer.
+    """
+    base = _part_path(part_id)
+    return {"part": base, "mesh": base + "/mesh", "points": base + "/points"}

@@ -14,22 +14,10 @@ from typing import Any
 import numpy as np
 import typer
 
+from service.logs import quiet_libraries
+
 log = logging.getLogger(__name__)
 
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-
-
-def quiet_libraries() -> None:
-    """Keep per-request and loader chatter of libraries out of the CLI's INFO log (shown with -v).
-
-    faiss's loader logs at INFO that it "Could not load library with AVX2 support ...
-    ModuleNotFoundError" whenever the wheel's generic build is the one that loads, which reads
-    like an error but is not one; httpx logs one INFO line per request (inside progress bars).
-    """
-    if logging.getLogger().getEffectiveLevel() <= logging.DEBUG:
-        return
-    for name in ("httpx", "httpcore", "faiss.loader"):
-        logging.getLogger(name).setLevel(logging.WARNING)
 
 
 def _frame_options(up_axis: str | None, center: str | None, radius: float | None,

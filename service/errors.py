@@ -6,6 +6,8 @@ They carry no HTTP types: the API maps them to statuses (``InputError`` 422, ``N
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class ServiceError(Exception):
     """A request the service refuses; ``code`` is stable, ``message`` says what was wrong."""
@@ -83,3 +85,11 @@ class DeadlineError(ServiceError):
     """The request's deadline passed before its work started (it waited in a queue too long)."""
 
     status = 504
+
+
+def error_body(code: str, message: str, details: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The JSON body of every error answer: ``{"error": {"code", "message", "details"?}}``."""
+    err: dict[str, Any] = {"code": code, "message": message}
+    if details is not None:
+        err["details"] = details
+    return {"error": err}

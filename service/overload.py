@@ -43,7 +43,7 @@ import orjson
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.errors import error_body
+from service.errors import error_body
 from service.metrics import Metrics
 
 GATED_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})

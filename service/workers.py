@@ -69,7 +69,7 @@ def run_worker(config: WorkerConfig, channel: socket.socket) -> None:
     """The body of one worker process: uvicorn serving the connections ``channel`` brings."""
     import uvicorn
 
-    from service.cli import LOG_FORMAT, quiet_libraries
+    from service.logs import LOG_FORMAT, quiet_libraries
 
     logging.basicConfig(level=config.root_log_level, format=LOG_FORMAT)
     quiet_libraries()

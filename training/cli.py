@@ -11,7 +11,8 @@ import sys
 
 import typer
 
-from service.cli import LOG_FORMAT, quiet_libraries, register_service_commands
+from service.cli import register_service_commands
+from service.logs import LOG_FORMAT, quiet_libraries
 from training.catalog_cli import catalog_app
 from training.data.cli import data_app
 

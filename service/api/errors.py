@@ -16,7 +16,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.responses import OrjsonResponse
-from service.errors import ServiceError
+from service.errors import ServiceError, error_body
 
 log = logging.getLogger(__name__)
 
@@ -28,13 +28,6 @@ _HTTP_CODES = {
     408: "body_timeout", 413: "payload_too_large",
     415: "unsupported_media_type", 503: "not_ready",
 }
-
-
-def error_body(code: str, message: str, details: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    err: dict[str, Any] = {"code": code, "message": message}
-    if details is not None:
-        err["details"] = details
-    return {"error": err}
 
 
 def error_response(status: int, code: str, message: str,

@@ -14,7 +14,7 @@ import orjson
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.errors import error_body
+from service.errors import error_body
 from service.metrics import Metrics
 
 # Mesh uploads get COMPLEMENTME_MAX_UPLOAD_BYTES; other bodies COMPLEMENTME_MAX_BODY_BYTES.

@@ -6,26 +6,13 @@ every suggestion would cost more than the scoring does.
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Any
-from urllib.parse import quote
 
 import numpy as np
 
-from service.catalog import Catalog
+from service.catalog import Catalog, part_links
 from service.engine import PlaceResult, SuggestResult
 from service.frames import Frame
-
-
-@lru_cache(maxsize=1 << 16)
-def _part_path(part_id: str) -> str:
-    return "/parts/" + quote(part_id, safe="/")
-
-
-def part_links(part_id: str) -> dict[str, str]:
-    """Links to a part's record, mesh and points (ids keep their slash; other characters quoted)."""
-    base = _part_path(part_id)
-    return {"part": base, "mesh": base + "/mesh", "points": base + "/points"}
 
 
 def _vec(a: np.ndarray) -> list[float]:
