@@ -21,7 +21,6 @@ import anyio
 import fastapi_offline
 import numpy as np
 from fastapi import FastAPI, Request
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.staticfiles import StaticFiles
 from starlette.responses import HTMLResponse
@@ -31,7 +30,7 @@ from service.api.access_log import install_access_log_redaction
 from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
-from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, MetricsMiddleware
 from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
@@ -193,7 +192,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        max_upload_bytes=settings.max_upload_bytes,
                        body_read_timeout=settings.body_read_timeout)
     if settings.cors_origins:  # browsers only; none by default
-        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+        app.add_middleware(JsonCorsMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["X-Model-Version"])

@@ -11,7 +11,10 @@ import time
 from collections.abc import Callable
 
 import orjson
+from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
+from starlette.middleware.cors import CORSMiddleware
+from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import error_body
@@ -163,3 +166,22 @@ class MetricsMiddleware:
                 # its request ends with goes nowhere). 499, as nginx logs it.
                 status = CLIENT_GONE
             self.metrics.observe_request(scope["method"], route, status, time.perf_counter() - start)
+
+
+class JsonCorsMiddleware(CORSMiddleware):
+    """Starlette's CORS middleware with the service's JSON error body for a refused preflight.
+
+    Starlette answers a preflight it refuses with a plain-text 400 ("Disallowed CORS origin");
+    every other error of the service is ``{"error": {"code", "message"}}``, so this one is too
+    (code ``cors_refused``). Allowed preflights and simple requests are unchanged.
+    """
+
+    def preflight_response(self, request_headers: Headers) -> Response:
+        response = super().preflight_response(request_headers)
+        if response.status_code != 400:
+            return response
+        message = bytes(response.body).decode("utf-8", "replace")
+        dropped = ("content-length", "content-type")
+        headers = {k: v for k, v in response.headers.items() if k.lower() not in dropped}
+        return Response(orjson.dumps(error_body("cors_refused", message)), status_code=400, headers=headers,
+                        media_type="application/json")
