@@ -174,12 +174,15 @@ class Settings(BaseSettings):
         "A query whose points reach further than this from their box centre in the model's frame "
         "(unit radius; a whole object reaches 1) is far outside what the model knows: the answer "
         "carries a `frame` warning (set `frame.radius` and `frame.center`)."))
-    ood_min_extent: float = Field(default=0.05, gt=0, lt=1, description=(
-        "A query smaller than this in the model's frame gets the same `frame` warning."))
-    ood_max_mode_distance: float = Field(default=6.0, gt=0, description=(
+    ood_min_extent: float = Field(default=0.1, gt=0, lt=1, description=(
+        "A query smaller than this in the model's frame gets the same `frame` warning (one small "
+        "part, a trigger or a bulb, reaches about 0.1)."))
+    ood_max_mode_distance: float = Field(default=2.0, gt=0, description=(
         "A query whose best suggestion lies further than this from its mode's mean, in that "
         "mode's sigmas (root mean square over the embedding's dimensions), gets an `unfamiliar` "
-        "warning: nothing in the catalog is like what the model expects to complement it."))
+        "warning: nothing in the catalog is like what the model expects to complement it. "
+        "Measured on model v3: 120 held-out queries at most 1.37 (p99 1.24); the same queries "
+        "scaled by 0.1 or 4 without a frame, median 2.19."))
     diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
         "ran out of parts."))
