@@ -298,8 +298,12 @@ class SuggestionEngine:
         best = int(np.argmax(probs))
         name, confidence = str(names[best]), float(probs[best])
         in_catalog = name in cat.categories
-        applied = confidence >= s.category_min_confidence and in_catalog
+        # A style filter already names what the caller wants (styles belong to one category):
+        # the inference is reported, not applied.
+        applied = confidence >= s.category_min_confidence and in_catalog and not q.options.styles
         q.inferred = InferredCategory(name, confidence, applied)
+        if q.options.styles:
+            return
         if applied:
             keep = cat.category_of == cat.category_codes([name])[0]
             q.allowed = keep if q.allowed is None else q.allowed & keep

@@ -52,7 +52,7 @@ def test_share_order_deals_slots_in_proportion_to_the_weights() -> None:
 
 def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catalog: Catalog) -> None:
     _needs_heads(engine)
-    shapes = _held_out_shapes(catalog, 2)
+    shapes = _held_out_shapes(catalog, 5)
     right = 0
     for sid in shapes:
         last = [r["part_id"] for r in catalog.records if r["shape_id"] == sid][-1]
@@ -66,7 +66,9 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
             assert {s.category for s in result.suggestions} == {inferred.category}
         else:
             assert any(w.code == "category_unsure" for w in result.warnings)
-    assert right >= 0.9 * len(shapes), f"{right} of {len(shapes)} held-out queries got their category"
+    # Model v3 names 111 of 120 held-out all-but-one queries right (docs/benchmark.md has the
+    # benchmark's figure); a model that reads the category from nothing gets about 1 in 9.
+    assert right >= 0.85 * len(shapes), f"{right} of {len(shapes)} held-out queries got their category"
     named = engine.suggest(q.points, SuggestOptions(k=5, categories=("chair",)))
     assert named.inferred_category is None and {s.category for s in named.suggestions} == {"chair"}
 
