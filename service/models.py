@@ -99,7 +99,9 @@ class Networks:
             translation = self.h_head.run(["translation"], feed)[0]
             return translation, np.ones_like(translation)
         translation, log_scale = self.h_head.run(["translation", "log_scale"], feed)
-        return translation, np.exp(log_scale).astype(np.float32)
+        # A query far outside the model's frame can drive the head to huge values: the engine
+        # clips scales to its settings' range anyway, so clip here before exp can overflow.
+        return translation, np.exp(np.clip(log_scale, -20.0, 20.0)).astype(np.float32)
 
 
 def _f32(a: np.ndarray) -> np.ndarray:

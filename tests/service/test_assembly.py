@@ -238,7 +238,7 @@ def test_api_assemble(client: TestClient, catalog: Catalog) -> None:
     for s in body["steps"]:
         i = catalog.lookup(s["part_id"])
         box_min = np.subtract(s["bbox_min"], s["translation"])
-        np.testing.assert_allclose(box_min, catalog.bbox_min[i], atol=1e-5)
+        np.testing.assert_allclose(box_min, catalog.bbox_min[i] * np.array(s["scale"]), atol=1e-5)
         assert s["links"]["mesh"].endswith("/mesh")
     # A z-up, scaled frame answers the same parts at mapped translations.
     framed = client.post("/assemble", json={"part_id": pid, "max_parts": 3, "frame": {
