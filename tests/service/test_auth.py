@@ -116,4 +116,5 @@ def test_cors_only_when_configured(artifacts: Path, keyed: TestClient) -> None:
         assert "access-control-allow-origin" not in other.headers
         # A refused preflight gets the service's JSON error body, not Starlette's plain text.
         assert other.status_code == 400
-        assert other.json()["error"]["code"] == "cors_refused" and "origin" in other.json()["error"]["message"]
+        error = other.json()["error"]
+        assert error["code"] == "cors_refused" and "origin" in error["message"]
