@@ -159,7 +159,7 @@ def test_upload_refusals(writable: TestClient, catalog, settings: Settings) -> N
 
     cases = [
         (writable.post("/parts", data={"category": "x"}, headers=AUTH), 422, "missing_file"),
-        (post(category="bad/category"), 422, "validation_error"),
+        (post(category="bad/category"), 422, "invalid_category"),
         (post(category="ok", shape_id="added-7"), 422, "invalid_shape_id"),
         (post(category="ok", colour="red"), 422, "validation_error"),
         (post(category="ok", shape_id=catalog.shape_ids[0]), 409, "shipped_shape"),

@@ -95,5 +95,9 @@ def stats_cmd(
     """Histograms of components per shape, merge counts and discarded shapes."""
     from training.data.stats import TABLE_TXT, write_stats
 
+    if not (processed / "dataset.json").is_file():
+        typer.echo(f"error: {processed} holds no processed dataset (dataset.json); make one with "
+                   "`complementme data generate` and `complementme data preprocess`", err=True)
+        raise typer.Exit(2)
     write_stats(processed, out)
     typer.echo((out / TABLE_TXT).read_text(), nl=False)

@@ -30,13 +30,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
-from service.additions import CatalogWriter, stored_part_out
+from service.additions import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out
 from service.api.deps import SettingsDep
-from service.api.render import part_links
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut
 from service.auth import WriterDep
+from service.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import DeadlineError, InputError
 from service.frames import Frame
@@ -59,9 +59,13 @@ class PartUploadIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    category: str = Field(..., pattern=r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$", description=(
+    # The patterns are documented here and checked by the catalog writer, which answers 422
+    # invalid_category / invalid_shape_id with a message a person can act on (a pattern checked
+    # here would answer validation_error quoting the regex).
+    category: str = Field(..., max_length=200, json_schema_extra={"pattern": CATEGORY.pattern}, description=(
         "The part's category (a new one is created if needed)."), examples=["chair"])
-    shape_id: str | None = Field(default=None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$", description=(
+    shape_id: str | None = Field(
+        default=None, max_length=200, json_schema_extra={"pattern": SHAPE_ID.pattern}, description=(
         "Groups parts of one source object (exclude_shapes acts on it); the part's id is "
         "<shape_id>/<n>. Default: a shape of its own, added-<n>."), examples=["my-chair-01"])
     name: str | None = Field(default=None, max_length=200, description="A free-text name.",

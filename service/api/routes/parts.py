@@ -60,7 +60,9 @@ def list_parts(
                            "items": [render_part(cat, i) for i in page]})
 
 
-@router.get("/categories", response_model=list[CategoryOut], summary="Categories in the catalog")
+@router.get("/categories", response_model=list[CategoryOut], summary="Categories in the catalog",
+            responses={200: {"content": {"application/json": {"example": [
+                {"name": "airplane", "parts": 771}, {"name": "chair", "parts": 889}]}}}})
 def list_categories(engine: EngineDep) -> OrjsonResponse:
     cat = engine.catalog
     counts = np.bincount(cat.category_of, minlength=len(cat.categories))
