@@ -38,8 +38,8 @@ def test_suggest_answers_ranked_placed_parts(client: TestClient, query: Assembly
     assert answer.model_version == engine.model_version
     assert answer.input_points == len(query.points)
     assert len(answer.suggestions) == 7 and [s.rank for s in answer.suggestions] == list(range(1, 8))
-    # The default order deals slots to modes by weight (suggest_order "share"): each mode's own
-    # parts come in likelihood order.
+    # Each mode's own parts come in likelihood order (in the default likelihood order all do; with
+    # suggest_order "share" the slots are dealt to modes by weight).
     for mode in {s.mode for s in answer.suggestions}:
         scores = [s.score for s in answer.suggestions if s.mode == mode]
         assert scores == sorted(scores, reverse=True)

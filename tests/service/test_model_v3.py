@@ -50,6 +50,26 @@ def test_share_order_deals_slots_in_proportion_to_the_weights() -> None:
     assert within == sorted(within)                           # each mode keeps its likelihood order
 
 
+def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query: object) -> None:
+    from service_testkit import make_settings
+
+    from service.loading import load_served_artifacts
+
+    settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
+    engine = SuggestionEngine(load_served_artifacts(settings), settings)
+    k = 20
+    result = engine.suggest(query.points, SuggestOptions(k=k, refine_contact=False,  # type: ignore[attr-defined]
+                                                         complement_check=False))
+    w = result.mode_weights.astype(np.float64)
+    live = w >= settings.share_min_mode_weight
+    counts = np.bincount([s.mode for s in result.suggestions], minlength=len(w))
+    # Largest-quotient apportionment: every live mode within one slot of its exact share (this
+    # query's modes all have more candidates than slots), and no light mode ahead of them.
+    exact = k * w[live] / w[live].sum()
+    assert np.all(np.abs(counts[live] - exact) <= 1.0), (counts, w)
+    assert counts[~live].sum() == 0
+
+
 def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catalog: Catalog) -> None:
     _needs_heads(engine)
     shapes = _held_out_shapes(catalog, 5)
