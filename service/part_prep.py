@@ -41,8 +41,8 @@ def embed_geometry(networks: Networks, vertices: np.ndarray, faces: np.ndarray, 
 
 def prepare_part(data: bytes, file_type: str, *, name: str, frame: Frame, networks: Networks,
                  n_points: int, preview_points: int, seed: int, max_vertices: int, max_faces: int,
-                 max_extent: float, category: str, part_name: str | None, style: str | None,
-                 label: str | None, model_version: str) -> NewPart:
+                 max_nodes: int, max_nesting: int, max_extent: float, category: str,
+                 part_name: str | None, style: str | None, label: str | None, model_version: str) -> NewPart:
     """Load, check, centre, sample and embed one uploaded part.
 
     Args:
@@ -55,7 +55,8 @@ def prepare_part(data: bytes, file_type: str, *, name: str, frame: Frame, networ
         ServiceError: 415 for an unknown format, 413 over the limits, 422 for a bad mesh.
     """
     try:
-        mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces)
+        mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
+                               max_nodes=max_nodes, max_nesting=max_nesting)
     except MeshError as exc:
         raise _MESH_ERRORS.get(exc.code, InputError)(exc.code, exc.message) from None
     vertices = frame.to_canonical(np.asarray(mesh.vertices, dtype=np.float64)).astype(np.float64)

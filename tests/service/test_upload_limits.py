@@ -144,3 +144,18 @@ def test_large_uploads_leave_memory_behind_no_more_than_150_mb(big_client: TestC
         assert response.status_code == 200, response.text
     assert _rss_mb() - start < 150, f"RSS grew from {start:.0f} MB to {_rss_mb():.0f} MB"
     assert "process_resident_memory_bytes" in big_client.get("/metrics").text
+
+
+def test_catalog_uploads_take_the_structure_limits_from_the_settings(artifacts: Path, tmp_path: Path) -> None:
+    """POST /parts is held to max_mesh_nodes as configured, not only to the built-in default."""
+    from catalog_testkit import AUTH, writable_settings
+
+    chain = glb(triangle_tree([{"children": [i + 1]} for i in range(30)] + [{"mesh": 0}], [0]), TRIANGLE)
+    for limit, refused in ((8, True), (10_000, False)):
+        settings = writable_settings(artifacts, tmp_path / f"data-{limit}", max_mesh_nodes=limit)
+        with TestClient(create_app(settings)) as c:
+            r = c.post("/parts", files={"file": ("chain.glb", chain)}, data={"category": "chair"}, headers=AUTH)
+        if refused:
+            assert r.status_code == 413 and r.json()["error"]["code"] == "too_large", r.text
+        else:
+            assert r.json().get("error", {}).get("code") != "too_large", r.text

@@ -240,7 +240,8 @@ def _add(writer: CatalogWriter, settings: Settings, data: bytes, fmt: str, name:
     part = prepare_part(data, fmt, name=name, frame=frame, networks=engine.networks,
                         n_points=engine.artifacts.n_points, preview_points=writer.builder.n_points,
                         seed=settings.seed, max_vertices=settings.max_mesh_vertices,
-                        max_faces=settings.max_mesh_faces, max_extent=settings.max_part_extent,
+                        max_faces=settings.max_mesh_faces, max_nodes=settings.max_mesh_nodes,
+                        max_nesting=settings.max_mesh_nesting, max_extent=settings.max_part_extent,
                         category=meta.category, part_name=meta.name, style=meta.style, label=meta.label,
                         model_version=engine.model_version)
     return writer.add(part, meta.shape_id, window.may_commit)
