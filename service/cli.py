@@ -111,6 +111,20 @@ def register_service_commands(app: typer.Typer) -> None:
         except ValidationError as exc:
             typer.echo(f"error: invalid {ENV_PREFIX}* setting:\n{exc}", err=True)
             raise typer.Exit(2) from None
+        if s.data_dir is not None:
+            # The lifespan checks the data folder too, but a refusal there ends in uvicorn's
+            # start-up traceback; checked here first, it is one line that names the files.
+            from service.store import CatalogStore, StoreError
+
+            try:
+                store = CatalogStore(s.data_dir)
+                try:
+                    store.check_folder()
+                finally:
+                    store.close()
+            except StoreError as exc:
+                typer.echo(f"error: {exc}", err=True)
+                raise typer.Exit(1) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
         from service.workers import APP_FACTORY, GRACEFUL_SECONDS, Supervisor
 

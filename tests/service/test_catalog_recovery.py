@@ -221,3 +221,23 @@ def test_recover_reports_lost_changes_and_never_reissues_their_numbers(tmp_path:
     store.check_folder()
     assert store.add(_new_part(7), None).added_seq == 10
     store.close()
+
+
+def test_serve_refuses_a_malformed_database_in_one_line(tmp_path: Path, artifacts: Path) -> None:
+    """`complementme serve` names the damaged file and exits 1, without uvicorn's traceback."""
+    import os
+    import subprocess
+    import sys
+
+    from catalog_testkit import KEY
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "catalog.sqlite3").write_bytes(b"not a database " * 2000)
+    env = {**os.environ, "COMPLEMENTME_API_KEY": KEY, "COMPLEMENTME_DATA_DIR": str(data),
+           "COMPLEMENTME_ARTIFACTS": str(artifacts)}
+    done = subprocess.run([sys.executable, "-m", "training", "serve", "--port", "0"], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert str(data / "catalog.sqlite3") in done.stderr
+    assert "Traceback" not in done.stderr + done.stdout

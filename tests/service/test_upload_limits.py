@@ -154,7 +154,8 @@ def test_catalog_uploads_take_the_structure_limits_from_the_settings(artifacts: 
     for limit, refused in ((8, True), (10_000, False)):
         settings = writable_settings(artifacts, tmp_path / f"data-{limit}", max_mesh_nodes=limit)
         with TestClient(create_app(settings)) as c:
-            r = c.post("/parts", files={"file": ("chain.glb", chain)}, data={"category": "chair"}, headers=AUTH)
+            r = c.post("/parts", files={"file": ("chain.glb", chain)}, data={"category": "chair"},
+                       headers=AUTH)
         if refused:
             assert r.status_code == 413 and r.json()["error"]["code"] == "too_large", r.text
         else:
