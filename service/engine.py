@@ -243,13 +243,8 @@ class SuggestionEngine:
         return self.resample(self.canonical(points, frame))
 
     def _resolve(self, item: int, points: np.ndarray, options: SuggestOptions) -> _Query:
-        s, cat = self.settings, self.catalog
-        k = s.default_k if options.k is None else options.k
-        if not 1 <= k <= s.max_k:
-            raise InputError("k_out_of_range", f"k must be between 1 and {s.max_k}, found {k}")
-        if len(options.exclude_parts) + len(options.exclude_shapes) > s.max_exclude:
-            raise InputError("too_many_exclusions", f"at most {s.max_exclude} part and shape ids may be "
-                             "excluded per request")
+        cat = self.catalog
+        k = self._checked_k(options)
         allowed: np.ndarray | None = None
         if options.categories:
             allowed = np.isin(cat.category_of, cat.category_codes(list(options.categories)))
@@ -263,7 +258,6 @@ class SuggestionEngine:
         if options.styles:
             keep = self._style_mask(options.styles)
             allowed = keep if allowed is None else allowed & keep
-        options.preferences.check(self.artifacts.n_modes)
         key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
                tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)))
         full = self.canonical(points, options.frame)
@@ -352,6 +346,11 @@ class SuggestionEngine:
         Raises ``InputError`` for k out of range, too many exclusions or preferences that leave
         no mode (the checks of ``_resolve`` that need neither points nor the catalog).
         """
+        self._checked_k(options)
+        return self.query_cost(n_points, options)
+
+    def _checked_k(self, options: SuggestOptions) -> int:
+        """The query's k, after the checks that need neither points nor the catalog."""
         s = self.settings
         k = s.default_k if options.k is None else options.k
         if not 1 <= k <= s.max_k:
@@ -360,7 +359,7 @@ class SuggestionEngine:
             raise InputError("too_many_exclusions", f"at most {s.max_exclude} part and shape ids may be "
                              "excluded per request")
         options.preferences.check(self.artifacts.n_modes)
-        return self.query_cost(n_points, options)
+        return k
 
     def check_budget(self, cost: float, queries: int = 1) -> None:
         """``PayloadTooLargeError`` when a request's estimated cost is over ``max_request_cost_ms``."""

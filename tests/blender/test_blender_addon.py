@@ -1,6 +1,6 @@
 """The Blender add-on, inside Blender, against a real ``complementme serve`` on the shipped artifacts.
 
-Needs Debian's ``blender`` package (``apt-get install -y blender``; `.ci/run` installs it). When
+Needs Debian's ``blender`` package (`.ci/run` installs it; README.md says how). When
 ``blender`` is missing the test skips and says how to install it, except when
 ``COMPLEMENTME_REQUIRE_BLENDER`` is set (as `.ci/run` does): then it fails, so that CI cannot pass
 without running it. Blender runs with its user folders in a temporary directory, so the add-on
@@ -38,8 +38,8 @@ pytestmark = pytest.mark.slow
 def blender() -> str:
     path = shutil.which("blender")
     if path is None:
-        message = ("blender is not installed: `apt-get install -y blender` (Debian's package, 3.4 or "
-                   "newer) runs the in-Blender test")
+        message = ("blender is not installed: install Debian's blender package (3.4 or newer; "
+                   "README.md gives the command), which runs the in-Blender test")
         if os.environ.get(REQUIRE_ENV):
             pytest.fail(f"{message}; {REQUIRE_ENV} is set, so it must run")
         pytest.skip(message)

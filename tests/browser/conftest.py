@@ -1,7 +1,7 @@
 """Browser tests: the real service in a thread on a free port, and Debian's chromium driven by Playwright.
 
 Nothing is installed by the tests: they use Debian's chromium at ``/usr/bin/chromium``
-(``.ci/run`` installs it; locally ``sudo apt-get install -y chromium``) and fail, saying that,
+(``.ci/run`` installs it; locally Debian's chromium package, see README.md) and fail, saying that,
 when it is missing. Playwright's own browser downloads are never used (``executable_path``
 points at the system chromium).
 """
@@ -28,7 +28,7 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
                  "--disable-component-update", "--disable-sync", "--no-first-run", "--use-gl=swiftshader",
                  "--enable-unsafe-swiftshader"]
 ARTIFACT_DIR = Path(__file__).resolve().parents[2] / "test-artifacts"
-INSTALL_HINT = ("install Debian's chromium: `apt-get update && apt-get install -y chromium` "
+INSTALL_HINT = ("install Debian's chromium package (README.md gives the command) "
                 "(as root; .ci/run does this in CI)")
 
 

@@ -2,7 +2,7 @@
 by openapi-typescript compiles with tsc, and so do calls written against it (``call.ts``).
 
 The tools come from npm at the versions in ``package-lock.json`` (``npm ci``); node and npm are
-system packages (``.ci/run`` installs them; locally ``apt-get install -y nodejs npm``). A call
+system packages (``.ci/run`` installs them; locally Debian's nodejs and npm packages). A call
 with a wrong type must fail to compile, so the check can fail.
 """
 
@@ -37,7 +37,7 @@ def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder with the npm tools installed, the generated ``api.d.ts`` and the calls."""
     if shutil.which("npm") is None or shutil.which("npx") is None:
-        pytest.fail("no npm: install node and npm (`apt-get install -y nodejs npm`; .ci/run does this in CI)",
+        pytest.fail("no npm: install Debian's nodejs and npm packages (README.md; .ci/run does this in CI)",
                     pytrace=False)
     folder = tmp_path_factory.mktemp("ts-client")
     for name in ("package.json", "package-lock.json", "tsconfig.json", "call.ts"):
