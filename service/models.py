@@ -7,6 +7,7 @@ costs one run per graph, never one per candidate.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import onnxruntime as ort
@@ -60,11 +61,12 @@ class Networks:
         """Embed centred part point clouds: (B, S, 3) float32 -> (B, D) float32."""
         return self._run_points(self.f, ["embedding"], points)[0]
 
-    @property
+    # Read once per load: the graphs do not change, and every batch asks.
+    @cached_property
     def has_category_head(self) -> bool:
         return any(o.name == "category_probs" for o in self.g.get_outputs())
 
-    @property
+    @cached_property
     def has_scale_head(self) -> bool:
         return any(o.name == "log_scale" for o in self.h_head.get_outputs())
 

@@ -7,9 +7,12 @@ Queries are built from the catalog itself: a catalog shape minus one of its part
 
 from __future__ import annotations
 
+import json
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -106,3 +109,16 @@ def multi_part_shapes(catalog: Catalog, limit: int) -> list[str]:
     return out
 
 
+# A triangle's three float32 vertices: the binary chunk of the small test glTFs.
+TRIANGLE = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0]], dtype="<f4").tobytes()
+
+
+def glb(tree: dict[str, Any], bin_chunk: bytes = b"") -> bytes:
+    """A binary glTF from a JSON tree and an optional binary chunk."""
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
+    if bin_chunk:
+        bin_chunk += b"\0" * (-len(bin_chunk) % 4)
+        chunks += struct.pack("<II", len(bin_chunk), 0x004E4942) + bin_chunk
+    return b"glTF" + struct.pack("<II", 2, 12 + len(chunks)) + chunks

@@ -15,7 +15,6 @@ import io
 import json
 import os
 import resource
-import struct
 import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,22 +24,11 @@ import numpy as np
 import pytest
 from catalog_testkit import AUTH, writable_settings
 from fastapi.testclient import TestClient
+from service_testkit import TRIANGLE, glb
 
 from service.api import create_app
 
 CANARY_TEXT = b"CANARY-7f3a9c-never-to-be-read"
-TRIANGLE = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0]], np.float32).tobytes()
-
-
-def glb(tree: dict[str, Any], bin_chunk: bytes = b"") -> bytes:
-    """A binary glTF from a JSON tree and an optional binary chunk."""
-    text = json.dumps(tree).encode()
-    text += b" " * (-len(text) % 4)
-    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
-    if bin_chunk:
-        bin_chunk += b"\0" * (-len(bin_chunk) % 4)
-        chunks += struct.pack("<II", len(bin_chunk), 0x004E4942) + bin_chunk
-    return b"glTF" + struct.pack("<II", 2, 12 + len(chunks)) + chunks
 
 
 def triangle_tree(buffer: dict[str, Any] | None = None, **extra: Any) -> dict[str, Any]:

@@ -3,9 +3,7 @@ upload limit on every mesh route, and memory that uploads leave behind."""
 
 from __future__ import annotations
 
-import json
 import resource
-import struct
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,23 +12,10 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from service_testkit import make_settings
+from service_testkit import TRIANGLE, glb, make_settings
 
 from service.api import create_app
 from service.geometry import MeshError, load_mesh_bytes
-
-TRIANGLE = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0]], dtype="<f4").tobytes()
-
-
-def glb(tree: dict[str, Any], bin_chunk: bytes = b"") -> bytes:
-    """A binary glTF from a JSON tree and an optional binary chunk."""
-    text = json.dumps(tree, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 4)
-    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
-    if bin_chunk:
-        bin_chunk += b"\0" * (-len(bin_chunk) % 4)
-        chunks += struct.pack("<II", len(bin_chunk), 0x004E4942) + bin_chunk
-    return b"glTF" + struct.pack("<II", 2, 12 + len(chunks)) + chunks
 
 
 def triangle_tree(nodes: list[dict[str, Any]], roots: list[int]) -> dict[str, Any]:
