@@ -61,13 +61,14 @@ def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query
     result = engine.suggest(query.points, SuggestOptions(k=k, refine_contact=False,  # type: ignore[attr-defined]
                                                          complement_check=False))
     w = result.mode_weights.astype(np.float64)
-    live = w >= settings.share_min_mode_weight
     counts = np.bincount([s.mode for s in result.suggestions], minlength=len(w))
-    # Largest-quotient apportionment: every live mode within one slot of its exact share (this
-    # query's modes all have more candidates than slots), and no light mode ahead of them.
+    # Largest-quotient apportionment among the live modes that explain some candidate (a mode
+    # whose mean is nearest to no part gets none): each within one slot of its exact share, and
+    # no light mode ahead of them.
+    live = (w >= settings.share_min_mode_weight) & (counts > 0)
     exact = k * w[live] / w[live].sum()
     assert np.all(np.abs(counts[live] - exact) <= 1.0), (counts, w)
-    assert counts[~live].sum() == 0
+    assert counts[w < settings.share_min_mode_weight].sum() == 0
 
 
 def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catalog: Catalog) -> None:
@@ -93,7 +94,12 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
     assert named.inferred_category is None and {s.category for s in named.suggestions} == {"chair"}
 
 
-def test_a_seat_alone_gets_several_kinds_of_part(engine: SuggestionEngine, catalog: Catalog) -> None:
+def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
+    from service.loading import load_served_artifacts
+    from service_testkit import make_settings
+
+    settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
+    engine = SuggestionEngine(load_served_artifacts(settings), settings)
     _needs_heads(engine)
     kinds = []
     for sid in _held_out_shapes(catalog, 6):
