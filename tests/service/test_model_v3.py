@@ -95,8 +95,9 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
 
 
 def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
-    from service.loading import load_served_artifacts
     from service_testkit import make_settings
+
+    from service.loading import load_served_artifacts
 
     settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
     engine = SuggestionEngine(load_served_artifacts(settings), settings)
