@@ -260,7 +260,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # complement set, a category head, size fitting and augmentations; a fixed number of steps
     # (same seed, same model on any host) with a time guard only.
     "v3": {
-        "steps": 3000, "max_minutes": 95, "n_points": 256, "val_every": 1000, "ckpt_every": 200,
+        "steps": 6000, "max_minutes": 95, "n_points": 256, "val_every": 1000, "ckpt_every": 200,
         "num_workers": 0,
         "lr_schedule": "cosine", "nll_weight": 0.0, "wta_weight": 0.0,
         "query_negative_fraction": 0.25, "lookalike_negative_fraction": 0.5, "removal_query_fraction": 0.3,
