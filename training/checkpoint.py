@@ -8,6 +8,7 @@ networks from the config stored next to the weights.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from training.config import TrainConfig, config_from_dict, config_to_dict
 from training.models import PlacementNet, RetrievalPair, build_models
 
 CHECKPOINT_FILE = "checkpoint.pt"
+CONFIG_FILE = "config.json"
 CHECKPOINT_FORMAT = 1
 
 
@@ -74,6 +76,14 @@ class Trained:
     pair: RetrievalPair
     placement: PlacementNet
     state: dict[str, Any]
+
+
+def load_trained_config(run_dir: Path) -> TrainConfig:
+    """The config a run was started with (its ``config.json``), without loading its weights."""
+    path = Path(run_dir) / CONFIG_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist: {run_dir} is not a training run folder")
+    return config_from_dict(json.loads(path.read_text()))
 
 
 def load_trained(run_dir: Path) -> Trained:

@@ -120,16 +120,22 @@ def export_command(
         0.02, "--duplicate-size-tolerance",
         help="Near-duplicate: max relative difference of area and bounding-box extents."),
     max_megabytes: float = typer.Option(30.0, "--max-megabytes", help="Refuse to write a larger folder."),
+    from_artifacts: Path | None = typer.Option(
+        None, "--from-artifacts",
+        help="Export the networks of this artifact folder instead of the run's checkpoint (the run then "
+             "gives only the split and dataset): an exported model's catalog rebuilt over other data."),
 ) -> None:
     """Export a run: ONNX graphs, FAISS index, part catalog and manifest (layout: service/artifacts.py)."""
     from training.export import ExportOptions, export_run
+    from training.from_onnx import trained_from_artifacts
 
     opts = ExportOptions(n_points=n_points, catalog_points=catalog_points, seed=seed,
                          duplicate_embedding_radius=duplicate_embedding_radius,
                          duplicate_chamfer_factor=duplicate_chamfer_factor,
                          duplicate_size_tolerance=duplicate_size_tolerance, max_megabytes=max_megabytes)
     try:
-        manifest = export_run(run, out, data=data, options=opts)
+        networks = trained_from_artifacts(from_artifacts) if from_artifacts is not None else None
+        manifest = export_run(run, out, data=data, options=opts, networks=networks)
     except (ValueError, FileNotFoundError) as exc:
         raise _fail(exc) from exc
     log.info("wrote %s (model %s, %d parts)", out, manifest["model_version"], manifest["part_count"])

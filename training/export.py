@@ -44,7 +44,7 @@ from service.catalog import load_catalog, partial_assemblies
 from service.indexing import IndexKind, build_index, index_entry
 from service.loading import session_options
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
-from training.checkpoint import Trained, load_trained
+from training.checkpoint import Trained, load_trained, load_trained_config
 from training.config import config_to_dict
 from training.data.processed import ProcessedDataset, save_npz_deterministic
 from training.models import PlacementNet, RetrievalPair
@@ -217,17 +217,25 @@ def _models_hash(folder: Path) -> str:
 
 
 def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
-               options: ExportOptions | None = None) -> dict[str, Any]:
+               options: ExportOptions | None = None, networks: tuple[Trained, str] | None = None
+               ) -> dict[str, Any]:
     """Export the run in ``run_dir`` to ``out_dir``; returns the manifest written.
 
     ``data`` overrides the processed dataset folder stored in the run's config (the catalog is
-    every component of that dataset; the run's ``split.json`` must match it).
+    every component of that dataset; the run's ``split.json`` must match it). ``networks``
+    (trained networks and their name, e.g. ``training.from_onnx.trained_from_artifacts``) are
+    exported instead of the run's checkpoint: the run then gives only the split and dataset.
     """
     opts = options or ExportOptions()
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    trained = load_trained(run_dir)
+    if networks is None:
+        trained = load_trained(run_dir)
+        name = f"{run_dir.name}-s{int(trained.state['step'])}"
+    else:
+        trained, name = networks
     cfg = trained.config
-    data_dir = Path(data) if data is not None else Path(cfg.data)
+    run_cfg = load_trained_config(run_dir) if networks is not None else cfg
+    data_dir = Path(data) if data is not None else Path(run_cfg.data)
     ds = ProcessedDataset.load(data_dir)
     split = load_split(run_dir, ds)
     n_points = opts.n_points or cfg.n_points
@@ -238,7 +246,7 @@ def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
     tmp.mkdir(parents=True)
     try:
         manifest = _write_artifacts(trained, ds, split.split_of_shape(ds.n_shapes), tmp, n_points, opts,
-                                    data_dir, run_dir)
+                                    data_dir, run_dir, name)
         sizes = folder_megabytes(tmp)
         total = sum(sizes.values())
         if total > opts.max_megabytes:
@@ -259,7 +267,8 @@ def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
 
 
 def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: list[str], folder: Path,
-                     n_points: int, opts: ExportOptions, data_dir: Path, run_dir: Path) -> dict[str, Any]:
+                     n_points: int, opts: ExportOptions, data_dir: Path, run_dir: Path, name: str
+                     ) -> dict[str, Any]:
     cfg = trained.config
     export_graphs(trained.pair, trained.placement, folder, opts.opset)
     f_sess = open_session(folder / GRAPH_FILES["f"])
@@ -303,7 +312,7 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
     summary = summary_of(run_dir)
     n_dups = sum(d is not None for d in duplicates)
     manifest = {
-        "model_version": f"{run_dir.name}-s{int(state['step'])}-{_models_hash(folder)}",
+        "model_version": f"{name}-{_models_hash(folder)}",
         "n_points": int(n_points),
         "embedding_dim": cfg.model.embedding_dim,
         "n_modes": cfg.model.n_modes,

@@ -32,7 +32,8 @@ from onnx import numpy_helper
 from torch import nn
 
 from service.artifacts import GRAPH_FILES, GRAPH_INPUTS, GRAPH_OUTPUTS, MANIFEST
-from training.config import ModelConfig, model_config_from_dict
+from training.checkpoint import Trained
+from training.config import ModelConfig, TrainConfig, model_config_from_dict
 from training.export import example_inputs, graph_modules
 from training.models import PlacementNet, RetrievalPair, build_models
 
@@ -53,6 +54,27 @@ def load_exported_networks(artifacts: Path) -> tuple[RetrievalPair, PlacementNet
         load_graph_weights(module, onnx.load(str(path)), str(path))
         check_parity(module, graph, path, placement)
     return pair, placement, cfg
+
+
+def trained_from_artifacts(artifacts: Path) -> tuple[Trained, str]:
+    """The networks of an artifact folder as a run's ``Trained``, and a name for their re-export.
+
+    The stored training record of the manifest stands in for the checkpoint (step, wall time,
+    validation, N): re-exporting a shipped model over another dataset (``complementme export
+    --from-artifacts``) keeps what it was trained with, and only its catalog changes.
+    """
+    pair, placement, model_cfg = load_exported_networks(artifacts)
+    manifest = json.loads((Path(artifacts) / MANIFEST).read_text())
+    record = manifest.get("training", {})
+    cfg = TrainConfig(model=model_cfg, n_points=int(record.get("n_points", manifest["n_points"])),
+                      batch_size=int(record.get("batch_size", TrainConfig.batch_size)),
+                      seed=int(record.get("seed", 0)))
+    state = {"step": int(record.get("steps", 0)),
+             "elapsed_seconds": 60.0 * float(record.get("wall_minutes", 0.0)),
+             "validation": dict(record.get("validation", {}))}
+    # "shipped-s7115-f41e768a7b" -> "shipped-s7115-recatalogued": the graphs' hash is added again.
+    name = str(manifest["model_version"]).rsplit("-", 1)[0] + "-recatalogued"
+    return Trained(config=cfg, pair=pair, placement=placement, state=state), name
 
 
 def load_graph_weights(module: nn.Module, model: onnx.ModelProto, source: str) -> None:

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from service.artifacts import write_json_atomic
 from training.batches import batch_stream
-from training.checkpoint import checkpoint_path, load_checkpoint, make_state, save_checkpoint
+from training.checkpoint import CONFIG_FILE, checkpoint_path, load_checkpoint, make_state, save_checkpoint
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
 from training.data.processed import ProcessedDataset
 from training.losses import (
@@ -55,12 +55,11 @@ from training.plots import (
     plot_columns,
     truncate_after,
 )
-from training.split import SPLIT_FILE, load_split, make_split, save_split
+from training.split import SPLIT_FILE, Split, load_split, make_split, save_split
 from training.validation import ValidationSet, build_validation_set, validate
 
 log = logging.getLogger(__name__)
 
-CONFIG_FILE = "config.json"
 SUMMARY_FILE = "summary.json"
 LOSS_FIELDS = ["step", "elapsed_s", "lr", "triplet_loss", "e_pos", "e_neg", "batch_triplet_accuracy",
                "placement_loss", "category_loss", "scale_loss", "placement_lr", "seconds_per_step"]
@@ -195,6 +194,50 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     threads = cfg.threads or max(1, (os.cpu_count() or 1) // env.local_world)
     torch.set_num_threads(threads)
     run_dir = Path(cfg.run)
+    _prepare_run_dir(run_dir, resume, env)
+    ds = ProcessedDataset.load(Path(cfg.data))
+    split = _split_of(cfg, ds, run_dir, env)
+    cfg = _with_category_head(cfg, ds)
+    run = _Run(cfg, env, run_dir, threads)
+    if resume:
+        run.restore()
+    if env.is_main:
+        run.open_logs(ds, split)
+    stream = batch_stream(ds.subset(split.train), cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
+                          start_step=run.step, num_workers=cfg.num_workers, sampler_options={
+                              "query_negative_fraction": cfg.query_negative_fraction,
+                              "lookalike_negative_fraction": cfg.lookalike_negative_fraction,
+                              "removal_query_fraction": cfg.removal_query_fraction,
+                              "positives": cfg.positives, "augment": cfg.augment,
+                              "scale_augment": cfg.scale_augment, "categories": ds.categories()})
+    run.start_clock()
+    bar = tqdm(total=cfg.steps, initial=run.step, disable=not (show_progress and env.is_main),
+               desc="train", dynamic_ncols=True)
+    while run.step < cfg.steps:
+        progress = run.progress()
+        if run.should_stop(progress):
+            break
+        run.set_learning_rates(lr_factor(cfg, run.step, progress))
+        batch = next(stream)
+        if cfg.train_retrieval:
+            run.retrieval_step(batch)
+        if cfg.train_placement:
+            run.placement_step(batch)
+        run.step += 1
+        run.steps_in_window += 1
+        bar.update(1)
+        if run.step % cfg.log_every == 0 or run.step == cfg.steps:
+            bar.set_postfix(run.log_row())
+        if cfg.val_every and run.step % cfg.val_every == 0:
+            run.validate()
+        if run.step % cfg.ckpt_every == 0:
+            run.checkpoint()
+    bar.close()
+    return run.finish()
+
+
+def _prepare_run_dir(run_dir: Path, resume: bool, env: _Dist) -> None:
+    """Refuse to overwrite a run, or to resume one that does not exist; make the folder."""
     ckpt = checkpoint_path(run_dir)
     if env.is_main:
         if ckpt.exists() and not resume:
@@ -206,7 +249,9 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     if env.world > 1:
         dist.barrier()
 
-    ds = ProcessedDataset.load(Path(cfg.data))
+
+def _split_of(cfg: TrainConfig, ds: ProcessedDataset, run_dir: Path, env: _Dist) -> Split:
+    """The run's train/test split: the stored one when resuming, else a new one saved beside it."""
     if (run_dir / SPLIT_FILE).exists():
         split = load_split(run_dir, ds)
     else:
@@ -215,8 +260,11 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
             save_split(split, ds, run_dir)
     if len(split.test) == 0:
         raise ValueError(f"{cfg.data}: too few shapes per category to hold out a test split")
-    train_ds = ds.subset(split.train)
+    return split
 
+
+def _with_category_head(cfg: TrainConfig, ds: ProcessedDataset) -> TrainConfig:
+    """``cfg`` with the category head sized to the dataset's category folders when it is trained."""
     if cfg.category_weight > 0 and cfg.model.n_categories == 0:
         # The head's classes are the collection's category folders (ProcessedDataset.categories).
         n_categories = len(ds.categories())
@@ -224,190 +272,215 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     if cfg.model.n_categories not in (0, len(ds.categories())):
         raise ValueError(f"{cfg.data}: the dataset has {len(ds.categories())} categories, the model's "
                          f"category head {cfg.model.n_categories}")
-    torch.manual_seed(cfg.seed)
-    pair, placement = build_models(cfg.model)
-    opt_r = torch.optim.Adam(pair.parameters(), lr=cfg.lr)
-    opt_p = torch.optim.Adam(placement.parameters(), lr=cfg.placement_lr)
-    step, elapsed_before = 0, 0.0
-    last_validation: dict[str, float] = {}
-    if resume:
-        state = load_checkpoint(ckpt)
-        pair.load_state_dict(state["retrieval"])
-        placement.load_state_dict(state["placement"])
-        opt_r.load_state_dict(state["optimizers"]["retrieval"])
-        opt_p.load_state_dict(state["optimizers"]["placement"])
-        step, elapsed_before = int(state["step"]), float(state["elapsed_seconds"])
-        last_validation = dict(state.get("validation", {}))
-        log.info("resuming %s at step %d (%.1f min trained)", run_dir, step, elapsed_before / 60)
-        if env.is_main:
-            truncate_after(run_dir / LOSSES_CSV, step)
-            truncate_after(run_dir / VALIDATION_CSV, step)
-    pair.train()
-    placement.train()
-    pair_run: nn.Module = DistributedDataParallel(pair) if env.world > 1 else pair
-    place_run: nn.Module = DistributedDataParallel(placement) if env.world > 1 else placement
+    return cfg
 
-    vset: ValidationSet | None = None
-    loss_log: CsvLog | None = None
-    val_log: CsvLog | None = None
-    if env.is_main:
-        write_json_atomic(run_dir / CONFIG_FILE, config_to_dict(cfg))
+
+class _Run:
+    """One invocation of a training run: its networks, optimisers, position, logs and clocks.
+
+    Each method is one named step of the loop in ``_train``; rank 0 alone writes files.
+    """
+
+    def __init__(self, cfg: TrainConfig, env: _Dist, run_dir: Path, threads: int) -> None:
+        self.cfg, self.env, self.run_dir, self.threads = cfg, env, run_dir, threads
+        self.ckpt = checkpoint_path(run_dir)
+        torch.manual_seed(cfg.seed)
+        self.pair, self.placement = build_models(cfg.model)
+        self.opt_r = torch.optim.Adam(self.pair.parameters(), lr=cfg.lr)
+        self.opt_p = torch.optim.Adam(self.placement.parameters(), lr=cfg.placement_lr)
+        self.step, self.elapsed_before = 0, 0.0
+        self.last_validation: dict[str, float] = {}
+        self.validated_at = -1
+        self.pair.train()
+        self.placement.train()
+        self.pair_run: nn.Module = DistributedDataParallel(self.pair) if env.world > 1 else self.pair
+        self.place_run: nn.Module = (DistributedDataParallel(self.placement) if env.world > 1
+                                     else self.placement)
+        self.vset: ValidationSet | None = None
+        self.loss_log: CsvLog | None = None
+        self.val_log: CsvLog | None = None
+        self.window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:10]}
+        self.recent: dict[str, deque[float]] = {k: deque(maxlen=100)
+                                                 for k in ("triplet_loss", "placement_loss")}
+        self.t_start = time.monotonic()
+        self.t_window = self.t_start
+        self.steps_in_window = 0
+
+    def restore(self) -> None:
+        """Continue from the checkpoint: weights, optimisers, step, time, last validation."""
+        state = load_checkpoint(self.ckpt)
+        self.pair.load_state_dict(state["retrieval"])
+        self.placement.load_state_dict(state["placement"])
+        self.opt_r.load_state_dict(state["optimizers"]["retrieval"])
+        self.opt_p.load_state_dict(state["optimizers"]["placement"])
+        self.step, self.elapsed_before = int(state["step"]), float(state["elapsed_seconds"])
+        self.last_validation = dict(state.get("validation", {}))
+        log.info("resuming %s at step %d (%.1f min trained)", self.run_dir, self.step,
+                 self.elapsed_before / 60)
+        if self.env.is_main:
+            truncate_after(self.run_dir / LOSSES_CSV, self.step)
+            truncate_after(self.run_dir / VALIDATION_CSV, self.step)
+
+    def open_logs(self, ds: ProcessedDataset, split: Split) -> None:
+        """Write the config, build the fixed validation set and open the CSV logs (rank 0)."""
+        cfg = self.cfg
+        write_json_atomic(self.run_dir / CONFIG_FILE, config_to_dict(cfg))
         log.info("f+g: %d parameters, h: %d parameters, %d train / %d test shapes, %d threads x %d processes",
-                 count_parameters(pair), count_parameters(placement), len(split.train), len(split.test),
-                 threads, env.world)
-        vset = build_validation_set(ds, split.test, cfg.val_triplets, cfg.n_points, cfg.seed)
-        loss_log = CsvLog(run_dir / LOSSES_CSV, LOSS_FIELDS)
-        val_log = CsvLog(run_dir / VALIDATION_CSV, ["step", "elapsed_s", *_validation_keys(cfg)])
+                 count_parameters(self.pair), count_parameters(self.placement), len(split.train),
+                 len(split.test), self.threads, self.env.world)
+        self.vset = build_validation_set(ds, split.test, cfg.val_triplets, cfg.n_points, cfg.seed)
+        self.loss_log = CsvLog(self.run_dir / LOSSES_CSV, LOSS_FIELDS)
+        self.val_log = CsvLog(self.run_dir / VALIDATION_CSV, ["step", "elapsed_s", *_validation_keys(cfg)])
 
-    stream = batch_stream(train_ds, cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
-                          start_step=step, num_workers=cfg.num_workers, sampler_options={
-                              "query_negative_fraction": cfg.query_negative_fraction,
-                              "lookalike_negative_fraction": cfg.lookalike_negative_fraction,
-                              "removal_query_fraction": cfg.removal_query_fraction,
-                              "positives": cfg.positives, "augment": cfg.augment,
-                              "scale_augment": cfg.scale_augment, "categories": ds.categories()})
-    window: dict[str, list[float]] = {k: [] for k in LOSS_FIELDS[3:10]}
-    recent: dict[str, deque[float]] = {k: deque(maxlen=100) for k in ("triplet_loss", "placement_loss")}
-    t_start = time.monotonic()
-    t_window = t_start
-    steps_in_window = 0
-    bar = tqdm(total=cfg.steps, initial=step, disable=not (show_progress and env.is_main),
-               desc="train", dynamic_ncols=True)
+    def start_clock(self) -> None:
+        """Time starts here, when the loop starts (set-up and the validation set are not counted)."""
+        self.t_start = self.t_window = time.monotonic()
 
-    def elapsed() -> float:
-        return elapsed_before + time.monotonic() - t_start
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.monotonic() - self.t_start
 
-    def checkpoint() -> None:
-        if env.is_main:
-            save_checkpoint(ckpt, make_state(cfg, step, elapsed(), pair, placement,
-                                             {"retrieval": opt_r, "placement": opt_p},
-                                             {"validation": last_validation}))
-
-    validated_at = -1
-
-    def run_validation() -> None:
-        nonlocal last_validation, validated_at
-        validated_at = step
-        if env.is_main:
-            assert vset is not None and val_log is not None
-            last_validation = validate(pair if cfg.train_retrieval else None,
-                                       placement if cfg.train_placement else None,
-                                       vset, cfg.margin, cfg.val_precision_k)
-            val_log.append({"step": step, "elapsed_s": elapsed(), **last_validation})
-            plot_columns(run_dir / VALIDATION_CSV, run_dir / VALIDATION_PNG, _validation_keys(cfg),
-                         "validation (test split)")
-            log.info("step %d validation: %s", step,
-                     ", ".join(f"{k}={v:.4g}" for k, v in last_validation.items()))
-        if env.world > 1:
-            dist.barrier()
-
-    while step < cfg.steps:
-        # Progress through the budget: steps, or this invocation's share of --minutes.
-        progress = step / cfg.steps
+    def progress(self) -> float:
+        """Progress through the budget: steps, or this invocation's share of --minutes (all ranks agree)."""
+        cfg = self.cfg
+        progress = self.step / cfg.steps
         if cfg.minutes > 0:
-            progress = max(progress, (time.monotonic() - t_start) / (cfg.minutes * 60))
-        if env.world > 1:  # every rank must stop at the same step and use the same learning rate
+            progress = max(progress, (time.monotonic() - self.t_start) / (cfg.minutes * 60))
+        if self.env.world > 1:  # every rank must stop at the same step and use the same learning rate
             shared = torch.tensor([progress], dtype=torch.float64)
             dist.all_reduce(shared, op=dist.ReduceOp.MAX)
             progress = float(shared.item())
+        return progress
+
+    def should_stop(self, progress: float) -> bool:
+        """True when the time budget, or the time guard, ends the run before its last step."""
+        cfg = self.cfg
         if cfg.minutes > 0 and progress >= 1.0:
-            log.info("time budget of %.1f min reached at step %d", cfg.minutes, step)
-            break
-        guard = time.monotonic() - t_start >= cfg.max_minutes * 60 if cfg.max_minutes > 0 else False
-        if env.world > 1:
+            log.info("time budget of %.1f min reached at step %d", cfg.minutes, self.step)
+            return True
+        guard = time.monotonic() - self.t_start >= cfg.max_minutes * 60 if cfg.max_minutes > 0 else False
+        if self.env.world > 1:
             flag = torch.tensor([float(guard)])
             dist.all_reduce(flag, op=dist.ReduceOp.MAX)
             guard = bool(flag.item())
         if guard:
             log.warning("time guard of %.1f min reached at step %d of %d: the run stops early",
-                        cfg.max_minutes, step, cfg.steps)
-            break
-        factor = lr_factor(cfg, step, progress)
-        for group in opt_r.param_groups:
-            group["lr"] = cfg.lr * factor
-        for group in opt_p.param_groups:
-            group["lr"] = cfg.placement_lr * factor
-        batch = next(stream)
-        X, Z, T = batch["X"], batch["Z"], batch["Y_translation"]
-        if cfg.train_retrieval:
-            mask = batch["P_mask"]
-            pos = batch["P"][mask]                                   # (M, N, 3), each query's Y first
-            counts = mask.sum(dim=1)
-            first = torch.cumsum(counts, 0) - counts                 # (B,) index of each query's Y
-            owner = torch.repeat_interleave(torch.arange(len(X)), counts)
-            emb, log_w, means, log_s, logits = pair_run(X, torch.cat([pos, Z]))
-            m = len(pos)
-            loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:m], owner, first, emb[m:], log_w, means,
-                                                            log_s)
-            if cfg.category_weight and logits is not None:
-                closs = F.cross_entropy(logits, batch["category"])
-                loss = loss + cfg.category_weight * closs
-                window["category_loss"].append(closs.item())
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"triplet loss is {loss.item()} at step {step}")
-            opt_r.zero_grad(set_to_none=True)
-            loss.backward()
-            opt_r.step()
-            window["triplet_loss"].append(hinge.item())
-            window["e_pos"].append(e_pos.mean().item())
-            window["e_neg"].append(e_neg.mean().item())
-            window["batch_triplet_accuracy"].append((e_pos < e_neg).float().mean().item())
-            recent["triplet_loss"].append(hinge.item())
-        if cfg.train_placement:
-            out = place_run(X, batch["Y_h"])
-            if isinstance(out, tuple):
-                translation, log_scale = out
-                sloss = (log_scale - batch["Y_log_scale"]).square().mean()
-                window["scale_loss"].append(sloss.item())
-                ploss = placement_loss(translation, T) + cfg.scale_weight * sloss
-            else:
-                ploss = placement_loss(out, T)
-            if not torch.isfinite(ploss):
-                raise FloatingPointError(f"placement loss is {ploss.item()} at step {step}")
-            opt_p.zero_grad(set_to_none=True)
-            ploss.backward()
-            opt_p.step()
-            window["placement_loss"].append(ploss.item())
-            recent["placement_loss"].append(ploss.item())
-        step += 1
-        steps_in_window += 1
-        bar.update(1)
-        if step % cfg.log_every == 0 or step == cfg.steps:
-            now = time.monotonic()
-            row = {"step": step, "elapsed_s": elapsed(), "lr": opt_r.param_groups[0]["lr"],
-                   "placement_lr": opt_p.param_groups[0]["lr"],
-                   "seconds_per_step": (now - t_window) / max(steps_in_window, 1),
-                   **{k: _mean(v) for k, v in window.items()}}
-            if loss_log is not None:
-                loss_log.append(row)
-            shown = ("triplet_loss", "placement_loss", "seconds_per_step")
-            bar.set_postfix({k: f"{row[k]:.3g}" for k in shown if not math.isnan(row[k])})
-            window = {k: [] for k in window}
-            t_window, steps_in_window = now, 0
-        if cfg.val_every and step % cfg.val_every == 0:
-            run_validation()
-        if step % cfg.ckpt_every == 0:
-            checkpoint()
-    bar.close()
+                        cfg.max_minutes, self.step, cfg.steps)
+        return guard
 
-    if validated_at != step:
-        run_validation()
-    checkpoint()
-    final_losses = {k: _mean(list(v)) for k, v in recent.items() if v}
-    result = TrainResult(run_dir=run_dir, step=step, elapsed_seconds=elapsed(), final_losses=final_losses,
-                         validation=dict(last_validation))
-    if env.is_main:
-        plot_columns(run_dir / LOSSES_CSV, run_dir / LOSSES_PNG,
-                     ["triplet_loss", "batch_triplet_accuracy", "placement_loss", "lr", "seconds_per_step"],
-                     "training losses (rank 0 batches)", log_y=False)
-        write_json_atomic(run_dir / SUMMARY_FILE, {
-            "step": step, "wall_minutes": result.elapsed_seconds / 60, "final_losses": final_losses,
-            "validation": last_validation, "processes": env.world, "threads_per_process": threads,
-        })
-        log.info("finished at step %d after %.1f min: %s", step, result.elapsed_seconds / 60, final_losses)
-    if env.world > 1:
-        dist.barrier()
-    return result
+    def set_learning_rates(self, factor: float) -> None:
+        for group in self.opt_r.param_groups:
+            group["lr"] = self.cfg.lr * factor
+        for group in self.opt_p.param_groups:
+            group["lr"] = self.cfg.placement_lr * factor
+
+    def retrieval_step(self, batch: dict[str, torch.Tensor]) -> None:
+        """One optimiser step of f and g on a batch (and of g's category head, when trained)."""
+        cfg, window = self.cfg, self.window
+        X, Z = batch["X"], batch["Z"]
+        mask = batch["P_mask"]
+        pos = batch["P"][mask]                                   # (M, N, 3), each query's Y first
+        counts = mask.sum(dim=1)
+        first = torch.cumsum(counts, 0) - counts                 # (B,) index of each query's Y
+        owner = torch.repeat_interleave(torch.arange(len(X)), counts)
+        emb, log_w, means, log_s, logits = self.pair_run(X, torch.cat([pos, Z]))
+        m = len(pos)
+        loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:m], owner, first, emb[m:], log_w, means,
+                                                        log_s)
+        if cfg.category_weight and logits is not None:
+            closs = F.cross_entropy(logits, batch["category"])
+            loss = loss + cfg.category_weight * closs
+            window["category_loss"].append(closs.item())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"triplet loss is {loss.item()} at step {self.step}")
+        self.opt_r.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt_r.step()
+        window["triplet_loss"].append(hinge.item())
+        window["e_pos"].append(e_pos.mean().item())
+        window["e_neg"].append(e_neg.mean().item())
+        window["batch_triplet_accuracy"].append((e_pos < e_neg).float().mean().item())
+        self.recent["triplet_loss"].append(hinge.item())
+
+    def placement_step(self, batch: dict[str, torch.Tensor]) -> None:
+        """One optimiser step of h (and of its scale head, when the model has one)."""
+        out = self.place_run(batch["X"], batch["Y_h"])
+        T = batch["Y_translation"]
+        if isinstance(out, tuple):
+            translation, log_scale = out
+            sloss = (log_scale - batch["Y_log_scale"]).square().mean()
+            self.window["scale_loss"].append(sloss.item())
+            ploss = placement_loss(translation, T) + self.cfg.scale_weight * sloss
+        else:
+            ploss = placement_loss(out, T)
+        if not torch.isfinite(ploss):
+            raise FloatingPointError(f"placement loss is {ploss.item()} at step {self.step}")
+        self.opt_p.zero_grad(set_to_none=True)
+        ploss.backward()
+        self.opt_p.step()
+        self.window["placement_loss"].append(ploss.item())
+        self.recent["placement_loss"].append(ploss.item())
+
+    def log_row(self) -> dict[str, str]:
+        """Append the window's means to losses.csv, start a new window; the progress bar's postfix."""
+        now = time.monotonic()
+        row = {"step": self.step, "elapsed_s": self.elapsed(), "lr": self.opt_r.param_groups[0]["lr"],
+               "placement_lr": self.opt_p.param_groups[0]["lr"],
+               "seconds_per_step": (now - self.t_window) / max(self.steps_in_window, 1),
+               **{k: _mean(v) for k, v in self.window.items()}}
+        if self.loss_log is not None:
+            self.loss_log.append(row)
+        self.window = {k: [] for k in self.window}
+        self.t_window, self.steps_in_window = now, 0
+        shown = ("triplet_loss", "placement_loss", "seconds_per_step")
+        return {k: f"{row[k]:.3g}" for k in shown if not math.isnan(row[k])}
+
+    def validate(self) -> None:
+        """Validate on the fixed held-out triplets, log and plot (rank 0); all ranks wait."""
+        cfg = self.cfg
+        self.validated_at = self.step
+        if self.env.is_main:
+            assert self.vset is not None and self.val_log is not None
+            self.last_validation = validate(self.pair if cfg.train_retrieval else None,
+                                            self.placement if cfg.train_placement else None,
+                                            self.vset, cfg.margin, cfg.val_precision_k)
+            self.val_log.append({"step": self.step, "elapsed_s": self.elapsed(), **self.last_validation})
+            plot_columns(self.run_dir / VALIDATION_CSV, self.run_dir / VALIDATION_PNG, _validation_keys(cfg),
+                         "validation (test split)")
+            log.info("step %d validation: %s", self.step,
+                     ", ".join(f"{k}={v:.4g}" for k, v in self.last_validation.items()))
+        if self.env.world > 1:
+            dist.barrier()
+
+    def checkpoint(self) -> None:
+        if self.env.is_main:
+            optimizers = {"retrieval": self.opt_r, "placement": self.opt_p}
+            save_checkpoint(self.ckpt, make_state(self.cfg, self.step, self.elapsed(), self.pair,
+                                                  self.placement, optimizers,
+                                                  {"validation": self.last_validation}))
+
+    def finish(self) -> TrainResult:
+        """Validate if the last step was not, checkpoint, plot and write summary.json."""
+        if self.validated_at != self.step:
+            self.validate()
+        self.checkpoint()
+        final_losses = {k: _mean(list(v)) for k, v in self.recent.items() if v}
+        result = TrainResult(run_dir=self.run_dir, step=self.step, elapsed_seconds=self.elapsed(),
+                             final_losses=final_losses, validation=dict(self.last_validation))
+        if self.env.is_main:
+            plot_columns(self.run_dir / LOSSES_CSV, self.run_dir / LOSSES_PNG,
+                         ["triplet_loss", "batch_triplet_accuracy", "placement_loss", "lr",
+                          "seconds_per_step"],
+                         "training losses (rank 0 batches)", log_y=False)
+            write_json_atomic(self.run_dir / SUMMARY_FILE, {
+                "step": self.step, "wall_minutes": result.elapsed_seconds / 60, "final_losses": final_losses,
+                "validation": self.last_validation, "processes": self.env.world,
+                "threads_per_process": self.threads,
+            })
+            log.info("finished at step %d after %.1f min: %s", self.step, result.elapsed_seconds / 60,
+                     final_losses)
+        if self.env.world > 1:
+            dist.barrier()
+        return result
 
 
 def _validation_keys(cfg: TrainConfig) -> list[str]:

@@ -6,14 +6,20 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import onnx
 import pytest
 import torch
 
-from service.artifacts import GRAPH_FILES, MANIFEST
+from service.artifacts import CATALOG_ARRAYS, GRAPH_FILES, MANIFEST
 from training.checkpoint import load_trained
 from training.export import export_run, graph_modules
-from training.from_onnx import check_parity, load_exported_networks, load_graph_weights
+from training.from_onnx import (
+    check_parity,
+    load_exported_networks,
+    load_graph_weights,
+    trained_from_artifacts,
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,3 +63,23 @@ def test_a_manifest_that_does_not_describe_the_graphs_is_refused(exported: Path,
     (folder / MANIFEST).write_text(json.dumps(manifest))
     with pytest.raises(ValueError, match="unnamed layers in the graph"):
         load_exported_networks(folder)
+
+
+def test_an_exported_model_recatalogued_over_a_run_split_serves_the_same_function(
+        exported: Path, tiny_run: Path, tmp_path: Path) -> None:
+    """`export --from-artifacts`: the exported networks, a catalog rebuilt from the run's split and data."""
+    out = tmp_path / "recatalogued"
+    manifest = export_run(tiny_run, out, networks=trained_from_artifacts(exported))
+    before = json.loads((exported / MANIFEST).read_text())
+    assert manifest["model_version"].startswith(before["model_version"].rsplit("-", 1)[0] + "-recatalogued-")
+    assert manifest["model_config"] == before["model_config"]
+    assert manifest["training"]["steps"] == before["training"]["steps"]
+    assert manifest["part_count"] == before["part_count"]
+    old = np.load(exported / CATALOG_ARRAYS)["embeddings"]
+    new = np.load(out / CATALOG_ARRAYS)["embeddings"]
+    np.testing.assert_allclose(new, old, atol=1e-4)
+
+
+def test_recatalogue_names_a_missing_artifact_folder(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"manifest\.json"):
+        trained_from_artifacts(tmp_path / "nowhere")
