@@ -32,8 +32,8 @@ against one assembly are searched together, each part a block of one combined KD
 (one query for every part and offset of a round); and most offsets are ruled out before they
 are measured in full, by exact tests: a sample that was inside by more than the tolerance is
 measured alone first, and a sample's nearest distance moves at most as far as the part does.
-On the benchmark query (k = 10) that measures 15 times fewer samples in 6 times fewer KD-tree
-calls than one part at a time.
+On the benchmark query (k = 10) that queries 7 times fewer samples (34k against 236k) in 5.5
+times fewer KD-tree calls (66 against 365) than one part at a time, for the same offsets.
 
 Everything is in the canonical frame; callers map offsets to their frame like translations.
 """
