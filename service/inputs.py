@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, UnsupportedMediaError
-from service.geometry import MESH_FORMATS, MeshError, load_mesh_bytes, mesh_area, sample_surface
+from service.geometry import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface, triangle_areas
 from service.settings import Settings
 
 # Mesh error codes that are the caller's format or size choice rather than a broken file.
@@ -177,7 +177,8 @@ def _sample_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str, m
     try:
         mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
                                ignore_obj_materials=True, **limits)
-        return sample_surface(mesh.vertices, mesh.faces, n, seed), mesh_area(mesh.vertices, mesh.faces)
+        areas = triangle_areas(mesh.vertices, mesh.faces)
+        return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=areas), float(areas.sum())
     except MeshError as exc:
         cls = _MESH_CODE_ERRORS.get(exc.code, InputError)
         raise cls(exc.code, exc.message) from None

@@ -11,6 +11,7 @@ import trimesh
 
 from service.geometry import (
     MeshError,
+    _prepare_obj,
     connected_components,
     load_mesh_bytes,
     load_scene_pieces,
@@ -276,3 +277,32 @@ def test_point_to_mesh_distance_is_below_any_sampled_distance() -> None:
     exact = points_to_mesh_distance(p, v, f)
     assert (exact <= sampled + 1e-6).all()
     assert np.allclose(exact, sampled, atol=0.03)
+
+
+@pytest.mark.parametrize(("text", "vertices", "faces", "groups"), [
+    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", 3, 1, 0),
+    (b"v 0 0 0\r\nv 1 0 0\r\n  v 0 1 0\r\nf 1 2 3 4 5\r\n", 3, 3, 0),   # CRLF, indented, a pentagon
+    (b"v 0 0 0\rv 1 0 0\rvt 0 0\rvn 0 0 1\r\tf\t1/1\x0b2/1 3/1\rg a\ro b", 2, 1, 2),  # CR, tabs, \x0b
+    (b"vv 1\nf1 2 3\nv\nf\n# v 1 2 3\n\n   \n", 1, 1, 0),  # 'v' and 'f' alone count; 'vv', 'f1' do not
+])
+def test_obj_prescan_counts_lines_as_the_loader_splits_them(text: bytes, vertices: int, faces: int,
+                                                            groups: int) -> None:
+    """The OBJ pre-scan (numpy over the bytes) counts keywords per line as bytes.splitlines() and
+    bytes.split() see them: every line ending, leading whitespace, polygons as k - 2 triangles."""
+    _prepare_obj(text, "m.obj", vertices, faces, False, groups)
+    for over in ({"max_vertices": vertices - 1}, {"max_faces": faces - 1}, {"max_nodes": groups - 1}):
+        limits = {"max_vertices": vertices, "max_faces": faces, "max_nodes": groups, **over}
+        if min(limits.values()) < 0:
+            continue
+        with pytest.raises(MeshError) as err:
+            _prepare_obj(text, "m.obj", limits["max_vertices"], limits["max_faces"], False,
+                         limits["max_nodes"])
+        assert err.value.code == "too_large"
+
+
+def test_obj_prescan_drops_only_material_lines() -> None:
+    text = b"v 0 0 0\r\nusemtl red\r\nv 1 0 0\n mtllib a.mtl\nv 0 1 0\nf 1 2 3\nusemap x"
+    kept = _prepare_obj(text, "m.obj", 3, 1, True)
+    assert kept.splitlines() == [b"v 0 0 0", b"v 1 0 0", b"v 0 1 0", b"f 1 2 3"]
+    with pytest.raises(MeshError, match=r"'csh x\.sh' refers to an external file"):
+        _prepare_obj(b"v 0 0 0\n\tcsh\x0bx.sh \nmtllib b.mtl\n", "m.obj", 10, 10, True)
