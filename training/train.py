@@ -453,7 +453,7 @@ class _Run:
 
     def checkpoint(self) -> None:
         if self.env.is_main:
-            optimizers = {"retrieval": self.opt_r, "placement": self.opt_p}
+            optimizers: dict[str, torch.optim.Optimizer] = {"retrieval": self.opt_r, "placement": self.opt_p}
             save_checkpoint(self.ckpt, make_state(self.cfg, self.step, self.elapsed(), self.pair,
                                                   self.placement, optimizers,
                                                   {"validation": self.last_validation}))
