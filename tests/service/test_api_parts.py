@@ -40,6 +40,29 @@ def test_category_and_shape_filters(client: TestClient, catalog: Catalog) -> Non
     assert [p.part_id for p in page.items] == expected
 
 
+def test_text_search_pages_and_combines_with_the_category(client: TestClient, catalog: Catalog) -> None:
+    def ids(**params: object) -> tuple[int, list[str]]:
+        response = client.get("/parts", params={"limit": 100, **params})
+        assert response.status_code == 200, response.text
+        page = PartsPage.model_validate(response.json())
+        return page.total, [p.part_id for p in page.items]
+
+    legs = [r["part_id"] for r in catalog.records
+            if r["category"] == "chair" and "leg" in str(r["label"] or "").lower()]
+    total, first = ids(category="chair", q="LEG")
+    assert total == len(legs) > 0 and first == legs[:100]
+    _, second = ids(category="chair", q="LEG", offset=100)
+    assert second == legs[100:200]
+    total, found = ids(q=" chair-0007/ ")  # ids too, trimmed
+    assert found == [r["part_id"] for r in catalog.records if "chair-0007/" in r["part_id"]]
+    assert total == len(found)
+    assert ids(q="no part is called this") == (0, [])
+    chairs = int(np.sum(catalog.category_of == catalog.categories.index("chair")))
+    assert ids(category="chair", q="")[0] == chairs
+    response = client.get("/parts", params={"q": "x" * 101})
+    assert response.status_code == 422 and response.json()["error"]["code"] == "validation_error"
+
+
 def test_categories(client: TestClient, catalog: Catalog) -> None:
     cats = [CategoryOut.model_validate(c) for c in client.get("/categories").json()]
     assert [c.name for c in cats] == catalog.categories
