@@ -1,4 +1,5 @@
-// The 3D view (orbitable, three.js + OrbitControls) and the thumbnail renderer of the gallery.
+// The 3D view (orbitable, three.js + OrbitControls; a click without a drag picks a spot on the
+// model) and the thumbnail renderer of the gallery.
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
@@ -53,6 +54,8 @@ export class Viewer {
     this.scene.add(grid);
     this.group = new THREE.Group();
     this.scene.add(this.group);
+    this.marker = null;    // the picked spot: a translucent ball
+    this.ghost = null;     // a suggestion previewed where the service placed it
     this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 100);
     this.camera.position.set(2.2, 1.4, 2.6);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
@@ -60,6 +63,8 @@ export class Viewer {
     this.controls.enableDamping = true;
     this.controls.addEventListener("change", () => this.render());
     new ResizeObserver(() => this.resize()).observe(container);
+    this.onPick = null;
+    this.listenForClicks();
     this.resize();
     const tick = () => {
       if (this.controls.update()) this.render();
@@ -80,13 +85,71 @@ export class Viewer {
     this.renderer.render(this.scene, this.camera);
   }
 
-  // items: [{partId, translation, colour}] and an optional cloud geometry (uploaded start).
+  // A press and release within a few pixels is a click (a drag orbits): onPick(point) with the
+  // model's surface point under the cursor, or onPick(null) when the click missed the model.
+  listenForClicks() {
+    const canvas = this.renderer.domElement;
+    let down = null;
+    canvas.addEventListener("pointerdown", (e) => { down = e.button === 0 ? [e.clientX, e.clientY] : null; });
+    canvas.addEventListener("pointerup", (e) => {
+      if (!down || Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 4 || !this.onPick) return;
+      down = null;
+      this.onPick(this.pick(e.clientX, e.clientY));
+    });
+  }
+
+  // The nearest surface point of the assembly under a window position, or null.
+  pick(clientX, clientY) {
+    const rect = this.renderer.domElement.getBoundingClientRect();
+    const ndc = new THREE.Vector2(((clientX - rect.left) / rect.width) * 2 - 1,
+      -((clientY - rect.top) / rect.height) * 2 + 1);
+    const ray = new THREE.Raycaster();
+    ray.setFromCamera(ndc, this.camera);
+    const hit = ray.intersectObjects(this.group.children, false)[0];
+    return hit ? hit.point.toArray() : null;
+  }
+
+  // The spot the suggestions are for, drawn as a ball of its radius (null: none).
+  setSpot(point, radius) {
+    if (this.marker) {
+      this.scene.remove(this.marker);
+      this.marker.geometry.dispose();
+      this.marker = null;
+    }
+    if (point) {
+      this.marker = new THREE.Mesh(new THREE.SphereGeometry(radius, 24, 16), new THREE.MeshBasicMaterial({
+        color: 0xa371f7, transparent: true, opacity: 0.35, depthWrite: false }));
+      this.marker.position.fromArray(point);
+      this.scene.add(this.marker);
+    }
+    this.render();
+  }
+
+  // A suggestion shown, translucent, where the service placed it (null: none).
+  async setGhost(item) {
+    const token = (this.ghostToken = (this.ghostToken ?? 0) + 1);
+    const geometry = item ? await partGeometry(item.partId) : null;
+    if (token !== this.ghostToken) return;
+    if (this.ghost) this.scene.remove(this.ghost);
+    this.ghost = null;
+    if (geometry) {
+      this.ghost = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({
+        color: item.colour, transparent: true, opacity: 0.55, depthWrite: false }));
+      this.ghost.position.fromArray(item.translation);
+      this.ghost.scale.fromArray(item.scale ?? [1, 1, 1]);
+      this.scene.add(this.ghost);
+    }
+    this.render();
+  }
+
+  // items: [{partId, translation, scale?, colour}] and an optional cloud geometry (uploaded start).
   async show(items, cloudGeometry) {
     const meshes = await Promise.all(items.map(async (item) => {
       const geometry = await partGeometry(item.partId);
       const mesh = new THREE.Mesh(geometry, new THREE.MeshStandardMaterial({
         color: item.colour, roughness: 0.65, metalness: 0.05 }));
       mesh.position.fromArray(item.translation);
+      mesh.scale.fromArray(item.scale ?? [1, 1, 1]);
       mesh.userData.partId = item.partId;
       return mesh;
     }));
