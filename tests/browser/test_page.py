@@ -276,6 +276,32 @@ def test_suggestions_for_a_clicked_spot(page: Any, artifact_dir: Path) -> None:
     np.testing.assert_allclose([float(v) for v in translation.split(",")], placed["translation"], atol=1e-4)
     assert page.locator("#spot-info").is_hidden()
 
+    # Shift + drag: a box around the middle of the view; every suggestion's box overlaps it.
+    view = page.locator("#viewport").bounding_box()
+    cx, cy = view["x"] + width / 2, view["y"] + height / 2
+    with page.expect_request(lambda r: r.url.endswith("/suggest")) as sent, \
+            page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
+        page.keyboard.down("Shift")
+        page.mouse.move(cx - 60, cy - 40)
+        page.mouse.down()
+        page.mouse.move(cx, cy, steps=4)
+        page.mouse.move(cx + 60, cy + 40, steps=4)
+        page.mouse.up()
+        page.keyboard.up("Shift")
+    box = sent.value.post_data_json["region"]
+    lo, hi = np.array(box["min"]), np.array(box["max"])
+    assert set(box) == {"min", "max"} and np.all(lo < hi)
+    body = answer.value.json()
+    assert body["suggestions"], body["warnings"]
+    for s in body["suggestions"]:
+        assert np.all(np.array(s["bbox_min"]) <= hi + 1e-6), s
+        assert np.all(np.array(s["bbox_max"]) >= lo - 1e-6), s
+    page.wait_for_function(IDLE)
+    assert "the box" in page.inner_text("#spot-text")
+    page.click("#clear-spot")
+    page.wait_for_function(IDLE)
+    assert page.locator("#spot-info").is_hidden()
+
     # A click that misses the model says so and asks nothing.
     page.locator("#viewport canvas").click(position={"x": 8, "y": 8})
     assert "missed the model" in page.inner_text("#notice")

@@ -36,7 +36,7 @@ const state = { category: null, parts: [], cloud: null };
 const undoStack = [];
 const redoStack = [];
 const picker = { offset: 0, total: 0, query: "", token: 0 };
-let spot = null;                 // {point: [x, y, z], radius} in the canonical frame, or null
+let spot = null;                 // {point, radius} (a click) or {min, max} (a Shift-drag), canonical; or null
 let viewer;
 let thumbnails;
 let busyCount = 0;
@@ -188,14 +188,25 @@ function adoptCategory(category) {
 
 // ------------------------------------------------------------------ the spot
 
+function spotName(value) {
+  const fmt = (v) => `(${v.map((x) => x.toFixed(2)).join(", ")})`;
+  return value.point ? `the spot ${fmt(value.point)}` : `the box ${fmt(value.min)}–${fmt(value.max)}`;
+}
+
 function setSpot(value) {
   spot = value;
-  viewer.setSpot(spot ? spot.point : null, spot ? spot.radius : 0);
+  viewer.setSpot(spot);
   $("spot-info").hidden = !spot;
   $("spot-hint").hidden = !!spot;
-  if (spot) {
-    $("spot-text").textContent = `Parts for the spot (${spot.point.map((v) => v.toFixed(2)).join(", ")})`;
-  }
+  $("spot-radius").parentElement.hidden = !spot?.point;
+  if (spot) $("spot-text").textContent = `Parts for ${spotName(spot)}`;
+}
+
+function pickBox(box) {
+  if (!state.parts.length && !state.cloud) return;
+  clearNotice();
+  setSpot(box);
+  busy("Finding parts for this box", refreshSuggestions);
 }
 
 function pickSpot(point) {
@@ -361,12 +372,12 @@ async function refreshSuggestions() {
   const answer = await postJson("/suggest", {
     points_base64: floatsToBase64(points), k: GALLERY_SIZE, diversity: $("diversity-toggle").checked,
     refine_contact: $("refine-toggle").checked, ...(state.category ? { category: state.category } : {}),
-    ...(spot ? { region: { point: spot.point, radius: spot.radius } } : {}),
+    ...(spot ? { region: spot } : {}),
   });
   if (token !== refreshToken) return;
   renderInferred(answer);
   if (spot && answer.region) {
-    $("spot-text").textContent = `Parts for the spot (${spot.point.map((v) => v.toFixed(2)).join(", ")}): ` +
+    $("spot-text").textContent = `Parts for ${spotName(spot)}: ` +
       `${answer.region.inside} of the ${answer.region.placed} best candidates are placed there`;
   }
   await renderGallery(answer, token);
@@ -556,6 +567,7 @@ async function startFromMesh(file) {
 function main() {
   viewer = new Viewer($("viewport"));
   viewer.onPick = pickSpot;
+  viewer.onBox = pickBox;
   thumbnails = new Thumbnailer(96);
   $("category-select").addEventListener("change", () => busy("Loading parts", chooseCategory));
   let searchTimer = null;
@@ -587,7 +599,7 @@ function main() {
     busy("Updating suggestions", refreshSuggestions);
   });
   $("spot-radius").addEventListener("change", () => {
-    if (!spot) return;
+    if (!spot?.point) return;
     setSpot({ ...spot, radius: Number($("spot-radius").value) });
     busy("Finding parts for this spot", refreshSuggestions);
   });
