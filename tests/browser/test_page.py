@@ -223,16 +223,24 @@ def test_start_part_picker_searches_and_pages(page: Any, server: str) -> None:
     page.wait_for_function(f"document.getElementById('start-page-info').textContent === '51–100 of {chairs}'")
     page.wait_for_function(IDLE)
 
-    legs = httpx.get(server + "/parts", params={"category": "chair", "q": "leg", "limit": 100}).json()
-    page.fill("#start-part-search", "leg")
-    shown = min(50, legs["total"])
+    # The search reads part ids (never labels): the first hundred chairs' parts, two pages of them.
+    found = httpx.get(server + "/parts", params={"category": "chair", "q": "chair-00", "limit": 100}).json()
+    assert found["total"] > 50 and all(p["part_id"].startswith("chair-00") for p in found["items"])
+    page.fill("#start-part-search", "chair-00")
     page.wait_for_function(
-        f"document.getElementById('start-page-info').textContent === '1–{shown} of {legs['total']}'")
+        f"document.getElementById('start-page-info').textContent === '1–50 of {found['total']}'")
     page.wait_for_function(IDLE)
     options = page.eval_on_selector_all("#start-part-select option", "os => os.map(o => o.value)")
-    assert options == [p["part_id"] for p in legs["items"][:50]]
+    assert options == [p["part_id"] for p in found["items"][:50]]
     assert page.get_attribute("#start-preview", "data-part-id") == options[0]
     assert page.locator("#start-prev").is_disabled()
+    page.click("#start-next")  # the search's second page
+    shown = min(100, found["total"])
+    page.wait_for_function(
+        f"document.getElementById('start-page-info').textContent === '51–{shown} of {found['total']}'")
+    page.wait_for_function(IDLE)
+    options = page.eval_on_selector_all("#start-part-select option", "os => os.map(o => o.value)")
+    assert options == [p["part_id"] for p in found["items"][50:100]]
 
     page.fill("#start-part-search", "no part is called this")
     page.wait_for_function("document.getElementById('start-page-info').textContent === 'no part matches'")
