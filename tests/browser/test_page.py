@@ -390,8 +390,10 @@ def test_download_is_confirmed(page: Any) -> None:
     text = page.inner_text("#notice")
     assert text.startswith("Downloaded assembly.obj: 2 parts, "), text
     assert f"{max(1, math.floor(size / 1024 + 0.5))} KB" in text, (text, size)  # JavaScript's Math.round
-    scene = trimesh.load_scene(download.value.path(), file_type="obj")
-    assert len(scene.geometry) == 2
+    # One object per placed part, named by index and id (trimesh merges OBJ objects unless asked).
+    scene = trimesh.load_scene(download.value.path(), file_type="obj", split_objects=True)
+    placed = page.eval_on_selector_all(PARTS, "ps => ps.map(p => p.dataset.partId)")
+    assert sorted(scene.geometry) == sorted(f"{i}_{p.replace('/', '_')}" for i, p in enumerate(placed))
     assert not page.problems, page.problems
 
 
