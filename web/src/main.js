@@ -45,9 +45,11 @@ let progressTimer = null;
 
 // ------------------------------------------------------------------ status, progress, notices
 
+// One line (the layout gives it a fixed height); the title holds the whole text.
 function setStatus(text, isError = false) {
   const el = $("status");
   el.textContent = text;
+  el.title = text;
   el.classList.toggle("error", isError);
 }
 
@@ -70,6 +72,7 @@ async function busy(label, fn) {
     return await fn();
   } catch (err) {
     setStatus(err.message || String(err), true);
+    notify(err.message || String(err), "error");  // the whole message, where it has room
     return undefined;
   } finally {
     busyCount--;
@@ -85,6 +88,7 @@ async function busy(label, fn) {
 function notify(text, kind = "info") {
   $("notice-text").textContent = text;
   $("notice").classList.toggle("warn", kind === "warn");
+  $("notice").classList.toggle("error", kind === "error");
   $("notice").dataset.kind = kind;
   $("notice").hidden = false;
 }
@@ -385,7 +389,7 @@ async function refreshSuggestions() {
 
 async function refresh() {
   renderPartList();
-  $("alternatives-tree").replaceChildren();
+  clearTree();
   const items = state.parts.map((p, i) => ({ ...p, colour: colourOf(i) }));
   await viewer.show(items, state.cloud ? state.cloud.geometry : null);
   await refreshSuggestions();
@@ -423,6 +427,13 @@ async function autoComplete() {
   });
   const n = answer.steps.length;
   notify(`Auto-complete added ${n} part${n === 1 ? "" : "s"}; it stopped because ${stopReason(answer.stop_reason)}.`);
+}
+
+function clearTree() {
+  const hint = document.createElement("p");
+  hint.className = "hint";
+  hint.textContent = "\u201cShow alternatives\u201d grows a tree of completions here; a click applies a branch.";
+  $("alternatives-tree").replaceChildren(hint);
 }
 
 async function showAlternatives() {
