@@ -139,6 +139,13 @@ class Settings(BaseSettings):
     complement_cover_share: float = Field(default=0.5, gt=0, le=1, description=(
         "Candidates with at least this share of their samples on the query's surface count as "
         "already present and are demoted."))
+    region_candidates: int = Field(default=256, ge=1, le=4096, description=(
+        "The candidate budget of a suggestion request with a `region` (\"suggest for this "
+        "spot\"): this many best-ranked candidates (after duplicate collapse; at least the "
+        "request's k) are placed by the placement network, and the k suggestions are the best of "
+        "those whose placed box reaches into the region. FAISS returns at least this many parts "
+        "per mixture mean for such a request. A part ranked below the budget is never offered "
+        "for the spot; the answer's `region` says how many were placed and how many fell in."))
     contact_search_points: int = Field(default=128, ge=8, le=4096, description=(
         "Samples per side (part, assembly) measured at each candidate offset of the refinement."))
     contact_part_samples: int = Field(default=512, ge=32, le=20_000, description=(
@@ -242,8 +249,9 @@ class Settings(BaseSettings):
         "Budget of one suggestion request (`/suggest`, `/suggest/mesh`, `/suggest/batch`) in "
         "estimated CPU milliseconds, checked before any work starts (413 `over_budget`). Each query "
         "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 12 ms per suggestion (k) when "
-        "`refine_contact` is on (measured on the shipped artifacts: 1.4 s for k = 100 refined). "
-        "The default admits one query of any k with refinement, and a batch of 64 without."))
+        "`refine_contact` is on (measured on the shipped artifacts: 1.4 s for k = 100 refined), "
+        "plus 5 ms per 256 `region_candidates` when the query gives a `region`. The default "
+        "admits one query of any k with refinement, and a batch of 64 without."))
     max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024, description=(
         "Largest JSON request body in bytes (checked against Content-Length before reading "
         "and enforced while reading)."))

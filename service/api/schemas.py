@@ -18,6 +18,7 @@ from service.errors import InputError
 from service.frames import Frame
 from service.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
 from service.preferences import Preferences
+from service.region import Region
 
 # Request numbers and flags are strict: JSON `false` or `"1"` is not a coordinate, a count or a
 # flag (pydantic would otherwise coerce them). Integers are still accepted for floats.
@@ -60,6 +61,36 @@ class FrameIn(_Strict):
         return Frame(center=np.array(self.center, dtype=np.float64), radius=self.radius, up_axis=self.up_axis)
 
 
+Coord3 = tuple[FrameCoord, FrameCoord, FrameCoord]
+
+
+class RegionIn(_Strict):
+    """A spot in the request's frame: a point and a radius (a click), or a box (a drag)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"point": [0.3, -0.2, 0.3], "radius": 0.15}, {"min": [0.1, -1.0, 0.1], "max": [0.5, -0.2, 0.5]}]})
+
+    point: Coord3 | None = Field(default=None, description="The spot's centre (with `radius`).")
+    radius: Finite | None = Field(default=None, gt=0, le=FRAME_MAX, description=(
+        "With `point`: parts whose placed box comes within this distance of the point."))
+    min: Coord3 | None = Field(default=None, description="A box's smallest corner (with `max`).")
+    max: Coord3 | None = Field(default=None, description="A box's largest corner (with `min`).")
+
+    def to_region(self) -> Region:
+        """The engine's region; ``InputError`` (``invalid_region``) unless exactly one form is complete."""
+        ball = (self.point, self.radius)
+        box = (self.min, self.max)
+        if all(v is not None for v in ball) and all(v is None for v in box):
+            assert self.point is not None and self.radius is not None
+            return Region.ball(np.array(self.point), self.radius)
+        if all(v is not None for v in box) and all(v is None for v in ball):
+            assert self.min is not None and self.max is not None
+            return Region.box(np.array(self.min), np.array(self.max))
+        given = [n for n in ("point", "radius", "min", "max") if getattr(self, n) is not None]
+        raise InputError("invalid_region", "a region is either point and radius, or min and max; found "
+                         + (", ".join(given) if given else "none of them"))
+
+
 class SuggestOptionsIn(_Strict):
     """Options of one suggestion query."""
 
@@ -98,6 +129,11 @@ class SuggestOptionsIn(_Strict):
         "Fit each part in size to the query (per-axis `scale` from the placement network, applied "
         "about the part's centre; the placed box is the scaled one). Omitted: "
         "COMPLEMENTME_FIT_SCALE (true unless configured)."))
+    region: RegionIn | None = Field(default=None, description=(
+        "Suggest for this spot: only parts whose placed box (after scale fitting) reaches into the "
+        "region, in the request's frame, ranked among the best COMPLEMENTME_REGION_CANDIDATES "
+        "candidates. The answer's `region` says how many were placed and how many fell in; an "
+        "empty answer carries a `region_empty` warning saying why."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
@@ -112,7 +148,8 @@ class SuggestOptionsIn(_Strict):
                               frame=self.frame.to_frame() if self.frame else Frame(),
                               refine_contact=self.refine_contact, complement_check=self.complement_check,
                               fit_scale=self.fit_scale, styles=tuple(styles),
-                              preferences=self.preferences())
+                              preferences=self.preferences(),
+                              region=self.region.to_region() if self.region is not None else None)
 
 
 class PointsIn(_Strict):
@@ -250,9 +287,18 @@ class InferredCategoryOut(BaseModel):
 class WarningOut(BaseModel):
     code: str = Field(..., description=(
         "`frame` (the points are far from the model's unit-radius frame), `category_unsure` (no "
-        "category is likely enough) or `unfamiliar` (nothing in the catalog is like what the model "
-        "expects)."))
+        "category is likely enough), `unfamiliar` (nothing in the catalog is like what the model "
+        "expects) or `region_empty` (no candidate is placed in the request's region)."))
     message: str = Field(..., description="What is wrong and how to fix it.")
+
+
+class RegionOut(BaseModel):
+    placed: int = Field(..., description=(
+        "Best-ranked candidates placed and tested against the region (at most "
+        "COMPLEMENTME_REGION_CANDIDATES)."))
+    inside: int = Field(..., description="Of those, the parts whose placed box reaches into the region.")
+    nearest_gap: float | None = Field(..., description=(
+        "When none is inside: how far the nearest placed box stays from the region (request's units)."))
 
 
 class ModeOut(BaseModel):
@@ -285,6 +331,8 @@ class SuggestResponse(BaseModel):
         "When the request named no category: the category the model reads from the query."))
     warnings: list[WarningOut] = Field(default_factory=list, description=(
         "What makes this answer doubtful (the status stays 200)."))
+    region: RegionOut | None = Field(default=None, description=(
+        "When the request gave a region: how many candidates were placed and how many fell in it."))
 
 
 class PlacementOut(BaseModel):

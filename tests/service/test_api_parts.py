@@ -40,6 +40,48 @@ def test_category_and_shape_filters(client: TestClient, catalog: Catalog) -> Non
     assert [p.part_id for p in page.items] == expected
 
 
+def _search(client: TestClient, **params: object) -> tuple[int, list[str]]:
+    response = client.get("/parts", params={"limit": 100, **params})
+    assert response.status_code == 200, response.text
+    page = PartsPage.model_validate(response.json())
+    return page.total, [p.part_id for p in page.items]
+
+
+def _containing(catalog: Catalog, text: str, category: str | None = None) -> list[str]:
+    """What the search should find: parts whose id or name contains the text, case-insensitive."""
+    return [r["part_id"] for r in catalog.records
+            if (category is None or r["category"] == category)
+            and any(text.lower() in str(r.get(key) or "").lower() for key in ("part_id", "name"))]
+
+
+def test_text_search_pages_and_combines_with_the_category(client: TestClient, catalog: Catalog) -> None:
+    chair_ids = _containing(catalog, "chair-00", "chair")
+    assert len(chair_ids) > 100  # two pages
+    total, first = _search(client, category="chair", q="CHAIR-00")
+    assert total == len(chair_ids) and first == chair_ids[:100]
+    _, second = _search(client, category="chair", q="CHAIR-00", offset=100)
+    assert second == chair_ids[100:200]
+    total, shape = _search(client, q=" chair-0007/ ")  # trimmed
+    assert shape == _containing(catalog, "chair-0007/") and total == len(shape) > 0
+    assert _search(client, q="no part is called this") == (0, [])
+    chairs = int(np.sum(catalog.category_of == catalog.categories.index("chair")))
+    assert _search(client, category="chair", q="")[0] == chairs
+    response = client.get("/parts", params={"q": "x" * 101})
+    assert response.status_code == 422 and response.json()["error"]["code"] == "validation_error"
+
+
+def test_text_search_never_reads_labels(client: TestClient, catalog: Catalog) -> None:
+    """Labels of the data are for measuring only: a label's text finds only ids and names holding it."""
+    labels = sorted({str(r["label"]) for r in catalog.records if r["category"] == "chair" and r["label"]})
+    labelled = 0
+    for label in labels:
+        expected = _containing(catalog, label, "chair")
+        assert _search(client, category="chair", q=label) == (len(expected), expected[:100]), label
+        labelled += sum(r["category"] == "chair" and r["label"] == label and r["part_id"] not in expected
+                        for r in catalog.records)
+    assert labelled > 0  # parts a label search would have found: the check above can fail
+
+
 def test_categories(client: TestClient, catalog: Catalog) -> None:
     cats = [CategoryOut.model_validate(c) for c in client.get("/categories").json()]
     assert [c.name for c in cats] == catalog.categories

@@ -112,11 +112,11 @@ def test_added_part_is_searchable_at_once_and_persists(artifacts: Path, data_dir
     settings = writable_settings(artifacts, data_dir)
     with _boot(settings) as c:
         before = _state(c).engine
-        r = add_part(c, 1, category="widget", label="block", name="a block", style="plain")
+        r = add_part(c, 1, category="widget", label="plank", name="a block", style="plain")
         assert r.status_code == 201, r.text
         part = r.json()
         assert r.headers["location"] == f"/parts/{part['part_id']}"
-        assert part["origin"] == "added" and part["split"] == "added" and part["label"] == "block"
+        assert part["origin"] == "added" and part["split"] == "added" and part["label"] == "plank"
         got = c.get(f"/parts/{part['part_id']}").json()
         assert got == part
         # The snapshot in use before the write is untouched; the next request sees the part.
@@ -127,6 +127,10 @@ def test_added_part_is_searchable_at_once_and_persists(artifacts: Path, data_dir
         answer = c.post("/suggest", json=query).json()
         assert [s["part_id"] for s in answer["suggestions"]] == [part["part_id"]]
         assert {"name": "widget", "parts": 1} in c.get("/categories").json()
+        # The page's part search finds it by its name, never by its label.
+        found = c.get("/parts", params={"q": "A BLOCK"}).json()
+        assert [p["part_id"] for p in found["items"]] == [part["part_id"]]
+        assert c.get("/parts", params={"q": "plank"}).json()["total"] == 0
         obj = c.get(f"/parts/{part['part_id']}/mesh?format=obj")
         assert obj.status_code == 200 and obj.text.count("\nf ") == 12
         status = c.get("/catalog").json()

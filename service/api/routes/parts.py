@@ -40,6 +40,9 @@ def list_parts(
     category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
     shape_id: str | None = Query(None, description="Only parts of this source shape.",
                                  examples=["chair-0007"]),
+    q: str | None = Query(None, max_length=100, examples=["chair-0007/"], description=(
+        "Only parts whose id or name (an added part's) contains this text (case-insensitive): "
+        "the page's part search. Labels are not searched: the service never reads them.")),
     # Bounded so that the page can echo it: JSON numbers past 64 bits answered 500 (orjson).
     offset: int = Query(0, ge=0, le=2**63 - 1, description="Parts to skip.", examples=[0]),
     limit: int = Query(50, ge=1, le=2**63 - 1, examples=[50],
@@ -55,9 +58,21 @@ def list_parts(
     if shape_id is not None:
         mask &= cat.shape_of == cat.shape_code(shape_id)
     rows = np.flatnonzero(mask)
+    if q and q.strip():
+        rows = rows[[_matches(cat.records[i], q.strip().lower()) for i in rows.tolist()]]
     page = rows[offset:offset + limit].tolist()
     return OrjsonResponse({"total": len(rows), "offset": offset, "limit": limit,
                            "items": [render_part(cat, i) for i in page]})
+
+
+# The part id and an added part's name only: labels of the data are for measuring, and the
+# service never reads them (not even to find parts).
+_SEARCHED_FIELDS = ("part_id", "name")
+
+
+def _matches(record: dict[str, Any], text: str) -> bool:
+    """Whether a part's id or name contains ``text`` (lower case)."""
+    return any(text in str(record.get(key) or "").lower() for key in _SEARCHED_FIELDS)
 
 
 @router.get("/categories", response_model=list[CategoryOut], summary="Categories in the catalog",

@@ -34,6 +34,10 @@ from service.api.schemas import (
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
 from service.inputs import mesh_format
+from service.region import Region
+
+# Stands for any region in a cost estimate (the cost does not depend on where the region is).
+_ANY_REGION = Region.ball(np.zeros(3), 1.0)
 
 router = APIRouter(tags=["suggest"])
 batched = APIRouter(tags=["suggest"], route_class=BatchedRoute)  # the routes that go through the batcher
@@ -44,7 +48,8 @@ _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorResponse, "description": "The body is larger than COMPLEMENTME_MAX_BODY_BYTES."},
     422: {"model": ErrorResponse, "description": (
         "Empty input, too few or too many points, NaN or infinite values, wrong shape, "
-        "non-numeric values, bad base64, k out of range, unknown category.")},
+        "non-numeric values, bad base64, k out of range, unknown category, a bad region "
+        "(invalid_region).")},
 }
 
 _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-data": {"examples": {
@@ -135,7 +140,8 @@ def _estimated_cost(engine: SuggestionEngine, raw: Any) -> float:
     n = len(points) if isinstance(points, list) else len(b64) * 3 // 4 // 12 if isinstance(b64, str) else 0
     k = min(max(k, 1), engine.settings.max_k) if isinstance(k, int) and not isinstance(k, bool) else None
     refine = refine if isinstance(refine, bool) else None
-    return engine.query_cost(n, SuggestOptions(k=k, refine_contact=refine))
+    region = _ANY_REGION if isinstance(raw.get("region"), dict) else None
+    return engine.query_cost(n, SuggestOptions(k=k, refine_contact=refine, region=region))
 
 
 def _decode_items(items: list[Any], engine: SuggestionEngine, max_points: int
