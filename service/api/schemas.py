@@ -99,6 +99,13 @@ class SuggestOptionsIn(_Strict):
         "about the part's centre; the placed box is the scaled one). Omitted: "
         "COMPLEMENTME_FIT_SCALE (true unless configured)."))
 
+    fit_frame: Flag | None = Field(default=None, description=(
+        "Estimate the complete object's frame from the partial one and answer in it: centre, radius "
+        "and (without `frame`) the up axis, the hypothesis under which the model is surest "
+        "(`service/frame_fit.py`); the answer's `frame` is the one used and `frame_fitted` is true. "
+        "With `frame`, only its `up_axis` is kept. Omitted: fitted for mesh uploads sent without "
+        "`frame` (COMPLEMENTME_FIT_FRAME_UPLOADS), never for JSON points."))
+
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
                            exclude_modes=tuple(self.exclude_modes), diversity=self.diversity)
@@ -285,6 +292,8 @@ class SuggestResponse(BaseModel):
         "When the request named no category: the category the model reads from the query."))
     warnings: list[WarningOut] = Field(default_factory=list, description=(
         "What makes this answer doubtful (the status stays 200)."))
+    frame_fitted: bool = Field(default=False, description=(
+        "The service estimated `frame` from the partial (`fit_frame`)."))
 
 
 class PlacementOut(BaseModel):
