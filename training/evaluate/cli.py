@@ -123,7 +123,9 @@ def evaluate_assembly_command(
     contact_tolerance: float = typer.Option(0.02, "--contact-tolerance", help="Gap or depth that counts."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
-    """Automatic assembly from held-out start parts: complete, stacked, empty, floating (labels measure only)."""
+    """Automatic assembly from held-out start parts: complete, stacked, empty, floating runs.
+
+    Labels are read to measure only."""
     from training.evaluate.assembly_eval import AssemblyEvalSettings, run_assembly_evaluation
 
     settings = AssemblyEvalSettings(
