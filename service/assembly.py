@@ -205,7 +205,7 @@ class _State:
         return self._assembly
 
 
-@dataclass
+@dataclass(eq=False)   # compared by identity (its suggestion holds arrays)
 class _Candidate:
     suggestion: Suggestion
     distance: float                          # to its nearest heavy mode's mean, RMS standard deviations
@@ -451,8 +451,7 @@ class Assembler:
                 break
             while more():  # a tree or a draw by mode needs every eligible candidate's mode
                 pass
-            left = [c for c in seen
-                    if c not in picks and not any(_near_identical(c, p, apart) for p in picks)]
+            left = [c for c in seen if not any(c is p or _near_identical(c, p, apart) for p in picks)]
             if not left:
                 break
             fresh = [c for c in left if c.near_mode not in used_modes] or left
@@ -569,7 +568,6 @@ class Assembler:
         asks for the following candidates, the tested ones excluded.
         """
         tested: list[str] = []
-        reason = "no_candidates"
         for round_ in range(self.settings.assemble_candidate_rounds):
             t = time.perf_counter()
             result = self.engine.suggest(query, replace(
@@ -578,11 +576,14 @@ class Assembler:
             t = time.perf_counter()
             picks, why = self._step(result, state, options, n, rng, reached)
             timings["choose"] += time.perf_counter() - t
-            reason = why if round_ == 0 or (why != "no_candidates" and why != "unlikely") else reason
-            if picks or why not in ("duplicates",):
-                return picks, (why if picks or round_ == 0 else reason)
+            if picks:
+                return picks, ""
+            if why != "duplicates":
+                # After a round of duplicates, running out of (likely) candidates still means
+                # that every likely one did a placed part's job.
+                return [], why if round_ == 0 or why == "complete" else "duplicates"
             tested += [sug.part_id for sug in result.suggestions]
-        return [], reason
+        return [], "duplicates"
 
     def _step(self, result: SuggestResult, state: _State, options: AssembleOptions, n: int,
               rng: np.random.Generator, reached: set[frozenset[int]]) -> tuple[list[_Candidate], str]:

@@ -67,13 +67,18 @@ def frame_hypotheses(points: np.ndarray, up_axes: Sequence[UpAxis], ratios: Sequ
         own = float(np.max(np.linalg.norm(q - centre, axis=1)))
         if not own > 0:
             continue
-        half_up = (hi[1] - lo[1]) / 2
+        rel = q - centre
+        across = np.linalg.norm(rel[:, [0, 2]], axis=1)    # distance from the up axis
         for ratio in ratios:
             radius = own * ratio
-            room = max(radius - half_up, 0.0)             # how far the box may sit off centre
+            # The centre may move along the up axis by d as long as every point stays within the
+            # radius: (y - d)^2 + across^2 <= radius^2 for all points.
+            reach = np.sqrt(np.maximum(radius ** 2 - across ** 2, 0.0))
+            low, high = float(np.max(rel[:, 1] - reach)), float(np.min(rel[:, 1] + reach))
             for shift in shifts:
                 c = centre.copy()
-                c[1] -= shift * room                       # partial at the top: the centre is below it
+                # shift 1: the partial at the top of the room, so the centre below it (d = low)
+                c[1] += (low + high) / 2 - shift * (high - low) / 2
                 key = (up, round(radius / own, 6), round(float(c[1] - centre[1]) / own, 3))
                 if key in seen:
                     continue

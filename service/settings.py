@@ -246,7 +246,7 @@ class Settings(BaseSettings):
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
         "`/assemble` skips a candidate whose placed box overlaps a placed part's box with more than "
         "this IoU when the two parts do the same job (see `assemble_same_job_sigmas`)."))
-    assemble_same_job_sigmas: float = Field(default=0.75, ge=0, description=(
+    assemble_same_job_sigmas: float = Field(default=0.9, ge=0, description=(
         "Two overlapping parts do the same job when their embeddings lie within this root-mean-square "
         "distance of each other, in the standard deviations g predicts for the candidate's mode "
         "at that step (g would take either for the other)."))
@@ -254,7 +254,7 @@ class Settings(BaseSettings):
         "`/assemble` stops (`complete`) when no eligible candidate's mixture log-likelihood "
         "exceeds the most likely placed part's by more than this: g's most wanted complement is "
         "one the assembly already has."))
-    assemble_complete_quantiles: tuple[float, float] = Field(default=(0.25, 0.9), description=(
+    assemble_complete_quantiles: tuple[float, float] = Field(default=(0.5, 0.9), description=(
         "Quantiles of the part count of the catalog's shapes of the assembly's category: "
         "`/assemble` calls an assembly with fewer parts than the first never complete on g's word "
         "alone, and one with as many as the second complete (no shape of the data has many more)."))

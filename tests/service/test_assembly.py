@@ -136,11 +136,23 @@ def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, cata
     rows = np.flatnonzero(catalog.shape_of == catalog.shape_of[0])
     surfaces = {int(r): engine.contacts.part_surface(catalog, int(r)).moved(catalog.translations[r])
                 for r in rows}
-    a, b = next((int(a), int(b)) for a in rows for b in rows if a != b and measure_contact(
-        surfaces[int(b)], ContactAssembly(surfaces[int(a)])).touching(s.contact_tolerance))
-    lift = np.array([0.0, (s.contact_max_offset + s.contact_reach) / 2, 0.0])
+    far = (s.contact_max_offset + s.contact_reach) / 2
+
+    def moved_away(a: int, b: int) -> np.ndarray:
+        """Part b's translation moved straight away from part a by ``far``."""
+        d = catalog.translations[b].astype(np.float64) - catalog.translations[a]
+        return catalog.translations[b] + far * d / np.linalg.norm(d)
+
+    def floats(a: int, b: int) -> bool:
+        """b touches a at its place, and moved away it is out of the bounded search's reach."""
+        assembly = ContactAssembly(surfaces[a])
+        away = engine.contacts.part_surface(catalog, b).moved(moved_away(a, b))
+        return (measure_contact(surfaces[b], assembly).touching(s.contact_tolerance)
+                and measure_contact(away, assembly).gap > s.contact_max_offset + 2 * s.contact_tolerance)
+
+    a, b = next((int(a), int(b)) for a in rows for b in rows if a != b and floats(int(a), int(b)))
     assembly = ContactAssembly(surfaces[a])
-    t = catalog.translations[b].astype(np.float64) + lift
+    t = moved_away(a, b)
     offset = engine.refine_against(assembly, np.array([b]), t[None])[0]
     assert np.linalg.norm(offset) > s.contact_max_offset
     after = measure_contact(engine.contacts.part_surface(catalog, b).moved(t + offset), assembly)

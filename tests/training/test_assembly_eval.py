@@ -14,10 +14,9 @@ from service.assembly import AssembleResult, Node, Start
 from service.engine import Suggestion
 from service.frames import Frame
 from training.evaluate.assembly_eval import (
-    REPORT_END,
-    REPORT_START,
     AssemblyEvalSettings,
     measure_run,
+    report_markers,
     summarize,
     write_report,
 )
@@ -80,9 +79,12 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
     doc.write_text("# Modeling\n\nbefore\n")
     write_report(results, doc)
     write_report(results, doc)   # a second run replaces the block, it does not add one
+    write_report({**results, "artifacts": "runs/v3-exported"}, doc)   # another model: its own block
     text = doc.read_text()
-    assert text.count(REPORT_START) == 1 and text.count(REPORT_END) == 1 and "before" in text
-    assert "| chair | 2 | 50% |" in text
+    for tag in ("exported", "v3-exported"):
+        start, end = report_markers(tag)
+        assert text.count(start) == 1 and text.count(end) == 1
+    assert "before" in text and text.count("| chair | 2 | 50% |") == 2
 
 
 @pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="no trained artifacts in exported/ yet")
@@ -105,7 +107,7 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
     placed = [r for r in runs if r["parts"]]
     assert all(len(r["gap"]) == len(r["parts"]) for r in placed)
     assert 0.0 <= res["summary"]["greedy"]["all"]["good"] <= 1.0
-    assert REPORT_START in report.read_text()
+    assert report_markers("exported")[0] in report.read_text()
     # Seeded: the same command draws the same starts.
     again = CliRunner().invoke(app, [*args, "--no-contact", "--out", str(tmp_path / "again")])
     assert again.exit_code == 0, again.output
