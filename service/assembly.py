@@ -676,7 +676,9 @@ def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
     """The same part, or parts whose placed samples lie within ``distance`` Chamfer distance."""
     if a.suggestion.part_index == b.suggestion.part_index:
         return True
-    gap = np.maximum(0, np.maximum(a.placed.lo - b.placed.hi, b.placed.lo - a.placed.hi))
+    pa, pb = a.placed, b.placed
+    assert pa is not None and pb is not None, "candidates are placed when they are tested"
+    gap = np.maximum(0, np.maximum(pa.lo - pb.hi, pb.lo - pa.hi))
     if np.linalg.norm(gap) >= distance:
         return False
-    return _chamfer(a.placed, b.placed) < distance
+    return _chamfer(pa, pb) < distance

@@ -22,6 +22,7 @@ from service.assembly import (
     STOP_REASONS,
     AssembleOptions,
     Assembler,
+    Node,
     Start,
     Strategy,
     _Placed,
@@ -227,9 +228,10 @@ def test_tree(permissive: SuggestionEngine) -> None:
     for parent in children:
         kids = [n for n in result.nodes if n.parent == parent]
         assert len({n.suggestion.part_id for n in kids}) == len(kids)
-    sets = []
+    sets: list[frozenset[int]] = []
     for n in result.nodes:
-        chain, at = [], n
+        chain: list[int] = []
+        at: Node | None = n
         while at is not None:
             chain.append(int(engine.catalog.group[at.suggestion.part_index]))
             at = by_id[at.parent] if at.parent is not None else None
@@ -377,7 +379,7 @@ def shipped_engine() -> SuggestionEngine:
     return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
 
 
-QualityRuns = tuple[dict[str, float], list[tuple[str, str, str, str]]]
+QualityRuns = tuple[dict[str, float], list[tuple[str, str, Strategy, str]]]
 
 
 @pytest.fixture(scope="module")

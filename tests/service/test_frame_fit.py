@@ -69,9 +69,15 @@ def test_up_axes_for() -> None:
 
 
 def _example_mesh() -> trimesh.Trimesh:
-    mesh = trimesh.load(EXAMPLE, force="mesh")
-    mesh.vertices = _in_mm_z_up(np.asarray(mesh.vertices))
-    return mesh
+    loaded = trimesh.load(EXAMPLE, force="mesh")
+    assert isinstance(loaded, trimesh.Trimesh)
+    return trimesh.Trimesh(_in_mm_z_up(np.asarray(loaded.vertices)), np.asarray(loaded.faces), process=False)
+
+
+def _obj_bytes(mesh: trimesh.Trimesh) -> bytes:
+    text = mesh.export(file_type="obj")
+    assert isinstance(text, str)
+    return text.encode()
 
 
 def test_fit_recovers_the_example_frame(engine: SuggestionEngine) -> None:
@@ -97,7 +103,7 @@ def _labels(answer: dict) -> list[str | None]:
 def test_upload_without_a_frame_gets_legs(client: TestClient) -> None:
     """Uploaded in millimetres, z up, no frame: the service fits the frame, reports it, and
     suggests legs (measured by the catalog labels, which only this check reads)."""
-    data = _example_mesh().export(file_type="obj").encode()
+    data = _obj_bytes(_example_mesh())
     r = client.post("/suggest/mesh", files={"file": ("chair.obj", io.BytesIO(data), "text/plain")},
                     data={"options": json.dumps({"k": 5, "category": "chair"})})
     assert r.status_code == 200, r.text
@@ -138,7 +144,7 @@ def test_batch_refuses_fit_frame(client: TestClient) -> None:
 
 
 def test_assemble_mesh_without_a_frame_is_fitted(client: TestClient) -> None:
-    data = _example_mesh().export(file_type="obj").encode()
+    data = _obj_bytes(_example_mesh())
     r = client.post("/assemble/mesh", files={"file": ("chair.obj", io.BytesIO(data), "text/plain")},
                     data={"options": json.dumps({"max_parts": 2, "category": "chair"})})
     assert r.status_code == 200, r.text
