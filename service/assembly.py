@@ -9,34 +9,46 @@ every step or, for a tree of possibilities, several choices per step. Each step 
 2. asks the engine for ``assemble_candidates`` suggestions as a mode-balanced gallery (so that
    every kind g proposes has candidates, even when its heaviest mode only offers more of what
    is placed), with the request's filters (by default the start part's category, or the first
-   added part's when the start is a cloud or a mesh), placed by h without contact refinement;
-3. keeps the *eligible* candidates:
+   added part's when the start is a cloud or a mesh), placed and fitted in size by h, without
+   contact refinement;
+3. walks the candidates in the order the strategy wants them and keeps the first *eligible*
+   ones (a candidate is only tested when it is next in line: a chain step usually tests a few):
    * likely enough: the part's mode has weight >= ``assemble_min_mode_weight`` and the part's
      embedding lies within ``assemble_max_distance`` root-mean-square standard deviations of
      that mode's mean (a typical draw from the mode is about 1);
-   * not a duplicate of a placed part, judged on geometry alone (labels are never used): its
-     placed samples within ``assemble_duplicate_distance`` Chamfer distance of a placed part's;
-     or its box centred within ``assemble_duplicate_centre`` of a placed part's box (one part
-     per spot: a second back where a back is, a tyre on a hub, a longer rod on a shorter one,
-     crossing boxes), unless it encloses the placed part's box with at least
-     ``assemble_duplicate_contain_ratio`` times its volume and another profile across its
-     longest axis (a hull around its deck); boxes of about the same size (every extent within
-     ``assemble_duplicate_size_ratio``) are duplicates even then;
-   * not redundant: less than ``assemble_cover_share`` of its placed samples lie within
-     ``assemble_cover_distance`` of the placed parts' samples (a part lying mostly where the
-     assembly already has surface adds nothing: a second seat just above the first, a back
-     pressed against the back);
-4. picks among them: ``greedy`` takes the most likely (highest mixture log-likelihood);
-   ``sample`` draws a mode with
+   * not doing the job of a part already at its spot, judged on geometry and on the model, never
+     on labels (``_redundant``):
+     - the same geometry at the same spot: its placed samples within
+       ``assemble_duplicate_distance`` Chamfer distance of a placed part's;
+     - the same spot: its box centred within ``assemble_duplicate_centre`` of a placed part's
+       box, unless it encloses that box with at least ``assemble_duplicate_contain_ratio`` times
+       its volume and another profile across its longest axis (a hull around its deck); boxes of
+       about the same size (every extent within ``assemble_duplicate_size_ratio``) are
+       duplicates even then;
+     - the same region and the same job: its box overlaps a placed part's with IoU above
+       ``assemble_overlap_iou`` and the two parts' embeddings lie within
+       ``assemble_same_job_sigmas`` of each other, in the standard deviations g predicts for the
+       candidate's mode (g would take either part for the other here: a second shade over the
+       shade). Parts of other kinds may overlap (the data's own car bodies and wheels, sofa
+       seats and arms overlap with IoU up to 0.5);
+     - lying on placed surface: at least ``assemble_cover_share`` of its placed samples within
+       ``assemble_cover_distance`` of the placed parts' samples;
+4. stops when the object is *complete*: when no eligible candidate is more likely under g's
+   mixture than a part already placed, by ``assemble_complete_margin`` (g's most wanted
+   complement is one the assembly has: a chair with a seat, a back and legs asks for one more
+   seat or back);
+5. picks: ``greedy`` takes the most likely eligible part; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
-   that mode's most likely part (seeded);
-5. refines the chosen part's placement against the placed parts' oriented samples
-   (``service.contact``; off with ``refine_contact=False``).
+   that mode's most likely eligible part (seeded);
+6. refines the chosen part's placement (fitted in size) against the placed parts' oriented
+   samples (``SuggestionEngine.refine_against``: ``service.contact``'s bounded search, then a
+   longer one for a part left floating; off with ``refine_contact=False``).
 
-It stops after ``max_parts`` parts or when no candidate is eligible (``stop_reason`` says which
-rule ended it). With ``branching`` b >= 2 every state gets up to b children (different modes
-first), expanded breadth-first until ``assemble_max_nodes`` parts are placed over the whole
-tree: the paper's binary tree of possibilities for b = 2.
+The reasons a chain (or a branch) ends are ``STOP_REASONS``. With ``branching`` b >= 2 every
+state gets up to b children that differ (other modes first; never two near-identical parts,
+never a state another branch already reached), expanded breadth-first until
+``assemble_max_nodes`` parts are placed over the whole tree: the paper's binary tree of
+possibilities for b = 2 (its Figure 8).
 
 Everything runs in the canonical frame; the API maps translations to the caller's frame.
 """
@@ -45,27 +57,29 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.contact import Assembly, Surface, refine_offset
-from service.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
+from service.contact import Assembly, Surface
+from service.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
 from service.errors import InputError
 from service.frames import Frame
+from service.mixture import mixture_log_likelihood
 from service.preferences import Preferences
 
 Strategy = Literal["greedy", "sample"]
 
 # Why a chain (or a tree branch) ended.
 STOP_REASONS = {
+    "complete": "the object looks complete: no candidate is more likely than a part already placed",
     "max_parts": "max_parts parts were added",
     "no_candidates": "the engine found no candidate part (filters too strict?)",
     "unlikely": "no candidate was likely enough (mode weight or distance to its mode's mean)",
-    "duplicates": "every likely candidate duplicates a part already placed",
+    "duplicates": "every likely candidate does the job of a part already placed",
     "node_budget": "the tree reached assemble_max_nodes parts",
 }
 
@@ -116,7 +130,7 @@ class Node:
     node: int
     parent: int | None                       # None: a child of the start
     depth: int                               # 1 for the first added part
-    suggestion: Suggestion                   # the engine's suggestion (rank, score, mode, ...)
+    suggestion: Suggestion                   # the engine's suggestion (rank, score, mode, scale, ...)
     translation: np.ndarray
     contact_offset: np.ndarray
     distance: float                          # to its mode's mean, in RMS standard deviations
@@ -137,15 +151,20 @@ class AssembleResult:
 
 @dataclass
 class _Placed:
-    """One part of a state's assembly, in the canonical frame."""
+    """One part of a state's assembly, in the canonical frame.
 
-    points: np.ndarray                       # (S, 3) float64 placed samples (duplicate tests)
+    Shapes:
+        points: (S, 3) float64 placed samples (duplicate tests).   lo, hi: (3,) placed (scaled) box.
+    """
+
+    points: np.ndarray
     # Oriented samples for contact (normals NaN for a cloud), or how to make them: most
     # candidates are only checked, never placed, so their samples are drawn on first use.
     surface_source: Surface | Callable[[], Surface]
     area: float
-    lo: np.ndarray                           # (3,) placed box
+    lo: np.ndarray
     hi: np.ndarray
+    row: int | None = None                   # catalog row (None: a start cloud)
     tree: cKDTree | None = None
 
     def kdtree(self) -> cKDTree:
@@ -158,6 +177,40 @@ class _Placed:
         if not isinstance(self.surface_source, Surface):
             self.surface_source = self.surface_source()
         return self.surface_source
+
+
+class _State:
+    """The parts of one state and what is derived from them, each made once and shared by every
+    candidate tested against the state and every child grown from it."""
+
+    def __init__(self, parts: list[_Placed], groups: frozenset[int]):
+        self.parts = parts
+        self.groups = groups                 # near-duplicate groups of its catalog parts
+        self.lo = np.array([p.lo for p in parts])
+        self.hi = np.array([p.hi for p in parts])
+        self.rows = np.array([p.row for p in parts if p.row is not None], dtype=np.int64)
+        self._tree: cKDTree | None = None
+        self._assembly: Assembly | None = None
+
+    def tree(self) -> cKDTree:
+        """A KD-tree over every placed part's samples."""
+        if self._tree is None:
+            self._tree = cKDTree(np.concatenate([p.points for p in self.parts]))
+        return self._tree
+
+    def assembly(self) -> Assembly:
+        """The contact side: every placed part's oriented samples."""
+        if self._assembly is None:
+            self._assembly = Assembly(Surface.union([p.surface for p in self.parts]))
+        return self._assembly
+
+
+@dataclass(eq=False)   # compared by identity (its suggestion holds arrays)
+class _Candidate:
+    suggestion: Suggestion
+    distance: float                          # to its nearest heavy mode's mean, RMS standard deviations
+    placed: _Placed | None                   # where h puts it (made when the candidate is tested)
+    near_mode: int                           # that nearest heavy mode
 
 
 def estimate_area(points: np.ndarray) -> float:
@@ -173,12 +226,24 @@ def estimate_area(points: np.ndarray) -> float:
     return float(4.0 * len(pts) * np.mean(d[:, 1]) ** 2)
 
 
+def box_iou(lo: np.ndarray, hi: np.ndarray, los: np.ndarray, his: np.ndarray) -> np.ndarray:
+    """IoU of one axis-aligned box with many.
+
+    Shapes:
+        lo, hi: (3,); los, his: (P, 3) -> (P,) float64.
+    """
+    inter = np.prod(np.clip(np.minimum(hi, his) - np.maximum(lo, los), 0, None), axis=1)
+    union = np.prod(hi - lo) + np.prod(his - los, axis=1) - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
 class Assembler:
     """Automatic assembly on a loaded engine (its catalog, networks and contact refinement)."""
 
     def __init__(self, engine: SuggestionEngine):
         self.engine = engine
         self.settings = engine.settings
+        self._part_counts: tuple[float, float] = (0.0, np.inf)   # set per assembly (its category)
 
     # ---------------------------------------------------------------- the parts of a state
     def _start_parts(self, start: Start) -> list[_Placed]:
@@ -197,16 +262,20 @@ class Assembler:
             out.append(_Placed(pts, Surface(pts), max(area, 1e-9), pts.min(axis=0), pts.max(axis=0)))
         return out
 
-    def _catalog_part(self, i: int, t: np.ndarray) -> _Placed:
+    def _catalog_part(self, i: int, t: np.ndarray, scale: np.ndarray | None = None) -> _Placed:
+        """Catalog part ``i`` scaled about its centre by ``scale`` (per axis) and moved to ``t``."""
         cat = self.engine.catalog
-        pts = cat.part_points(i).astype(np.float64) + t
+        sc = np.ones(3) if scale is None else np.asarray(scale, dtype=np.float64)
+        pts = cat.part_points(i).astype(np.float64) * sc + t
         contacts = self.engine.contacts
 
         def surface() -> Surface:
-            return contacts.part_surface(cat, i).moved(t)
+            return scaled_surface(contacts.part_surface(cat, i), sc).moved(t)
 
-        return _Placed(pts, surface, max(float(cat.records[i]["area"]), 1e-9),
-                       cat.bbox_min[i].astype(np.float64) + t, cat.bbox_max[i].astype(np.float64) + t)
+        return _Placed(pts, surface, max(float(cat.records[i]["area"]) * float(np.prod(sc)) ** (2 / 3), 1e-9),
+                       cat.bbox_min[i].astype(np.float64) * sc + t,
+                       cat.bbox_max[i].astype(np.float64) * sc + t,
+                       row=i)
 
     def _query(self, parts: list[_Placed], seed: int) -> np.ndarray:
         """The state's query: N points over its parts, shares proportional to their areas.
@@ -228,27 +297,65 @@ class Assembler:
         return np.concatenate(chunks).astype(np.float32)
 
     # ---------------------------------------------------------------- eligibility
-    def _distance(self, result: SuggestResult, s: Suggestion) -> float:
-        """RMS distance of the part's embedding to its mode's mean, in that mode's standard deviations."""
+    def _nearest_modes(self, result: SuggestResult, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every suggestion's nearest mode among those weighing at least ``assemble_min_mode_weight``,
+        and its RMS distance to that mode's mean in the mode's standard deviations (inf: no mode
+        is heavy enough).
+
+        A part's ``mode`` (the largest responsibility) can be a mode of negligible weight whose
+        narrow Gaussian happens to cover it; the likelihood test asks the modes that count.
+
+        Shapes:
+            weights: (K,) -> modes (C,) int64, distances (C,) float64.
+        """
         assert result.mode_means is not None and result.mode_sigmas is not None
-        y = self.engine.catalog.embeddings[s.part_index].astype(np.float64)
-        z = (y - result.mode_means[s.mode]) / result.mode_sigmas[s.mode]
-        return float(np.sqrt(np.mean(z * z)))
+        heavy = np.flatnonzero(weights >= self.settings.assemble_min_mode_weight)
+        n = len(result.suggestions)
+        if len(heavy) == 0:
+            return np.zeros(n, np.int64), np.full(n, np.inf)
+        rows = np.array([sug.part_index for sug in result.suggestions], dtype=np.int64)
+        y = self.engine.catalog.embeddings[rows].astype(np.float64)                    # (C, D)
+        z = (y[:, None, :] - result.mode_means[heavy][None]) / result.mode_sigmas[heavy][None]  # (C, H, D)
+        d = np.sqrt(np.mean(z * z, axis=2))                                            # (C, H)
+        best = np.argmin(d, axis=1)
+        return heavy[best], d[np.arange(n), best]
 
-    def _redundant(self, cand: _Placed, parts: list[_Placed], surface: cKDTree | None = None) -> bool:
-        """A duplicate of a placed part, or a part lying mostly where the assembly already has surface.
+    def _redundant(self, cand: _Placed, state: _State, sigma: np.ndarray | None = None) -> bool:
+        """Whether the candidate does the job of a part already at its spot (see the module doc).
 
-        ``surface``: a KD-tree over every placed part's samples (built here when not given).
+        ``sigma``: (D,) the standard deviations of the candidate's mode (the same-job test; None
+        skips it).
         """
         s = self.settings
-        if self._duplicate(cand, parts):
+        if self._duplicate(cand, state.parts):
+            return True
+        if sigma is not None and self._same_job(cand, state, sigma):
             return True
         if s.assemble_cover_share >= 1:
             return False
-        if surface is None:
-            surface = cKDTree(np.concatenate([p.points for p in parts]))
-        d, _ = surface.query(cand.points, k=1, distance_upper_bound=s.assemble_cover_distance)
+        d, _ = state.tree().query(cand.points, k=1, distance_upper_bound=s.assemble_cover_distance)
         return bool(np.mean(np.isfinite(d)) >= s.assemble_cover_share)
+
+    def _same_job(self, cand: _Placed, state: _State, sigma: np.ndarray) -> bool:
+        """A placed part in the same region that g cannot tell apart from the candidate here: boxes
+        overlapping with IoU > ``assemble_overlap_iou`` and embeddings within
+        ``assemble_same_job_sigmas`` RMS standard deviations of the candidate's mode; or centres
+        within half the smaller part's size and embeddings within half that."""
+        s = self.settings
+        if cand.row is None:
+            return False
+        rows = np.array([-1 if p.row is None else p.row for p in state.parts])
+        emb = self.engine.catalog.embeddings
+        z = (emb[rows].astype(np.float64) - emb[cand.row]) / sigma
+        z = np.where(rows >= 0, np.sqrt(np.mean(z * z, axis=1)), np.inf)
+        overlap = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_overlap_iou
+        # A part g sees as (nearly) the same one counts in a wider region: centres closer than
+        # half the smaller part's size (two copies of a thin stretcher a little apart have boxes
+        # that do not overlap).
+        size = np.minimum(np.linalg.norm(cand.hi - cand.lo), np.linalg.norm(state.hi - state.lo, axis=1))
+        near = np.linalg.norm((cand.hi + cand.lo) / 2 - (state.hi + state.lo) / 2, axis=1) < size / 2
+        same = s.assemble_same_job_sigmas
+        return bool(np.any((overlap & (z < same)) | (near & (z < same / 2))))
 
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""
@@ -275,52 +382,89 @@ class Assembler:
                 box_gap = np.maximum(0, np.maximum(p.lo - cand.hi, cand.lo - p.hi))
                 if np.linalg.norm(box_gap) >= s.assemble_duplicate_distance:
                     continue  # boxes apart: the Chamfer distance cannot be small
-                d1, _ = p.kdtree().query(cand.points, k=1)
-                d2, _ = cand.kdtree().query(p.points, k=1)
-                if 0.5 * (d1.mean() + d2.mean()) < s.assemble_duplicate_distance:
+                if _chamfer(cand, p) < s.assemble_duplicate_distance:
                     return True
         return False
 
-    def _eligible(self, result: SuggestResult, parts: list[_Placed]
-                  ) -> tuple[list[tuple[Suggestion, _Placed, float]], str]:
-        """Candidates that are likely enough and no duplicates, in rank order; else why there are none."""
-        s = self.settings
+    def _likely(self, result: SuggestResult, weights: np.ndarray) -> list[_Candidate]:
+        """The suggestions likely enough (near a heavy enough mode), most likely first, unplaced."""
         if not result.suggestions:
-            return [], "no_candidates"
-        out = []
-        likely = 0
-        surface = cKDTree(np.concatenate([p.points for p in parts]))
-        for sug in result.suggestions:
-            dist = self._distance(result, sug)
-            if sug.mode_weight < s.assemble_min_mode_weight or dist > s.assemble_max_distance:
-                continue
-            likely += 1
-            placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64))
-            if not self._redundant(placed, parts, surface):
-                out.append((sug, placed, dist))
-        out.sort(key=lambda e: -e[0].score)  # most likely first (the list came mode-balanced)
-        return out, ("unlikely" if likely == 0 else "duplicates")
+            return []
+        modes, dist = self._nearest_modes(result, weights)
+        out = [_Candidate(sug, float(d), None, int(m))
+               for sug, d, m in zip(result.suggestions, dist, modes, strict=True)
+               if d <= self.settings.assemble_max_distance]
+        out.sort(key=lambda c: -c.suggestion.score)  # the list came mode-balanced
+        return out
 
-    def _choose(self, eligible: list[tuple[Suggestion, _Placed, float]], n: int, strategy: Strategy,
-                weights: np.ndarray, temperature: float, rng: np.random.Generator) -> list[int]:
-        """Positions in ``eligible`` of up to ``n`` picks (distinct modes first)."""
-        modes = np.array([e[0].mode for e in eligible])
-        left = list(range(len(eligible)))
-        picks: list[int] = []
-        used: set[int] = set()
-        while left and len(picks) < n:
-            fresh = [j for j in left if modes[j] not in used] or left
+    def _eligible(self, result: SuggestResult, likely: list[_Candidate], state: _State
+                  ) -> Iterator[_Candidate]:
+        """The likely candidates that do no placed part's job, most likely first, tested lazily."""
+        assert result.mode_sigmas is not None
+        sigmas = result.mode_sigmas.astype(np.float64)
+        for c in likely:
+            sug = c.suggestion
+            c.placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64),
+                                          sug.scale)
+            if not self._redundant(c.placed, state, sigmas[c.near_mode]):
+                yield c
+
+    def _best_placed(self, result: SuggestResult, weights: np.ndarray, state: _State) -> float:
+        """The highest log-likelihood of a placed catalog part under the step's mixture (-inf: none)."""
+        assert result.mode_means is not None and result.mode_sigmas is not None
+        if len(state.rows) == 0:
+            return -np.inf
+        live = np.flatnonzero(weights > 0)
+        ll, _ = mixture_log_likelihood(self.engine.catalog.embeddings[state.rows], weights[live],
+                                       result.mode_means[live], result.mode_sigmas[live])
+        return float(np.max(ll))
+
+    def _choose(self, eligible: Iterator[_Candidate], n: int, strategy: Strategy, weights: np.ndarray,
+                temperature: float, rng: np.random.Generator) -> list[_Candidate]:
+        """Up to ``n`` picks that differ (other modes first, no near-identical siblings).
+
+        greedy: the most likely first; sample: a mode drawn by weight ** (1 / temperature), then
+        its most likely part. Candidates are drawn from ``eligible`` only as far as needed.
+        """
+        seen: list[_Candidate] = []
+        exhausted = False
+        apart = self.settings.assemble_branch_min_distance
+
+        def more() -> bool:
+            nonlocal exhausted
+            if exhausted:
+                return False
+            nxt = next(eligible, None)
+            if nxt is None:
+                exhausted = True
+                return False
+            seen.append(nxt)
+            return True
+
+        picks: list[_Candidate] = []
+        used_modes: set[int] = set()
+        while len(picks) < n:
+            if strategy == "greedy" and n == 1:
+                if not seen and not more():
+                    break
+                picks.append(seen[0])
+                break
+            while more():  # a tree or a draw by mode needs every eligible candidate's mode
+                pass
+            left = [c for c in seen if not any(c is p or _near_identical(c, p, apart) for p in picks)]
+            if not left:
+                break
+            fresh = [c for c in left if c.near_mode not in used_modes] or left
             if strategy == "greedy":
-                j = fresh[0]
+                pick = fresh[0]
             else:
-                cand_modes = sorted({int(modes[j]) for j in fresh})
-                w = np.array([weights[m] for m in cand_modes], dtype=np.float64) ** (1.0 / temperature)
+                modes = sorted({c.near_mode for c in fresh})
+                w = np.array([weights[m] for m in modes], dtype=np.float64) ** (1.0 / temperature)
                 w = w / w.sum() if w.sum() > 0 else np.full(len(w), 1.0 / len(w))
-                mode = cand_modes[int(rng.choice(len(cand_modes), p=w))]
-                j = next(j for j in fresh if modes[j] == mode)  # the mode's most likely part
-            picks.append(j)
-            used.add(int(modes[j]))
-            left.remove(j)
+                mode = modes[int(rng.choice(len(modes), p=w))]
+                pick = next(c for c in fresh if c.near_mode == mode)  # the mode's most likely
+            picks.append(pick)
+            used_modes.add(pick.near_mode)
         return picks
 
     # ---------------------------------------------------------------- the search
@@ -358,15 +502,25 @@ class Assembler:
         elif start.parts:
             category = cat.records[start.parts[0]]["category"]
         rng = np.random.default_rng(options.seed)
+        only = options.categories[0] if len(options.categories) == 1 else None
+        self._part_counts = self.part_counts(category or only)
         base = self._start_parts(start)
         nodes: list[Node] = []
-        placed_of: dict[int | None, list[_Placed]] = {None: base}
+        states: dict[int | None, _State] = {None: _State(base, frozenset(
+            int(cat.group[p.row]) for p in base if p.row is not None))}
+        reached: set[frozenset[int]] = {states[None].groups}   # part sets some branch already has
         queue: deque[tuple[int | None, int]] = deque([(None, 0)])   # (node, depth)
         leaf_reason: dict[int | None, str] = {}
-        suggest_time = contact_time = 0.0
+        timings = {"suggest": 0.0, "choose": 0.0, "contact": 0.0}
+        # A mode-balanced list: when g's heaviest mode only offers more of what is placed, the
+        # other kinds still have candidates to choose from.
+        suggest_options = SuggestOptions(
+            k=min(self.settings.assemble_candidates, self.settings.max_k), styles=options.styles,
+            exclude_shapes=options.exclude_shapes, preferences=replace(options.preferences, diversity=True),
+            refine_contact=False, complement_check=False)  # own checks (step 3)
         while queue:
             parent, depth = queue.popleft()
-            parts = placed_of[parent]
+            state = states.pop(parent)   # states are only needed until expanded (trees stay small)
             if depth >= max_parts:
                 leaf_reason[parent] = "max_parts"
                 continue
@@ -374,59 +528,129 @@ class Assembler:
                 leaf_reason[parent] = "node_budget"
                 continue
             cats = options.categories or ((category,) if category else ())
-            t = time.perf_counter()
-            # A mode-balanced list: when g's heaviest mode only offers more of what is placed,
-            # the other kinds still have candidates to choose from.
-            prefs = replace(options.preferences, diversity=True)
-            result = self.engine.suggest(self._query(parts, self.settings.seed + len(nodes)), SuggestOptions(
-                k=min(self.settings.assemble_candidates, self.settings.max_k), categories=cats,
-                styles=options.styles, exclude_shapes=options.exclude_shapes,
-                preferences=prefs, refine_contact=False, complement_check=False))  # own checks, step 3
-            suggest_time += time.perf_counter() - t
-            eligible, reason = self._eligible(result, parts)
-            if not eligible:
+            query = self._query(state.parts, self.settings.seed + len(nodes))
+            picks, reason = self._expand(query, state, options, replace(suggest_options, categories=cats),
+                                         min(options.branching, budget - len(nodes)), rng, reached, timings)
+            if not picks:
                 leaf_reason[parent] = reason
                 continue
-            weights = options.preferences.weights(result.mode_weights)
-            n = min(options.branching, budget - len(nodes))
-            for j in self._choose(eligible, n, options.strategy, weights, options.temperature, rng):
-                sug, placed, dist = eligible[j]
+            for c in picks:
                 t = time.perf_counter()
-                trans, offset, placed = self._refined(sug, placed, parts, options.refine_contact)
-                contact_time += time.perf_counter() - t
-                node = Node(node=len(nodes), parent=parent, depth=depth + 1, suggestion=sug,
-                            translation=trans, contact_offset=offset, distance=dist)
+                trans, offset, placed = self._refined(c, state, options.refine_contact)
+                timings["contact"] += time.perf_counter() - t
+                node = Node(node=len(nodes), parent=parent, depth=depth + 1, suggestion=c.suggestion,
+                            translation=trans, contact_offset=offset, distance=c.distance)
                 nodes.append(node)
-                placed_of[node.node] = [*parts, placed]
+                group = int(cat.group[c.suggestion.part_index])
+                child = _State([*state.parts, placed], state.groups | {group})
+                reached.add(child.groups)
+                states[node.node] = child
                 queue.append((node.node, depth + 1))
                 if category is None and not options.categories:
-                    category = sug.category  # a cloud's assembly keeps the first part's category
-            del placed_of[parent]  # states are only needed until expanded (trees stay small)
+                    category = c.suggestion.category  # a cloud's assembly keeps the first part's category
         for n_ in nodes:
             n_.stop_reason = leaf_reason.get(n_.node)
         steps = self._main_chain(nodes)
         stop = leaf_reason.get(steps[-1].node if steps else None, "max_parts")
         start_t = (cat.translations[start.part_index].astype(np.float64) if start.part_index is not None
                    else np.zeros(3))
-        timings = {"suggest": suggest_time, "contact": contact_time, "total": time.perf_counter() - t0}
+        timings["total"] = time.perf_counter() - t0
         return AssembleResult(start=start, start_translation=start_t, category=category, steps=steps,
                               nodes=nodes, stop_reason=stop, frame=options.frame, timings=timings)
 
-    def _refined(self, sug: Suggestion, placed: _Placed, parts: list[_Placed], refine: bool
-                 ) -> tuple[np.ndarray, np.ndarray, _Placed]:
-        """h's translation nudged into contact with the state's parts (unless off or a duplicate then)."""
+    def _expand(self, query: np.ndarray, state: _State, options: AssembleOptions, suggest: SuggestOptions,
+                n: int, rng: np.random.Generator, reached: set[frozenset[int]], timings: dict[str, float]
+                ) -> tuple[list[_Candidate], str]:
+        """The picks for one state, from up to ``assemble_candidate_rounds`` rounds of candidates.
+
+        When every likely candidate of a round does a placed part's job (g's nearest parts are
+        more of what is placed: a one-mode mixture offers bodies after the body), the next round
+        asks for the following candidates, the tested ones excluded.
+        """
+        tested: list[str] = []
+        for round_ in range(self.settings.assemble_candidate_rounds):
+            t = time.perf_counter()
+            result = self.engine.suggest(query, replace(
+                suggest, exclude_parts=tuple(tested)) if tested else suggest)
+            timings["suggest"] += time.perf_counter() - t
+            t = time.perf_counter()
+            picks, why = self._step(result, state, options, n, rng, reached)
+            timings["choose"] += time.perf_counter() - t
+            if picks:
+                return picks, ""
+            if why != "duplicates":
+                # After a round of duplicates, running out of (likely) candidates still means
+                # that every likely one did a placed part's job.
+                return [], why if round_ == 0 or why == "complete" else "duplicates"
+            tested += [sug.part_id for sug in result.suggestions]
+        return [], "duplicates"
+
+    def _step(self, result: SuggestResult, state: _State, options: AssembleOptions, n: int,
+              rng: np.random.Generator, reached: set[frozenset[int]]) -> tuple[list[_Candidate], str]:
+        """The picks of one expansion, or none and the reason (a ``STOP_REASONS`` key)."""
+        if not result.suggestions:
+            return [], "no_candidates"
+        weights = options.preferences.weights(result.mode_weights)
+        likely = self._likely(result, weights)
+        if not likely:
+            return [], "unlikely"
+        cat = self.engine.catalog
+        # A branch never reaches a set of parts another branch already has (A then B, B then A).
+        fresh = likely if n == 1 else [
+            c for c in likely if state.groups | {int(cat.group[c.suggestion.part_index])} not in reached]
+        picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
+                             options.temperature, rng)
+        if not picks:
+            return [], "duplicates"
+        best = max(c.suggestion.score for c in picks)
+        s = self.settings
+        least, most = self._part_counts
+        if len(state.parts) >= most:
+            return [], "complete"
+        if (len(state.parts) >= least and self._fills_frame(state)
+                and best < self._best_placed(result, weights, state) + s.assemble_complete_margin):
+            return [], "complete"
+        return picks, ""
+
+    def part_counts(self, category: str | None) -> tuple[float, float]:
+        """How many parts the catalog's shapes of ``category`` have (all shapes without one): the
+        ``assemble_complete_quantiles`` of the count per shape, the data's own statistics."""
+        cat = self.engine.catalog
+        keep = (np.ones(len(cat), bool) if category is None
+                else cat.category_of == cat.category_codes([category])[0])
+        counts = np.bincount(cat.shape_of[keep])
+        counts = counts[counts > 0]
+        if len(counts) == 0:
+            return 0.0, np.inf
+        lo, hi = self.settings.assemble_complete_quantiles
+        return float(np.quantile(counts, lo)), float(np.quantile(counts, hi))
+
+    def _fills_frame(self, state: _State) -> bool:
+        """Whether the state spans the complete object's frame: a complete object's box is centred
+        at the origin and its surface reaches radius 1 (the canonical frame's definition), within
+        ``assemble_frame_tolerance``. A part missing at an end leaves the box off centre."""
+        tol = self.settings.assemble_frame_tolerance
+        centre = (state.lo.min(axis=0) + state.hi.max(axis=0)) / 2
+        reach = max(float(np.max(np.linalg.norm(p.points, axis=1))) for p in state.parts)
+        return bool(np.linalg.norm(centre) <= tol and reach >= 1 - tol)
+
+    def _refined(self, c: _Candidate, state: _State, refine: bool) -> tuple[np.ndarray, np.ndarray, _Placed]:
+        """h's translation nudged into contact with the state's parts (``engine.refine_against``),
+        unless refinement is off or the moved part would then do a placed part's job."""
+        sug, placed = c.suggestion, c.placed
+        assert placed is not None
         t = np.asarray(sug.translation, dtype=np.float64)
         zero = np.zeros(3)
         if not refine:
             return t, zero, placed
-        assembly = Assembly(Surface.union([p.surface for p in parts]))
-        r = refine_offset(placed.surface, assembly, self.engine.contacts.params)
-        if not np.any(r.offset):
+        offset = self.engine.refine_against(state.assembly(), np.array([sug.part_index]), t[None],
+                                            np.asarray(sug.scale, dtype=np.float64)[None])[0]
+        if not np.any(offset):
             return t, zero, placed
-        moved = self._catalog_part(sug.part_index, t + r.offset)
-        if self._redundant(moved, parts):
+        moved = self._catalog_part(sug.part_index, t + offset, sug.scale)
+        if self._redundant(moved, state):
             return t, zero, placed
-        return t + r.offset, r.offset, moved
+        return t + offset, offset, moved
 
     @staticmethod
     def _main_chain(nodes: list[Node]) -> list[Node]:
@@ -439,3 +663,22 @@ class Assembler:
                 return chain
             chain.append(child)
             parent = child.node
+
+
+def _chamfer(a: _Placed, b: _Placed) -> float:
+    """Symmetric mean nearest-neighbour distance between two placed parts' samples."""
+    d1, _ = b.kdtree().query(a.points, k=1)
+    d2, _ = a.kdtree().query(b.points, k=1)
+    return float(0.5 * (d1.mean() + d2.mean()))
+
+
+def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
+    """The same part, or parts whose placed samples lie within ``distance`` Chamfer distance."""
+    if a.suggestion.part_index == b.suggestion.part_index:
+        return True
+    pa, pb = a.placed, b.placed
+    assert pa is not None and pb is not None, "candidates are placed when they are tested"
+    gap = np.maximum(0, np.maximum(pa.lo - pb.hi, pb.lo - pa.hi))
+    if np.linalg.norm(gap) >= distance:
+        return False
+    return _chamfer(pa, pb) < distance

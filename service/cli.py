@@ -11,7 +11,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import typer
 
 from service.logs import quiet_libraries
@@ -20,14 +19,8 @@ log = logging.getLogger(__name__)
 
 
 
-def _frame_options(up_axis: str | None, center: str | None, radius: float | None,
-                   fit: bool, path: Path) -> dict[str, Any] | None:
-    """The request's ``frame`` from the command's options (``--fit``: from the file's bounding box)."""
-    if fit:
-        from service.geometry import normalize_frame
-
-        _, c, r = normalize_frame(_file_geometry(path))
-        return {"center": [float(x) for x in c], "radius": r, "up_axis": up_axis or "y"}
+def _frame_options(up_axis: str | None, center: str | None, radius: float | None) -> dict[str, Any] | None:
+    """The request's ``frame`` from the command's options (None: none given)."""
     if up_axis is None and center is None and radius is None:
         return None
     frame: dict[str, Any] = {"up_axis": up_axis or "y"}
@@ -43,26 +36,11 @@ def _frame_options(up_axis: str | None, center: str | None, radius: float | None
     return frame
 
 
-def _file_geometry(path: Path) -> np.ndarray:
-    """Vertices or points of a query file, for ``--fit``."""
-    from service.client import MESH_SUFFIXES, REQUEST_SUFFIXES, read_points_file, read_request_file
-    from service.geometry import load_mesh_bytes
-
-    if path.suffix.lower() in REQUEST_SUFFIXES:
-        body = read_request_file(path)
-        if "points" not in body:
-            raise ValueError(f"{path}: --fit needs the request's \"points\"")
-        return np.asarray(body["points"], dtype=np.float64).reshape(-1, 3)
-    if path.suffix.lower() in MESH_SUFFIXES:
-        mesh = load_mesh_bytes(path.read_bytes(), path.suffix, name=str(path), max_vertices=10_000_000,
-                               max_faces=10_000_000, ignore_obj_materials=True)
-        return np.asarray(mesh.vertices)
-    return read_points_file(path)
-
-
 def _options(k: int | None, category: list[str] | None, exclude_shape: list[str] | None,
-             frame: dict[str, Any] | None) -> dict[str, Any]:
+             frame: dict[str, Any] | None, fit: bool = False) -> dict[str, Any]:
     opts: dict[str, Any] = {"k": k, "frame": frame}
+    if fit:
+        opts["fit_frame"] = True
     if category:
         opts["category"] = category
     if exclude_shape:
@@ -78,7 +56,10 @@ def _table(answer: dict[str, Any]) -> str:
                      f"{s['mode']} ({s['mode_weight']:.2f})", f"[{t}]"))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)).rstrip() for r in rows]
-    return "\n".join([f"model {answer['model_version']}", *lines])
+    f = answer["frame"]
+    frame = (f"frame{' (fitted)' if answer.get('frame_fitted') else ''}: centre "
+             f"[{', '.join(f'{x:.4g}' for x in f['center'])}], radius {f['radius']:.4g}, up {f['up_axis']}")
+    return "\n".join([f"model {answer['model_version']}", frame, *lines])
 
 
 def register_service_commands(app: typer.Typer) -> None:
@@ -155,7 +136,9 @@ def register_service_commands(app: typer.Typer) -> None:
         up_axis: str | None = typer.Option(None, help="The file's up axis: y or z."),
         center: str | None = typer.Option(None, help="Centre of the complete object in file units: x,y,z."),
         radius: float | None = typer.Option(None, help="Radius of the complete object in file units."),
-        fit: bool = typer.Option(False, help="Take centre and radius from the file's bounding box."),
+        fit: bool = typer.Option(False, help=(
+            "Let the service estimate the complete object's frame from the file (centre, radius and, "
+            "without --up-axis, the up axis); --center and --radius are then ignored.")),
         as_json: bool = typer.Option(False, "--json", help="Print the service's JSON answer."),
         timeout: float = typer.Option(30.0, help="Seconds per request."),
     ) -> None:
@@ -167,8 +150,9 @@ def register_service_commands(app: typer.Typer) -> None:
 
         with ComplementMeClient(url, timeout=timeout) as client:
             try:
-                options = _options(k, category, exclude_shape,
-                                   _frame_options(up_axis, center, radius, fit, file))
+                frame = (({"up_axis": up_axis} if up_axis else None) if fit
+                         else _frame_options(up_axis, center, radius))
+                options = _options(k, category, exclude_shape, frame, fit)
                 answer = suggest_file(client, file, **options)
             except (ClientError, ValueError, OSError) as exc:  # the service's refusal, or a bad file
                 typer.echo(f"error: {exc}", err=True)

@@ -33,14 +33,14 @@ from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import faiss
 import numpy as np
 
 from service.complement import covered_share, demote_covered
-from service.contact import ContactParams, PartContacts
+from service.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
 from service.frames import Frame
 from service.geometry import resample_points
@@ -569,9 +569,38 @@ class SuggestionEngine:
         Shapes:
             full: (M, 3) canonical query points; rows: (n,); translations: (n, 3) -> (n, 3) float64.
         """
-        assembly = self.contacts.assembly_from_points(full)
-        found = self.contacts.refine(self.catalog, rows, translations, assembly)
-        return np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
+        return self.refine_against(self.contacts.assembly_from_points(full), rows, translations)
+
+    def refine_against(self, assembly: Assembly, rows: np.ndarray, translations: np.ndarray,
+                       scales: np.ndarray | None = None) -> np.ndarray:
+        """Contact refinement offsets of catalog parts placed against an assembly.
+
+        The bounded search first (``contact_max_offset``); a part it leaves floating (apart from
+        the assembly, not sunk into it) gets a second search reaching ``contact_reach``, so that
+        a part h left hanging in the air is pulled onto what it attaches to. ``scales``: per-axis
+        sizes the parts are fitted to (None: as in the catalog).
+
+        Shapes:
+            rows: (n,); translations: (n, 3) canonical; scales: (n, 3) -> (n, 3) float64 offsets.
+        """
+        t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+        if scales is None or np.all(np.asarray(scales) == 1.0):
+            found = self.contacts.refine(self.catalog, rows, t, assembly)
+            surfaces = [lambda j=j: self.contacts.part_surface(self.catalog, int(rows[j])).moved(t[j])
+                        for j in range(len(t))]
+        else:
+            surfaces = [lambda j=j: scaled_surface(self.contacts.part_surface(self.catalog, int(rows[j])),
+                                                   scales[j]).moved(t[j]) for j in range(len(t))]
+            found = [refine_offset(make(), assembly, self.contacts.params) for make in surfaces]
+        offsets = np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
+        params = self.contacts.params
+        reach = replace(params, max_offset=self.settings.contact_reach)
+        if reach.max_offset <= params.max_offset:
+            return offsets
+        for j, r in enumerate(found):
+            if not r.resolved and r.before.depth <= params.tolerance < r.before.gap:
+                offsets[j] = refine_offset(surfaces[j](), assembly, reach).offset
+        return offsets
 
     # ---------------------------------------------------------------- steps 3-6
     def _search(self, queries: list[_Query], means: np.ndarray) -> list[np.ndarray]:
@@ -811,6 +840,23 @@ def _caller_scale(scales: np.ndarray, frame: Frame) -> np.ndarray:
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:
     t = time.perf_counter()
     return fn(*args), time.perf_counter() - t
+
+
+def scaled_surface(surface: Surface, scale: np.ndarray) -> Surface:
+    """A centred part's oriented samples scaled per axis about its centre (normals transformed
+    by the inverse scale and renormalised).
+
+    Shapes:
+        scale: (3,).
+    """
+    s = np.asarray(scale, dtype=np.float64).reshape(1, 3)
+    if np.all(s == 1.0):
+        return surface
+    normals = None
+    if surface.normals is not None:
+        n = surface.normals / s
+        normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return Surface(surface.points * s, normals)
 
 
 def _or_default(asked: bool | None, setting: bool) -> bool:

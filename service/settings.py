@@ -118,6 +118,11 @@ class Settings(BaseSettings):
     contact_tolerance: float = Field(default=0.01, gt=0, le=0.1, description=(
         "Gap and penetration depth (sampled, object radius units) that count as touching; also "
         "the step of the refinement's line search."))
+    contact_reach: float = Field(default=0.25, ge=0, le=1, description=(
+        "A placed part that contact refinement cannot bring into contact within "
+        "`contact_max_offset` and that floats (apart from the assembly, not sunk into it) gets a "
+        "second search reaching this far (object radius units): h sometimes leaves a part hanging "
+        "in the air (`/place`, `/assemble`, refined suggestions). At most `contact_max_offset`: off."))
     suggest_refine_contact: bool = Field(default=False, description=(
         "Contact refinement of suggestions (`/suggest`, `/suggest/mesh`, `/suggest/batch`) when a "
         "request does not send `refine_contact`. Off by default: for k = 10 it costs about ten "
@@ -180,6 +185,19 @@ class Settings(BaseSettings):
         "Smallest fitted scale per axis (larger shrinkage is clipped)."))
     scale_max: float = Field(default=2.0, ge=1, le=10, description=(
         "Largest fitted scale per axis (larger growth is clipped)."))
+    fit_frame_uploads: bool = Field(default=True, description=(
+        "A mesh upload (`/suggest/mesh`, `/assemble/mesh`) sent without `frame` gets the complete "
+        "object's frame estimated from the partial one (`fit_frame`); JSON points without `frame` "
+        "are taken as canonical unless the request asks `fit_frame: true`."))
+    fit_frame_max_ratio: float = Field(default=2.5, ge=1, le=10, description=(
+        "Frame fitting tries complete objects up to this many times the partial's own radius."))
+    fit_frame_ratios: int = Field(default=5, ge=1, le=20, description=(
+        "Radii frame fitting tries, from the partial's own radius to `fit_frame_max_ratio` times it "
+        "(evenly spaced in log scale)."))
+    fit_frame_shifts: int = Field(default=5, ge=1, le=21, description=(
+        "Positions along the up axis frame fitting tries for the partial inside the complete "
+        "object's room (from the bottom to the top); with each up axis and radius one query of a "
+        "single batch (2 x 5 x 5 = 50 by default, fewer where they coincide)."))
     ood_max_extent: float = Field(default=2.5, gt=1, description=(
         "A query whose points reach further than this from their box centre in the model's frame "
         "(unit radius; a whole object reaches 1) is far outside what the model knows: the answer "
@@ -204,6 +222,10 @@ class Settings(BaseSettings):
     assemble_candidates: int = Field(default=60, ge=1, description=(
         "Suggestions `/assemble` considers at each step (at most `max_k`): enough that the "
         "complementary kinds are among them when g's favourites are all already placed."))
+    assemble_candidate_rounds: int = Field(default=3, ge=1, le=10, description=(
+        "Rounds of `assemble_candidates` suggestions one `/assemble` step may ask for: when every "
+        "likely candidate of a round does the job of a part already placed, the next round asks for "
+        "the following ones (the tested parts excluded)."))
     assemble_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "`/assemble` stops when no candidate's mode has at least this weight phi_k."))
     assemble_max_distance: float = Field(default=4.0, gt=0, description=(
@@ -228,6 +250,29 @@ class Settings(BaseSettings):
         "lie within this distance of the placed parts' samples: it adds little new surface."))
     assemble_cover_share: float = Field(default=0.5, ge=0, le=1, description=(
         "Share of a candidate's samples near placed surface that makes it redundant (1: rule off)."))
+    assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
+        "`/assemble` skips a candidate whose placed box overlaps a placed part's box with more than "
+        "this IoU when the two parts do the same job (see `assemble_same_job_sigmas`)."))
+    assemble_same_job_sigmas: float = Field(default=0.9, ge=0, description=(
+        "Two overlapping parts do the same job when their embeddings lie within this root-mean-square "
+        "distance of each other, in the standard deviations g predicts for the candidate's mode "
+        "at that step (g would take either for the other)."))
+    assemble_complete_margin: float = Field(default=0.0, description=(
+        "`/assemble` stops (`complete`) when no eligible candidate's mixture log-likelihood "
+        "exceeds the most likely placed part's by more than this: g's most wanted complement is "
+        "one the assembly already has."))
+    assemble_complete_quantiles: tuple[float, float] = Field(default=(0.5, 0.9), description=(
+        "Quantiles of the part count of the catalog's shapes of the assembly's category: "
+        "`/assemble` calls an assembly with fewer parts than the first never complete on g's word "
+        "alone, and one with as many as the second complete (no shape of the data has many more)."))
+    assemble_frame_tolerance: float = Field(default=0.1, ge=0, le=1, description=(
+        "`/assemble` calls an assembly complete only when it spans the complete object's frame: "
+        "its box centred within this distance of the origin and its surface reaching radius "
+        "1 minus this (the canonical frame centres every complete object's box and scales it to "
+        "radius 1)."))
+    assemble_branch_min_distance: float = Field(default=0.05, ge=0, description=(
+        "Siblings of an `/assemble` tree whose placed samples lie within this Chamfer distance of "
+        "each other count as one alternative: the next candidate is shown instead."))
     assemble_max_nodes: int = Field(default=63, ge=1, description=(
         "Most parts placed over a whole `branching` tree of `/assemble` (its size bound)."))
     max_assemble_branching: int = Field(default=4, ge=1, description=(
@@ -332,6 +377,13 @@ class Settings(BaseSettings):
     request_timeout: float = Field(default=30.0, gt=0, description=(
         "Seconds a request may take (queueing included); past this it is answered 504 (503 if it "
         "was still queued) and its late answer is dropped."))
+
+    @field_validator("assemble_complete_quantiles")
+    @classmethod
+    def _quantiles(cls, value: tuple[float, float]) -> tuple[float, float]:
+        if not 0 <= value[0] <= value[1] <= 1:
+            raise ValueError("assemble_complete_quantiles must be two quantiles 0 <= low <= high <= 1")
+        return value
 
     @field_validator("api_key", mode="before")
     @classmethod

@@ -24,8 +24,9 @@ def render_frame(frame: Frame) -> dict[str, Any]:
             "scale": float(frame.radius), "rotation": frame.part_rotation.tolist()}
 
 
-def render_suggest(result: SuggestResult, model_version: str) -> dict[str, Any]:
+def render_suggest(result: SuggestResult, model_version: str, frame_fitted: bool = False) -> dict[str, Any]:
     return {
+        "frame_fitted": frame_fitted,
         "model_version": model_version,
         "frame": render_frame(result.frame),
         "input_points": result.n_input_points,

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from service.api.render import part_links, render_frame
-from service.assembly import AssembleResult, Node
+from service.assembly import STOP_REASONS, AssembleResult, Node
 from service.engine import SuggestionEngine
 
 
@@ -35,7 +35,8 @@ def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> di
     }
 
 
-def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: str) -> dict[str, Any]:
+def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: str,
+                    frame_fitted: bool = False) -> dict[str, Any]:
     frame, start = result.frame, result.start
     start_out: dict[str, Any] = {"kind": start.kind}
     if start.part_index is not None:
@@ -50,6 +51,7 @@ def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: 
     return {
         "model_version": engine.model_version, "frame": render_frame(frame), "start": start_out,
         "category": result.category, "strategy": strategy, "stop_reason": result.stop_reason,
+        "stop_message": STOP_REASONS[result.stop_reason], "frame_fitted": frame_fitted,
         "steps": [d for d in nodes if d["node"] in chain], "nodes": nodes,
         "timings": {k: round(v, 6) for k, v in result.timings.items()},
     }

@@ -134,6 +134,12 @@ class SuggestOptionsIn(_Strict):
         "region, in the request's frame, ranked among the best COMPLEMENTME_REGION_CANDIDATES "
         "candidates. The answer's `region` says how many were placed and how many fell in; an "
         "empty answer carries a `region_empty` warning saying why."))
+    fit_frame: Flag | None = Field(default=None, description=(
+        "Estimate the complete object's frame from the partial one and answer in it: centre, radius "
+        "and (without `frame`) the up axis, the hypothesis under which the model is surest "
+        "(`service/frame_fit.py`); the answer's `frame` is the one used and `frame_fitted` is true. "
+        "With `frame`, only its `up_axis` is kept. Omitted: fitted for mesh uploads sent without "
+        "`frame` (COMPLEMENTME_FIT_FRAME_UPLOADS), never for JSON points."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,
@@ -333,6 +339,8 @@ class SuggestResponse(BaseModel):
         "What makes this answer doubtful (the status stays 200)."))
     region: RegionOut | None = Field(default=None, description=(
         "When the request gave a region: how many candidates were placed and how many fell in it."))
+    frame_fitted: bool = Field(default=False, description=(
+        "The service estimated `frame` from the partial (`fit_frame`)."))
 
 
 class PlacementOut(BaseModel):

@@ -56,6 +56,10 @@ class AssembleOptionsIn(_Strict):
         "Nudge each placed part into contact with the parts placed before it."))
     frame: FrameIn | None = Field(default=None, description=(
         "The frame of the start points and parts, and of the answer."))
+    fit_frame: Flag | None = Field(default=None, description=(
+        "Estimate the complete object's frame from the start points or mesh (as `/suggest`'s "
+        "`fit_frame`; the answer's `frame` is the one used). Omitted: fitted for mesh uploads sent "
+        "without `frame` (COMPLEMENTME_FIT_FRAME_UPLOADS), never for JSON points."))
 
     def to_options(self) -> AssembleOptions:
         def tup(v: str | list[str] | None) -> tuple[str, ...]:
@@ -147,7 +151,7 @@ class AssembleResponse(BaseModel):
         "start": {"kind": "part", "part_id": "chair-0007/0", "translation": [0.0, -0.16, 0.0],
                   "links": {"part": "/parts/chair-0007/0", "mesh": "/parts/chair-0007/0/mesh",
                             "points": "/parts/chair-0007/0/points"}},
-        "category": "chair", "strategy": "greedy", "stop_reason": "duplicates",
+        "category": "chair", "strategy": "greedy", "stop_reason": "complete",
         "steps": [{"node": 0, "parent": None, "depth": 1, "part_id": "chair-0011/2", "shape_id": "chair-0011",
                    "category": "chair", "label": "leg", "score": 41.2, "mode": 3, "mode_weight": 0.4,
                    "distance": 1.3, "translation": [0.0, -0.55, 0.0], "contact_offset": [0.0, -0.01, 0.0],
@@ -163,11 +167,15 @@ class AssembleResponse(BaseModel):
     category: str | None = Field(..., description="The category candidates were restricted to.")
     strategy: str
     stop_reason: str = Field(..., description=(
-        "Why the main chain ended: max_parts, no_candidates, unlikely, duplicates or node_budget."))
+        "Why the main chain ended: complete, max_parts, duplicates, unlikely, no_candidates or "
+        "node_budget (docs/modeling.md)."))
+    stop_message: str = Field(default="", description="The stop reason in words, for a user.")
     steps: list[StepOut] = Field(..., description="The main chain: the first choice at every step.")
     nodes: list[StepOut] = Field(..., description="Every placed part of the tree (with branching >= 2).")
     timings: dict[str, float] = Field(..., description=(
-        "Seconds spent suggesting, refining contact, in total."))
+        "Seconds spent suggesting, choosing (eligibility tests), refining contact, in total."))
+    frame_fitted: bool = Field(default=False, description=(
+        "The service estimated `frame` from the start (`fit_frame`)."))
 
 
 class ExportItemIn(_Strict):

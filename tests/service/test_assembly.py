@@ -22,13 +22,16 @@ from service.assembly import (
     STOP_REASONS,
     AssembleOptions,
     Assembler,
+    Node,
     Start,
     Strategy,
     _Placed,
+    _State,
     estimate_area,
 )
 from service.catalog import Catalog
-from service.contact import Surface
+from service.contact import Assembly as ContactAssembly
+from service.contact import Surface, measure_contact
 from service.engine import SuggestionEngine
 from service.errors import InputError, ServiceError
 from service.loading import load_artifacts
@@ -106,9 +109,55 @@ def test_redundant_part_on_placed_surface(engine: SuggestionEngine) -> None:
     above = _box([-.4, .02 + lift, -.3], [.4, .04 + lift, .5], n=2000, seed=2)
     asm = Assembler(engine)
     assert not asm._duplicate(above, [seat])  # not the same spot...
-    assert asm._redundant(above, [seat])      # ...but lying on placed surface
+    assert asm._redundant(above, _State([seat], frozenset()))      # ...but lying on placed surface
     far = _box([-.4, .5, -.4], [.4, .54, .4], n=2000, seed=3)
-    assert not asm._redundant(far, [seat])
+    assert not asm._redundant(far, _State([seat], frozenset()))
+
+
+def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog) -> None:
+    """The same catalog part a little beside itself does the job of the placed one (g cannot
+    tell them apart); the same part far away, or a part g tells apart, does not."""
+    asm = Assembler(engine)
+    sigma = np.full(catalog.embeddings.shape[1], float(np.std(catalog.embeddings)))
+    i = 0
+    t = catalog.translations[i].astype(np.float64)
+    size = float(np.linalg.norm(catalog.bbox_max[i] - catalog.bbox_min[i]))
+    placed = _State([asm._catalog_part(i, t)], frozenset())
+    assert asm._same_job(asm._catalog_part(i, t + np.array([0.2 * size, 0, 0])), placed, sigma)
+    assert not asm._same_job(asm._catalog_part(i, t + np.array([3.0 * size, 0, 0])), placed, sigma)
+    z = np.sqrt(np.mean(((catalog.embeddings - catalog.embeddings[i]) / sigma) ** 2, axis=1))
+    other = int(np.argmax(z))   # the part g finds least like part 0, at part 0's place
+    assert not asm._same_job(asm._catalog_part(other, t), placed, sigma)
+
+
+def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, catalog: Catalog) -> None:
+    """A part lifted past contact_max_offset (but within contact_reach) off the part it touches
+    is brought back into contact by the second, longer search."""
+    s = engine.settings
+    rows = np.flatnonzero(catalog.shape_of == catalog.shape_of[0])
+    surfaces = {int(r): engine.contacts.part_surface(catalog, int(r)).moved(catalog.translations[r])
+                for r in rows}
+    far = (s.contact_max_offset + s.contact_reach) / 2
+
+    def moved_away(a: int, b: int) -> np.ndarray:
+        """Part b's translation moved straight away from part a by ``far``."""
+        d = catalog.translations[b].astype(np.float64) - catalog.translations[a]
+        return catalog.translations[b] + far * d / np.linalg.norm(d)
+
+    def floats(a: int, b: int) -> bool:
+        """b touches a at its place, and moved away it is out of the bounded search's reach."""
+        assembly = ContactAssembly(surfaces[a])
+        away = engine.contacts.part_surface(catalog, b).moved(moved_away(a, b))
+        return (measure_contact(surfaces[b], assembly).touching(s.contact_tolerance)
+                and measure_contact(away, assembly).gap > s.contact_max_offset + 2 * s.contact_tolerance)
+
+    a, b = next((int(a), int(b)) for a in rows for b in rows if a != b and floats(int(a), int(b)))
+    assembly = ContactAssembly(surfaces[a])
+    t = moved_away(a, b)
+    offset = engine.refine_against(assembly, np.array([b]), t[None])[0]
+    assert np.linalg.norm(offset) > s.contact_max_offset
+    after = measure_contact(engine.contacts.part_surface(catalog, b).moved(t + offset), assembly)
+    assert after.gap <= s.contact_tolerance
 
 
 def test_estimate_area() -> None:
@@ -174,10 +223,20 @@ def test_tree(permissive: SuggestionEngine) -> None:
         assert n.depth <= 3
         if n.parent is not None:
             assert by_id[n.parent].depth == n.depth - 1
-    # Siblings are different parts; the main chain takes the first child at every depth.
+    # Siblings are different parts that do not look alike at one place; no two branches reach
+    # the same set of parts; the main chain takes the first child at every depth.
     for parent in children:
-        kids = [n.suggestion.part_id for n in result.nodes if n.parent == parent]
-        assert len(set(kids)) == len(kids)
+        kids = [n for n in result.nodes if n.parent == parent]
+        assert len({n.suggestion.part_id for n in kids}) == len(kids)
+    sets: list[frozenset[int]] = []
+    for n in result.nodes:
+        chain: list[int] = []
+        at: Node | None = n
+        while at is not None:
+            chain.append(int(engine.catalog.group[at.suggestion.part_index]))
+            at = by_id[at.parent] if at.parent is not None else None
+        sets.append(frozenset(chain))
+    assert len(set(sets)) == len(sets)
     _chain_ok(result, 3)
     assert result.steps[0] is next(n for n in result.nodes if n.parent is None)
     # Leaves say why they ended.
@@ -234,6 +293,7 @@ def test_api_assemble(client: TestClient, catalog: Catalog) -> None:
     assert body["start"]["kind"] == "part" and body["start"]["part_id"] == pid
     np.testing.assert_allclose(body["start"]["translation"], catalog.translations[0], atol=1e-6)
     assert body["stop_reason"] in STOP_REASONS and body["category"] == catalog.records[0]["category"]
+    assert body["stop_message"] == STOP_REASONS[body["stop_reason"]] and body["frame_fitted"] is False
     assert len(body["steps"]) <= 3 and body["nodes"] == body["steps"]
     for s in body["steps"]:
         i = catalog.lookup(s["part_id"])
@@ -319,7 +379,7 @@ def shipped_engine() -> SuggestionEngine:
     return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
 
 
-QualityRuns = tuple[dict[str, float], list[tuple[str, str, str, str]]]
+QualityRuns = tuple[dict[str, float], list[tuple[str, str, Strategy, str]]]
 
 
 @pytest.fixture(scope="module")

@@ -134,8 +134,9 @@ def test_suggest_command_prints_a_ranked_table(live_url: str, cli: typer.Typer, 
     assert result.exit_code == 0, result.output
     expected = client.post("/suggest", json={"points": query.points.tolist(), "k": 3}).json()
     lines = result.output.strip().splitlines()
-    assert lines[1].split()[:2] == ["rank", "part_id"]
-    assert [line.split()[1] for line in lines[2:]] == [s["part_id"] for s in expected["suggestions"]]
+    assert lines[1].startswith("frame: centre [0, 0, 0], radius 1, up y")
+    assert lines[2].split()[:2] == ["rank", "part_id"]
+    assert [line.split()[1] for line in lines[3:]] == [s["part_id"] for s in expected["suggestions"]]
     args = ["suggest", str(tmp_path / "q.npy"), "--url", live_url]
     as_json = CliRunner().invoke(cli, [*args, "-k", "3", "--json"])
     assert json.loads(as_json.output) == expected
@@ -144,6 +145,11 @@ def test_suggest_command_prints_a_ranked_table(live_url: str, cli: typer.Typer, 
     assert json.loads(framed.output)["frame"]["center"] == [1.0, 2.0, 3.0]
     failed = CliRunner().invoke(cli, [*args, "-k", "0"])
     assert failed.exit_code == 1 and "k_out_of_range" in failed.output
+    # --fit: the service estimates the frame (here: of canonical points, up axis kept) and says so.
+    fitted = CliRunner().invoke(cli, [*args, "--fit", "--up-axis", "y", "-k", "3"])
+    assert fitted.exit_code == 0, fitted.output
+    assert fitted.output.splitlines()[1].startswith("frame (fitted): centre [")
+    assert fitted.output.splitlines()[1].endswith("up y")
 
 
 def test_batch_command_writes_json_lines(live_url: str, cli: typer.Typer, tmp_path: Path,

@@ -106,6 +106,41 @@ def evaluate_command(
         raise typer.Exit(code=2) from exc
 
 
+def evaluate_assembly_command(
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder."),
+    out: Path = typer.Option(Path("docs/assembly"), "--out", help="Folder for results.json."),
+    report: Optional[Path] = typer.Option(Path("docs/modeling.md"), "--report",  # noqa: UP045
+                                          help="Markdown file whose assembly-evaluation block is rewritten."),
+    no_report: bool = typer.Option(False, "--no-report", help="Write results.json only."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the start parts and the sampler."),
+    starts: int = typer.Option(20, "--starts", help="Held-out start parts per category."),
+    strategies: str = typer.Option("greedy", "--strategies", help="Comma-separated: greedy, sample."),
+    temperature: float = typer.Option(1.0, "--temperature", help="Temperature of the sampled runs."),
+    max_parts: Optional[int] = typer.Option(None, "--max-parts",  # noqa: UP045
+                                            help="Parts to add (default: the service's setting)."),
+    contact: bool = typer.Option(True, "--contact/--no-contact",
+                                 help="Measure floating and interpenetration (exact, slower)."),
+    contact_tolerance: float = typer.Option(0.02, "--contact-tolerance", help="Gap or depth that counts."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Automatic assembly from held-out start parts: complete, stacked, empty, floating runs.
+
+    Labels are read to measure only."""
+    from training.evaluate.assembly_eval import AssemblyEvalSettings, run_assembly_evaluation
+
+    settings = AssemblyEvalSettings(
+        artifacts=artifacts, out=out, report=None if no_report else report, seed=seed,
+        starts_per_category=starts, strategies=tuple(x.strip() for x in strategies.split(",") if x.strip()),
+        temperature=temperature, max_parts=max_parts, contact=contact, contact_tolerance=contact_tolerance,
+        progress=progress, command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]))
+    try:
+        run_assembly_evaluation(settings)
+    except (ValueError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+
+
 def register_evaluate_command(app: typer.Typer) -> None:
-    """Add `evaluate` to the root CLI."""
+    """Add `evaluate` and `evaluate-assembly` to the root CLI."""
     app.command("evaluate")(evaluate_command)
+    app.command("evaluate-assembly")(evaluate_assembly_command)

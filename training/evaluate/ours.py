@@ -107,5 +107,4 @@ class EngineMethod:
         contacts, cat = self.engine.contacts, self.catalog
         surfaces = [contacts.part_surface(cat, int(r)).moved(cat.translations[r]) for r in present.tolist()]
         t = np.asarray(translation, dtype=np.float64)
-        found = contacts.refine(cat, np.array([row]), t[None], Assembly(Surface.union(surfaces)))
-        return t + found[0].offset
+        return t + self.engine.refine_against(Assembly(Surface.union(surfaces)), np.array([row]), t[None])[0]

@@ -36,7 +36,7 @@ from training.evaluate.descriptors import descriptors
 
 SETTINGS = ("all_but_one", "single")
 POOL_SCOPES = ("category", "all")
-_SETTING_CODE = {"all_but_one": 1, "single": 2, "placement:train": 3, "placement:test": 4}
+_SETTING_CODE = {"all_but_one": 1, "single": 2, "placement:train": 3, "placement:test": 4, "assembly": 5}
 
 
 def stable_code(text: str) -> int:
@@ -175,8 +175,10 @@ def sample_rows(index: ShapeIndex, rows: np.ndarray, n: int, rng: np.random.Gene
     return (pts + index.catalog.translations[rows[which]]).astype(np.float32)
 
 
-def _rng(seed: int, category: str, setting: str, *extra: int) -> np.random.Generator:
+def setting_rng(seed: int, category: str, setting: str, *extra: int) -> np.random.Generator:
+    """The generator of one category's draws for one setting (queries, or assembly starts)."""
     return np.random.default_rng([seed, stable_code(category), _SETTING_CODE[setting], *extra])
+
 
 
 def make_queries(index: ShapeIndex, setting: str, n_per_category: int, n_points: int, seed: int,
@@ -193,14 +195,14 @@ def make_queries(index: ShapeIndex, setting: str, n_per_category: int, n_points:
                 rest = np.setdiff1d(index.rows[sid], rows)
                 if rest.size:  # a query must keep something, and remove something
                     pairs.append((sid, label))
-        rng = _rng(seed, cat, setting)
+        rng = setting_rng(seed, cat, setting)
         order = rng.permutation(len(pairs))[:n_per_category]
         for qi, pi in enumerate(order.tolist()):
             sid, label = pairs[pi]
             part = index.labelled_parts(sid)[label]
             rest = np.setdiff1d(index.rows[sid], part)
             present, removed = (rest, part) if setting == "all_but_one" else (part, rest)
-            pts = sample_rows(index, present, n_points, _rng(seed, cat, setting, qi, 1))
+            pts = sample_rows(index, present, n_points, setting_rng(seed, cat, setting, qi, 1))
             queries.append(Query(qid=f"{cat}/{setting}/{qi:03d}", category=cat, shape_id=sid, setting=setting,
                                  present=present, removed=removed, label=label, style=index.style[sid],
                                  points=pts))
@@ -218,11 +220,11 @@ def make_placement_queries(index: ShapeIndex, split: str, n_per_category: int, n
     for cat in cat_list:
         pairs = [(sid, int(r)) for sid in index.shapes(cat, split) for r in index.rows[sid].tolist()
                  if len(index.rows[sid]) >= 2]
-        order = _rng(seed, cat, setting).permutation(len(pairs))[:n_per_category]
+        order = setting_rng(seed, cat, setting).permutation(len(pairs))[:n_per_category]
         for qi, pi in enumerate(order.tolist()):
             sid, target = pairs[pi]
             present = index.rows[sid][index.rows[sid] != target]
-            pts = sample_rows(index, present, n_points, _rng(seed, cat, setting, qi, 1))
+            pts = sample_rows(index, present, n_points, setting_rng(seed, cat, setting, qi, 1))
             out.append(PlacementQuery(
                 qid=f"{cat}/{setting}/{qi:03d}", category=cat, shape_id=sid, split=split, target=target,
                 present=present, points=pts,

@@ -6,6 +6,7 @@ Handlers are plain ``def`` (threadpool), like the suggestion routes; the work is
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,9 +22,11 @@ from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
 from service.api.schemas_modeling import AssembleOptionsIn, AssembleRequest, AssembleResponse, ExportRequest
-from service.assembly import Assembler, Start
-from service.engine import SuggestionEngine
+from service.assembly import AssembleOptions, Assembler, Start
+from service.engine import SuggestionEngine, SuggestOptions
+from service.errors import InputError
 from service.export_mesh import MEDIA_TYPES, export_assembly
+from service.frame_fit import fit_frame, fit_requested, up_axes_for
 from service.frames import Frame
 from service.inputs import mesh_format
 
@@ -48,27 +51,41 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 }}}}}
 
 
-def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int) -> Start:
+def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int, frame: Frame) -> Start:
     """The request's start in the canonical frame: one part, or placed parts and/or points."""
     if body.part_id is not None:
         return Start(kind="part", part_index=engine.catalog.lookup(body.part_id))
-    frame = body.frame.to_frame() if body.frame else None
     rows = tuple(engine.catalog.lookup(p.part_id) for p in body.parts or [])
     trans = np.array([p.translation for p in body.parts or []], dtype=np.float64).reshape(-1, 3)
-    if frame is not None and len(trans):
+    if len(trans):
         trans = frame.to_canonical(trans).astype(np.float64)
     cloud = body.points is not None or body.points_base64 is not None
-    points = (engine.canonical(body.to_points(max_points), frame or Frame()) if cloud
-              else np.zeros((0, 3), np.float32))
+    points = engine.canonical(body.to_points(max_points), frame) if cloud else np.zeros((0, 3), np.float32)
     return Start(kind="parts" if rows else "points", points=points, parts=rows, part_translations=trans)
+
+
+def fitted_frame(engine: SuggestionEngine, points: np.ndarray, options: AssembleOptions,
+                 framed: bool) -> Frame:
+    """The complete object's frame estimated from start points (``service.frame_fit``)."""
+    fit = fit_frame(engine, points, SuggestOptions(categories=options.categories, styles=options.styles,
+                                                   frame=options.frame),
+                    up_axes_for(options.frame if framed else None))
+    if not fit.hypotheses:
+        raise InputError("frame_unfit", "the start points have no extent: no frame can be fitted to them")
+    return fit.frame
 
 
 @router.post("/assemble", response_model=AssembleResponse, responses=_ERRORS,
              summary="Grow a shape automatically from a start part or points")
 def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
     options = body.to_options()
-    result = Assembler(engine).assemble(start_of(body, engine, settings.max_points), options)
-    return OrjsonResponse(render_assemble(result, engine, options.strategy))
+    cloud = body.points is not None or body.points_base64 is not None
+    fit = fit_requested(body.fit_frame, body.frame is not None, False, settings) and cloud
+    if fit:
+        options = replace(options, frame=fitted_frame(engine, body.to_points(settings.max_points), options,
+                                                      body.frame is not None))
+    result = Assembler(engine).assemble(start_of(body, engine, settings.max_points, options.frame), options)
+    return OrjsonResponse(render_assemble(result, engine, options.strategy, fit))
 
 
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
@@ -100,10 +117,15 @@ async def post_assemble_mesh(
     points, area = await run_in_threadpool(uploads.sample, data, fmt, n=n, name=file.filename or "upload",
                                            deadline=request_deadline(request))
     del data
-    frame = opts.to_options().frame
+    assemble_options = opts.to_options()
+    fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
+    if fit:
+        assemble_options = replace(assemble_options, frame=await run_in_threadpool(
+            fitted_frame, engine, points, assemble_options, opts.frame is not None))
+    frame = assemble_options.frame
     start = Start(kind="mesh", points=engine.canonical(points, frame), area=area / frame.radius ** 2)
-    result = await run_in_threadpool(Assembler(engine).assemble, start, opts.to_options())
-    return OrjsonResponse(render_assemble(result, engine, opts.strategy))
+    result = await run_in_threadpool(Assembler(engine).assemble, start, assemble_options)
+    return OrjsonResponse(render_assemble(result, engine, opts.strategy, fit))
 
 
 @router.post("/export", response_class=Response, summary="Placed parts as one GLB or OBJ file", responses={

@@ -8,6 +8,7 @@ requests' queries, and render the answer. ``/place`` is a plain ``def`` run in t
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -17,7 +18,15 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from service.api.batched_route import BatchedRoute, batch_ticket, request_deadline
-from service.api.deps import BatcherDep, EngineDep, MetricsDep, SettingsDep, UploadsDep, unique_form_fields
+from service.api.deps import (
+    BatcherDep,
+    EngineDep,
+    MetricsDep,
+    SettingsDep,
+    SuggestBatcher,
+    UploadsDep,
+    unique_form_fields,
+)
 from service.api.errors import service_error_body, validation_error
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
@@ -33,6 +42,7 @@ from service.api.schemas import (
 )
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
+from service.frame_fit import best_frame, fit_queries, fit_requested, up_axes_for
 from service.inputs import mesh_format
 from service.region import Region
 
@@ -68,8 +78,21 @@ async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep
     points = body.to_points(settings.max_points)
     options = body.to_options()
     engine.check_budget(engine.check_query(len(points), options))
+    if body.fit_frame:
+        options = await fitted(engine, batcher, request, points, options, body.frame is not None)
     result = await batcher.submit((points, options), batch_ticket(request), request_deadline(request))
-    return OrjsonResponse(render_suggest(result, engine.model_version))
+    return OrjsonResponse(render_suggest(result, engine.model_version, bool(body.fit_frame)))
+
+
+async def fitted(engine: SuggestionEngine, batcher: SuggestBatcher, request: Request,
+                 points: np.ndarray, options: SuggestOptions, framed: bool) -> SuggestOptions:
+    """The options with the frame estimated from the partial (``service.frame_fit``): every
+    hypothesis scored in one batch. ``framed``: the caller gave a frame, whose up axis is kept."""
+    frames, queries = fit_queries(engine, points, options, up_axes_for(options.frame if framed else None))
+    if not frames:
+        raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
+    answers = await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
+    return replace(options, frame=best_frame(frames, answers).frame)
 
 
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
@@ -82,7 +105,7 @@ async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
 })
 async def post_suggest_mesh(
-    request: Request, engine: EngineDep, batcher: BatcherDep, uploads: UploadsDep,
+    request: Request, engine: EngineDep, batcher: BatcherDep, uploads: UploadsDep, settings: SettingsDep,
     file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
     options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
                                examples=['{"k": 5, "category": "chair"}']),
@@ -102,8 +125,11 @@ async def post_suggest_mesh(
     points, _ = await run_in_threadpool(uploads.sample, data, fmt, n=engine.artifacts.n_points,
                                         name=file.filename or "upload", deadline=request_deadline(request))
     del data  # the upload's bytes are not needed while the query waits for its batch
+    fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
+    if fit:
+        options_out = await fitted(engine, batcher, request, points, options_out, opts.frame is not None)
     result = await batcher.submit((points, options_out), batch_ticket(request), request_deadline(request))
-    return OrjsonResponse(render_suggest(result, engine.model_version))
+    return OrjsonResponse(render_suggest(result, engine.model_version, fit))
 
 
 @batched.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
@@ -152,6 +178,9 @@ def _decode_items(items: list[Any], engine: SuggestionEngine, max_points: int
     for i, raw in enumerate(items):
         try:
             req = SuggestRequest.model_validate(raw)
+            if req.fit_frame:
+                raise InputError("fit_frame_unsupported", "fit_frame is not available in /suggest/batch "
+                                 "(each item would cost a batch of its own); use /suggest or /suggest/mesh")
             points, options = req.to_points(max_points), req.to_options()
             engine.check_query(len(points), options)  # bad options fail here, before the batch
             queries.append((points, options))

@@ -1,0 +1,136 @@
+"""The complete object's frame, estimated from a partial one (an upload in its own units).
+
+The networks work in the canonical frame of the *complete* object: its box centred at the
+origin, its surface reaching radius 1, y up (``service.frames``). A designer uploading a chair
+without legs, in millimetres and z up, cannot say where the centre and the radius of a chair
+that does not exist yet are; scaling the partial mesh by its own box blows the seat and back up
+to the size of a whole chair, and the model answers with seats and table tops.
+
+``frame_hypotheses`` proposes frames the partial could sit in: for each allowed up axis, the
+partial's box centre moved along the up axis (the missing parts may be below or above it) and
+radii from the partial's own radius up to ``fit_frame_max_ratio`` times it. ``best_frame``
+keeps the hypothesis under which the model is most sure of its answer: the highest mixture
+log-likelihood of the best suggestion (g's density at the catalog part it likes most), i.e. the
+frame in which the partial looks most like the partial assemblies g was trained on. All
+hypotheses of one upload run as one batch through the engine.
+
+Shapes: points (M, 3) in the caller's units; frames map them to the canonical frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.errors import ServiceError
+from service.frames import Frame, UpAxis
+from service.settings import Settings
+
+UP_AXES: tuple[UpAxis, ...] = ("y", "z")
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """The frame chosen for a partial upload, and how sure the model was under each hypothesis."""
+
+    frame: Frame
+    score: float                                   # the chosen hypothesis's best log-likelihood
+    hypotheses: int                                # frames scored
+    scores: list[float] = field(default_factory=list)
+
+
+def frame_hypotheses(points: np.ndarray, up_axes: Sequence[UpAxis], ratios: Sequence[float],
+                     shifts: Sequence[float]) -> list[Frame]:
+    """Frames the partial could sit in (see the module doc).
+
+    Args:
+        points: (M, 3) the partial, caller units.
+        up_axes: the caller's possible up axes.
+        ratios: the complete object's radius over the partial's own radius (>= 1).
+        shifts: where the partial sits along the up axis, from -1 (at the bottom of the room the
+            radius leaves) to 1 (at the top).
+
+    Shapes:
+        points (M, 3) -> len(up_axes) * len(ratios) * len(shifts) frames, fewer when some coincide.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    out: list[Frame] = []
+    seen: set[tuple] = set()
+    for up in up_axes:
+        rot = Frame(up_axis=up).rotation
+        q = pts @ rot.T                                    # caller axes -> canonical axes (y up)
+        lo, hi = q.min(axis=0), q.max(axis=0)
+        centre = (lo + hi) / 2
+        own = float(np.max(np.linalg.norm(q - centre, axis=1)))
+        if not own > 0:
+            continue
+        rel = q - centre
+        across = np.linalg.norm(rel[:, [0, 2]], axis=1)    # distance from the up axis
+        for ratio in ratios:
+            radius = own * ratio
+            # The centre may move along the up axis by d as long as every point stays within the
+            # radius: (y - d)^2 + across^2 <= radius^2 for all points.
+            reach = np.sqrt(np.maximum(radius ** 2 - across ** 2, 0.0))
+            low, high = float(np.max(rel[:, 1] - reach)), float(np.min(rel[:, 1] + reach))
+            for shift in shifts:
+                c = centre.copy()
+                # shift 1: the partial at the top of the room, so the centre below it (d = low)
+                c[1] += (low + high) / 2 - shift * (high - low) / 2
+                key = (up, round(radius / own, 6), round(float(c[1] - centre[1]) / own, 3))
+                if key in seen:
+                    continue
+                seen.add(key)
+                out.append(Frame(center=c @ rot, radius=radius, up_axis=up))
+    return out
+
+
+def best_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | ServiceError]) -> FrameFit:
+    """The hypothesis whose best suggestion is most likely under its own mixture.
+
+    A hypothesis whose query failed, or that found no suggestion, scores -inf.
+    """
+    assert len(frames) == len(results) and frames, f"{len(frames)} frames, {len(results)} results"
+    scores = [max((s.score for s in r.suggestions), default=-np.inf) if isinstance(r, SuggestResult)
+              else -np.inf for r in results]
+    best = int(np.argmax(scores))
+    return FrameFit(frame=frames[best], score=float(scores[best]), hypotheses=len(frames),
+                    scores=[float(s) for s in scores])
+
+
+def fit_requested(asked: bool | None, framed: bool, upload: bool, settings: Settings) -> bool:
+    """Whether a request gets a fitted frame: when it asks; when it does not say, a mesh upload
+    sent without a frame does (``fit_frame_uploads``) and JSON points do not."""
+    return asked if asked is not None else (upload and not framed and settings.fit_frame_uploads)
+
+
+def up_axes_for(frame: Frame | None) -> tuple[UpAxis, ...]:
+    """The up axes to try: the caller's, when it gave a frame; else every axis the API offers."""
+    return UP_AXES if frame is None else (frame.up_axis,)
+
+
+def fit_queries(engine: SuggestionEngine, points: np.ndarray, options: SuggestOptions,
+                up_axes: Sequence[UpAxis]) -> tuple[list[Frame], list[tuple[np.ndarray, SuggestOptions]]]:
+    """The hypotheses of one partial and their scoring queries (a few suggestions each, without
+    the costly steps), for ``engine.suggest_batch`` or the micro-batcher."""
+    s = engine.settings
+    frames = frame_hypotheses(points, up_axes, _ratios(s.fit_frame_max_ratio, s.fit_frame_ratios),
+                              np.linspace(-1.0, 1.0, s.fit_frame_shifts).tolist())
+    scoring = replace(options, k=1, refine_contact=False, complement_check=False)
+    return frames, [(points, replace(scoring, frame=f)) for f in frames]
+
+
+def fit_frame(engine: SuggestionEngine, points: np.ndarray, options: SuggestOptions,
+              up_axes: Sequence[UpAxis] = UP_AXES) -> FrameFit:
+    """Estimate the complete object's frame of a partial (see the module doc); one engine batch."""
+    frames, queries = fit_queries(engine, points, options, up_axes)
+    if not frames:
+        return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
+    return best_frame(frames, engine.suggest_batch(queries))
+
+
+def _ratios(max_ratio: float, n: int) -> list[float]:
+    """``n`` radius ratios from 1 to ``max_ratio``, evenly spaced in log scale."""
+    return np.geomspace(1.0, max_ratio, n).tolist() if n > 1 else [1.0]

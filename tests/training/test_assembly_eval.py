@@ -1,0 +1,115 @@
+"""The assembly evaluation (training/evaluate/assembly_eval.py): measures on hand-made runs, the
+report block, and one small seeded run of `complementme evaluate-assembly` on the shipped model."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from service.assembly import AssembleResult, Node, Start
+from service.engine import Suggestion
+from service.frames import Frame
+from training.evaluate.assembly_eval import (
+    AssemblyEvalSettings,
+    measure_run,
+    report_markers,
+    summarize,
+    write_report,
+)
+
+SHIPPED = Path(__file__).resolve().parents[2] / "exported"
+
+
+class _Index:
+    """The parts of ShapeIndex that measure_run reads: a catalog of unit boxes and their labels."""
+
+    def __init__(self, labels: list[str]) -> None:
+        n = len(labels)
+        self.catalog = SimpleNamespace(part_ids=[f"s/{i}" for i in range(n)], bbox_min=np.full((n, 3), -0.1),
+                                       bbox_max=np.full((n, 3), 0.1))
+        self.labels = np.array(labels, dtype=object)
+
+
+def _node(i: int, row: int, at: list[float]) -> Node:
+    t = np.array(at, dtype=np.float64)
+    sug = Suggestion(rank=1, part_index=row, part_id=f"s/{row}", shape_id="s", category="c", label=None,
+                     score=0.0, mode=0, mode_weight=1.0, duplicates=1, translation=t, bbox_min=t - 0.1,
+                     bbox_max=t + 0.1)
+    return Node(node=i, parent=i - 1 if i else None, depth=i + 1, suggestion=sug, translation=t,
+                contact_offset=np.zeros(3), distance=1.0)
+
+
+def _result(nodes: list[Node]) -> AssembleResult:
+    return AssembleResult(start=Start(kind="part", part_index=0), start_translation=np.zeros(3), category="c",
+                          steps=nodes, nodes=nodes, stop_reason="complete", frame=Frame())
+
+
+def test_measure_run_complete_stacked_and_empty() -> None:
+    index = _Index(["seat", "back", "leg", "seat"])
+    settings = AssemblyEvalSettings(contact=False)
+    # Start seat at 0; back and leg elsewhere: complete, nothing stacked.
+    chain = _result([_node(0, 1, [0, 1, 0]), _node(1, 2, [0, -1, 0])])
+    good = measure_run(index, {"seat", "back", "leg"}, 0, chain, settings)  # type: ignore[arg-type]
+    assert good["complete"] and not good["stacked"] and good["good"] and not good["empty"]
+    # A second seat 0.05 beside the first: their boxes overlap with IoU 0.6 > 0.25.
+    chain = _result([_node(0, 1, [0, 1, 0]), _node(1, 3, [0.05, 0, 0])])
+    stacked = measure_run(index, {"seat", "back"}, 0, chain, settings)  # type: ignore[arg-type]
+    assert stacked["complete"] and stacked["stacked"] == [[2, 0, 0.6]] and not stacked["good"]
+    empty = measure_run(index, {"seat", "back"}, 0, _result([]), settings)  # type: ignore[arg-type]
+    assert empty["empty"] and not empty["complete"] and empty["missing"] == ["back"]
+
+
+def test_summary_and_report_block(tmp_path: Path) -> None:
+    runs = [{"category": "chair", "good": True, "complete": True, "stacked": [], "empty": False,
+             "parts": ["a"], "stop_reason": "complete", "seconds": 0.1, "floating": [False],
+             "interpenetrating": [True]},
+            {"category": "chair", "good": False, "complete": False, "stacked": [], "empty": True, "parts": [],
+             "stop_reason": "unlikely", "seconds": 0.2}]
+    summary = summarize(runs, [{"category": "chair", "floating": False, "interpenetrating": True}], ["chair"])
+    assert summary["chair"]["good"] == 0.5 and summary["chair"]["empty"] == 0.5
+    assert summary["chair"]["interpenetrating"] == 1.0 and summary["all"]["data_interpenetrating"] == 1.0
+    results = {"command": "complementme evaluate-assembly", "seconds": 1.0, "model_version": "m",
+               "artifacts": "exported", "date": "2026-12-02", "essential_labels": {"chair": ["back", "seat"]},
+               "summary": {"greedy": summary}}
+    doc = tmp_path / "modeling.md"
+    doc.write_text("# Modeling\n\nbefore\n")
+    write_report(results, doc)
+    write_report(results, doc)   # a second run replaces the block, it does not add one
+    write_report({**results, "artifacts": "runs/v3-exported"}, doc)   # another model: its own block
+    text = doc.read_text()
+    for tag in ("exported", "v3-exported"):
+        start, end = report_markers(tag)
+        assert text.count(start) == 1 and text.count(end) == 1
+    assert "before" in text and text.count("| chair | 2 | 50% |") == 2
+
+
+@pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="no trained artifacts in exported/ yet")
+def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
+    """One start per category, contacts measured: the command writes its results and its block."""
+    from typer.testing import CliRunner
+
+    from training.cli import app
+
+    report = tmp_path / "modeling.md"
+    args = ["evaluate-assembly", "--artifacts", str(SHIPPED), "--starts", "1", "--out", str(tmp_path / "out"),
+            "--report", str(report), "--no-progress", "--max-parts", "3"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    runs = res["runs"]
+    assert len(runs) == len(res["essential_labels"])  # one start per category
+    assert all(len(r["parts"]) <= 3 for r in runs)
+    assert all(r["start"].split("/")[0] not in {p.split("/")[0] for p in r["parts"]} for r in runs)
+    placed = [r for r in runs if r["parts"]]
+    assert all(len(r["gap"]) == len(r["parts"]) for r in placed)
+    assert 0.0 <= res["summary"]["greedy"]["all"]["good"] <= 1.0
+    assert report_markers("exported")[0] in report.read_text()
+    # Seeded: the same command draws the same starts.
+    again = CliRunner().invoke(app, [*args, "--no-contact", "--out", str(tmp_path / "again")])
+    assert again.exit_code == 0, again.output
+    res2 = json.loads((tmp_path / "again" / "results.json").read_text())
+    assert [r["start"] for r in res2["runs"]] == [r["start"] for r in runs]
