@@ -185,7 +185,7 @@ class Settings(BaseSettings):
         "Smallest fitted scale per axis (larger shrinkage is clipped)."))
     scale_max: float = Field(default=2.0, ge=1, le=10, description=(
         "Largest fitted scale per axis (larger growth is clipped)."))
-    fit_frame_uploads: bool = Field(default=True, description=(
+    fit_frame_uploads: bool = Field(default=False, description=(
         "A mesh upload (`/suggest/mesh`, `/assemble/mesh`) sent without `frame` gets the complete "
         "object's frame estimated from the partial one (`fit_frame`); JSON points without `frame` "
         "are taken as canonical unless the request asks `fit_frame: true`."))

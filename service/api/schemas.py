@@ -139,7 +139,7 @@ class SuggestOptionsIn(_Strict):
         "and (without `frame`) the up axis, the hypothesis under which the model is surest "
         "(`service/frame_fit.py`); the answer's `frame` is the one used and `frame_fitted` is true. "
         "With `frame`, only its `up_axis` is kept. Omitted: fitted for mesh uploads sent without "
-        "`frame` (COMPLEMENTME_FIT_FRAME_UPLOADS), never for JSON points."))
+        "`frame` when COMPLEMENTME_FIT_FRAME_UPLOADS is on (off by default), never for JSON points."))
 
     def preferences(self) -> Preferences:
         return Preferences(mode_weights=tuple(self.mode_weights) if self.mode_weights is not None else None,

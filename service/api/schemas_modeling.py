@@ -59,7 +59,7 @@ class AssembleOptionsIn(_Strict):
     fit_frame: Flag | None = Field(default=None, description=(
         "Estimate the complete object's frame from the start points or mesh (as `/suggest`'s "
         "`fit_frame`; the answer's `frame` is the one used). Omitted: fitted for mesh uploads sent "
-        "without `frame` (COMPLEMENTME_FIT_FRAME_UPLOADS), never for JSON points."))
+        "without `frame` when COMPLEMENTME_FIT_FRAME_UPLOADS is on (off by default), never for JSON points."))
 
     def to_options(self) -> AssembleOptions:
         def tup(v: str | list[str] | None) -> tuple[str, ...]:

@@ -143,13 +143,19 @@ def test_batch_refuses_fit_frame(client: TestClient) -> None:
     assert result["ok"] is False and result["error"]["code"] == "fit_frame_unsupported"
 
 
-def test_assemble_mesh_without_a_frame_is_fitted(client: TestClient) -> None:
+def test_assemble_mesh_without_a_frame_is_fitted_when_asked(client: TestClient) -> None:
     data = _obj_bytes(_example_mesh())
+    asked = {"max_parts": 2, "category": "chair", "fit_frame": True}
     r = client.post("/assemble/mesh", files={"file": ("chair.obj", io.BytesIO(data), "text/plain")},
-                    data={"options": json.dumps({"max_parts": 2, "category": "chair"})})
+                    data={"options": json.dumps(asked)})
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["frame_fitted"] is True and body["frame"]["up_axis"] == "z"
+    # Not asked: read as before (COMPLEMENTME_FIT_FRAME_UPLOADS is off by default).
+    r = client.post("/assemble/mesh", files={"file": ("chair.obj", io.BytesIO(data), "text/plain")},
+                    data={"options": json.dumps({"max_parts": 2, "category": "chair"})})
+    assert r.status_code == 200, r.text
+    assert r.json()["frame_fitted"] is False
 
 
 @pytest.mark.parametrize("points", [[[1.0, 2.0, 3.0]] * 20])
