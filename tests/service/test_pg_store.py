@@ -17,6 +17,7 @@ import psycopg
 import pytest
 from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
+from pg_testkit import PG_PASSWORD, PG_USER
 
 from service.api import create_app
 from service.inputs import points_to_base64
@@ -130,7 +131,8 @@ def _suggested(client: TestClient, seed: int, category: str) -> list[str]:
 
     loaded = trimesh.load(trimesh.util.wrap_as_stream(mesh), file_type="ply")
     points = np.asarray(trimesh.sample.sample_surface(loaded, 256, seed=seed)[0], dtype=np.float32)
-    r = client.post("/suggest", json={"points_base64": points_to_base64(points), "category": category, "k": 5})
+    r = client.post("/suggest", json={"points_base64": points_to_base64(points), "category": category,
+                                      "k": 5})
     assert r.status_code == 200, r.text
     return [s["part_id"] for s in r.json()["suggestions"]]
 
@@ -195,3 +197,21 @@ def test_sqlite_backend_refuses_idempotency_keys(artifacts: Path, tmp_path: Path
         assert client.get("/catalog").json()["added_parts"] == 0
         ready = client.get("/readyz").json()
         assert ready["status"] == "ready" and "catalog" not in ready  # nothing to follow
+
+
+def test_migrate_command_applies_the_schema_once(database_url: str) -> None:
+    from typer.testing import CliRunner
+
+    from training.cli import app
+
+    runner = CliRunner()
+    first = runner.invoke(app, ["catalog", "migrate", "--database-url", database_url])
+    assert first.exit_code == 0, first.output
+    assert f"schema version {SCHEMA_VERSION} (applied migration(s) 1)" in first.output
+    again = runner.invoke(app, ["catalog", "migrate"], env={"COMPLEMENTME_DATABASE_URL": database_url})
+    assert again.exit_code == 0 and "nothing to apply" in again.output, again.output
+    PgCatalogStore(database_url).close()  # the server starts on it without migrating
+    unreachable = f"postgresql://{PG_USER}:{PG_PASSWORD}@127.0.0.1:9/x"  # nothing listens on port 9
+    failed = runner.invoke(app, ["catalog", "migrate", "--database-url", unreachable, "--timeout", "2"])
+    assert failed.exit_code == 2 and "error: postgresql://complementme@127.0.0.1:9/x" in failed.output
+    assert PG_PASSWORD not in first.output + again.output + failed.output
