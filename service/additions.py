@@ -362,12 +362,17 @@ class CatalogWriter:
         loaded = self.store.read_geometries(wanted) if wanted else {}
         for p in rows:
             reason = None
+            # A part a replica of another model added to the shared database (a rolling update)
+            # is embedded here from its mesh, with the seeded samples the start would use; the
+            # next start stores the vectors (_reembed_stale). Storing them now would make every
+            # such add a re-embedding change, and every replica reload its catalog for it.
+            restamp = p.model_version != self.model_version and isinstance(self.store, PgCatalogStore)
             if p.part_id in self.base.catalog.index_of:
                 reason = "its id is also the id of a shipped part"
-            elif p.embedding.shape != (D,) or p.part_feature.shape != (Fp,):
+            elif not restamp and (p.embedding.shape != (D,) or p.part_feature.shape != (Fp,)):
                 reason = (f"embedding/feature sizes {p.embedding.shape}/{p.part_feature.shape} do not fit "
                           f"the model ({D}, {Fp})")
-            elif p.model_version != self.model_version:
+            elif not restamp and p.model_version != self.model_version:
                 reason = f"embedded by model {p.model_version}, not re-embedded"
             if reason is None and cached is not None and p.id in cached:
                 g = cached[p.id]
@@ -381,6 +386,10 @@ class CatalogWriter:
                 log.error("added part %s is left out of the catalog: %s", p.part_id, reason)
                 self.skipped[p.id] = {"part_id": p.part_id, "reason": reason}
                 continue
+            if restamp:
+                e, f = embed_geometry(self.base.networks, g.vertices, g.faces, self.base.artifacts.n_points,
+                                      self.settings.seed)
+                p = dataclasses.replace(p, embedding=e, part_feature=f, model_version=self.model_version)
             if len(g.points) != S:  # preview size of another artifact version
                 g = dataclasses.replace(g, points=resample_points(g.points, S, self.settings.seed))
             part = AddedPart(p.id, added_record(p), p.embedding, p.part_feature, g)

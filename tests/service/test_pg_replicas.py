@@ -57,7 +57,7 @@ def start_all(servers: list[LiveServer]) -> None:
 
     def start(s: LiveServer) -> None:
         try:
-            s.start()
+            s.start(timeout=300)  # a loaded machine: loading the artifacts took over 120 s once
         except BaseException as exc:
             errors.append(exc)
 

@@ -6,6 +6,7 @@ are in ``test_pg_replicas.py``.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -160,6 +161,18 @@ def test_two_replicas_in_one_process_follow_each_other(artifacts: Path, database
             metrics = client.get("/metrics").text
             assert "complementme_catalog_applied_change 2.0" in metrics
             assert "complementme_catalog_database_up 1.0" in metrics
+        # A replica of another model (a rolling update) adds a part: these replicas embed it from
+        # its mesh with their own model and serve it, instead of leaving it out.
+        other = PgCatalogStore(database_url, "another-model")
+        try:
+            made = dataclasses.replace(new_part(3, "foreign"), model_version="another-model")
+            foreign = other.add(made, None)
+        finally:
+            other.close()
+        for client in (a, b):
+            wait_for(lambda c=client: c.get(f"/parts/{foreign.part_id}").status_code == 200, "foreign part")
+            status = client.get("/catalog").json()
+            assert status["left_out"] == [] and status["added_parts"] == 1, status
 
 
 def test_an_idempotency_key_makes_a_retried_add_safe(artifacts: Path, database_url: str) -> None:
