@@ -430,6 +430,8 @@ class CatalogWriter:
         deleted: int | None
         last: int | None
         try:
+            if self.follower is not None and not self.follower.up:
+                raise StoreUnavailableError("known to be unreachable")  # answer at once, not after a timeout
             deleted, last = self.store.counts()[1], self.store.last_seq()
         except StoreUnavailableError:  # the database is down: what this replica knows
             deleted, last = None, self.follower.database_seq if self.follower is not None else None
