@@ -47,7 +47,7 @@ BATCH = 50                         # suggestion queries per /suggest/batch when 
 def replica(artifacts: Path, folder: Path, url: str) -> LiveServer:
     folder.mkdir(parents=True, exist_ok=True)
     return LiveServer(artifacts, folder / "unused-data", catalog_backend="postgres", database_url=url,
-                      database_migrate="true", catalog_poll_seconds=1, max_queue=64, database_timeout=2,
+                      database_migrate="true", catalog_poll_seconds=1, max_queue=64, database_timeout=5,
                       database_retry_after=1)
 
 
