@@ -50,7 +50,8 @@ router = APIRouter(tags=["catalog"])
 
 IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", description=(
     "A key unique to this add (a UUID): a retry with the same key and request answers the part the "
-    "first one added instead of adding it again (postgres backend only)."))]
+    "first one added instead of adding it again (postgres backend only)."),
+    examples=["3f1c2a9e-7b1d-4c55-9d0e-1a2b3c4d5e6f"])]
 
 _AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "No API key, or a wrong one (with WWW-Authenticate)."},
