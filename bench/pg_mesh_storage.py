@@ -48,13 +48,18 @@ def _read(conn: psycopg.Connection, sql: str, row: int) -> None:
 
 
 def measure(conn: psycopg.Connection, data: list[bytes]) -> dict[str, dict[str, float]]:
-    conn.execute("DROP TABLE IF EXISTS bench_bytea, bench_lo")
+    conn.execute("DROP TABLE IF EXISTS bench_bytea, bench_external, bench_lo")
     conn.execute("CREATE TABLE bench_bytea (id serial PRIMARY KEY, data bytea NOT NULL)")
+    # STORAGE EXTERNAL: out of line, never compressed (pglz gains nothing on float arrays).
+    conn.execute("CREATE TABLE bench_external (id serial PRIMARY KEY, data bytea NOT NULL)")
+    conn.execute("ALTER TABLE bench_external ALTER COLUMN data SET STORAGE EXTERNAL")
     conn.execute("CREATE TABLE bench_lo (id serial PRIMARY KEY, data oid NOT NULL)")
     conn.commit()
     out: dict[str, dict[str, float]] = {}
     for kind, insert, select in (
         ("bytea", "INSERT INTO bench_bytea (data) VALUES (%s)", "SELECT data FROM bench_bytea WHERE id = %s"),
+        ("bytea external", "INSERT INTO bench_external (data) VALUES (%s)",
+         "SELECT data FROM bench_external WHERE id = %s"),
         ("large object", "INSERT INTO bench_lo (data) VALUES (lo_from_bytea(0, %s))",
          "SELECT lo_get(data) FROM bench_lo WHERE id = %s"),
     ):
@@ -64,7 +69,7 @@ def measure(conn: psycopg.Connection, data: list[bytes]) -> dict[str, dict[str, 
         out[kind] = {"write_ms": statistics.median(writes) * 1000, "read_ms": statistics.median(reads) * 1000,
                      "write_mb_s": mb / sum(writes), "read_mb_s": mb / sum(reads)}
     conn.execute("SELECT lo_unlink(data) FROM bench_lo")
-    conn.execute("DROP TABLE bench_bytea, bench_lo")
+    conn.execute("DROP TABLE bench_bytea, bench_external, bench_lo")
     conn.commit()
     return out
 
@@ -77,7 +82,7 @@ def main(url: str, count: int = 10) -> None:
             result = measure(conn, data)
             size = len(data[0]) / 1e6
             for kind, r in result.items():
-                print(f"{vertices:>7} vertices ({size:6.2f} MB) {kind:>12}: write {r['write_ms']:7.1f} ms "
+                print(f"{vertices:>7} vertices ({size:6.2f} MB) {kind:>14}: write {r['write_ms']:7.1f} ms "
                       f"({r['write_mb_s']:6.0f} MB/s), read {r['read_ms']:7.1f} ms "
                       f"({r['read_mb_s']:6.0f} MB/s)")
 
