@@ -335,14 +335,17 @@ class CatalogWriter:
             else:
                 rows = self.store.parts([c.part for c in changes
                                          if c.part is not None and c.part not in self.parts])
+        # Every read of the database first: one that fails (the database went away) must leave
+        # the replica as it was, at its old change, to apply these changes again later.
+        cached = {pid: part.geometry for pid, part in self.parts.items()} if full else {}
+        loaded = self._read_geometries(rows, cached)
         self.seq = last
         if full:
-            cached = {pid: part.geometry for pid, part in self.parts.items()}
             self.parts, self.skipped = {}, {}
-            self._admit(rows, cached)
+            self._admit(rows, cached, loaded)
             self.builder.set_parts(list(self.parts.values()))
         else:
-            self.builder.append(self._admit(rows))
+            self.builder.append(self._admit(rows, loaded=loaded))
         self._publish_snapshot()
         if self.store.index_path is not None:
             self._write_index()
@@ -350,16 +353,20 @@ class CatalogWriter:
             self.follower.heard(last)
         return True
 
-    def _admit(self, rows: list[StoredPart], cached: dict[int, PartGeometry] | None = None
-               ) -> list[AddedPart]:
-        """Load rows' geometry (or take it from ``cached``) and add them to ``self.parts``, in order;
-        rows that cannot be served are listed in ``self.skipped`` instead."""
+    def _read_geometries(self, rows: list[StoredPart], cached: dict[int, PartGeometry]
+                         ) -> dict[int, PartGeometry | StoreError]:
+        wanted = [p for p in rows if p.id not in cached]
+        return self.store.read_geometries(wanted) if wanted else {}
+
+    def _admit(self, rows: list[StoredPart], cached: dict[int, PartGeometry] | None = None,
+               loaded: dict[int, PartGeometry | StoreError] | None = None) -> list[AddedPart]:
+        """Add rows to ``self.parts``, in order, with their geometry from ``cached``, ``loaded`` or
+        (rows in neither) the store; rows that cannot be served are listed in ``self.skipped``."""
         D = self.base.catalog.embeddings.shape[1]
         Fp = self.base.catalog.part_features.shape[1]
         S = self.builder.n_points
         admitted = []
-        wanted = [p for p in rows if cached is None or p.id not in cached]
-        loaded = self.store.read_geometries(wanted) if wanted else {}
+        loaded = loaded if loaded is not None else self._read_geometries(rows, cached or {})
         for p in rows:
             reason = None
             # A part a replica of another model added to the shared database (a rolling update)

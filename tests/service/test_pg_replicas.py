@@ -94,6 +94,7 @@ class Log:
     acks: dict[str, Ack] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
     statuses: dict[str, dict[int, int]] = field(default_factory=dict)   # kind -> status -> count
+    readable: list[str] | None = None   # when set: the added parts readers ask for (else their replica's)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def count(self, kind: str, status: int) -> None:
@@ -165,8 +166,12 @@ def reader(url: str, name: str, stop: threading.Event, log: Log, shipped_query: 
                     r = http.get("/parts", params={"limit": 20, "offset": 7000})
                 else:
                     with log.lock:
-                        some = next((a for a in reversed(log.acks.values()) if a.replica == name), None)
-                    r = http.get(f"/parts/{some.part_id}" if some else "/readyz")
+                        if log.readable is not None:
+                            pid = log.readable[i % len(log.readable)] if log.readable else None
+                        else:
+                            own = next((a for a in reversed(log.acks.values()) if a.replica == name), None)
+                            pid = own.part_id if own else None
+                    r = http.get(f"/parts/{pid}" if pid else "/readyz")
             except httpx.HTTPError as exc:
                 with log.lock:
                     log.errors.append(f"read on {url}: {exc!r}")
@@ -175,6 +180,13 @@ def reader(url: str, name: str, stop: threading.Event, log: Log, shipped_query: 
             if r.status_code != 200:
                 with log.lock:
                     log.errors.append(f"read on {url}: {r.status_code} {r.text[:200]}")
+
+
+def wait_for(url: str, status: int, timeout: float = 60) -> None:
+    deadline = time.monotonic() + timeout
+    while httpx.get(url, timeout=30).status_code != status:
+        assert time.monotonic() < deadline, f"{url} did not answer {status}"
+        time.sleep(0.02)
 
 
 def shipped_query() -> str:
@@ -439,6 +451,15 @@ def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts
         while len(log.acks) < 10:
             assert time.monotonic() < deadline, f"no adds acknowledged: {log.errors[:5]}"
             time.sleep(0.01)
+        # From here on readers ask for parts both replicas serve: an add that commits just as the
+        # database goes away is acknowledged (it is stored) but served only once it is back.
+        with log.lock:
+            served = [a.part_id for a in log.acks.values()]
+        for s in servers.values():
+            for pid in served:
+                wait_for(s.url + f"/parts/{pid}", 200)
+        with log.lock:
+            log.readable = served
         own_postgres.stop()
         down_at = time.monotonic()
         acked_before_outage = len(log.acks)
