@@ -18,6 +18,13 @@ snapshot up to the database's latest change before returning, so the next reques
 part. Snapshot rebuilds are serialised and coalesced: a writer whose change was already
 included by another writer's rebuild returns at once. Changes made by other processes on the
 same folder are picked up by a polling thread (``COMPLEMENTME_CATALOG_POLL_SECONDS``).
+
+With ``COMPLEMENTME_CATALOG_BACKEND=postgres`` the store is the shared database
+(``service.pg_store``) and there is no folder to check: the start re-embeds, loads every live
+part from the database and publishes the snapshot, then a ``ChangeFollower``
+(``service.follow``) applies every other replica's changes as they commit. While the database
+cannot be reached, writes raise ``UnavailableError`` (503 with Retry-After, nothing stored)
+and the last snapshot keeps being served.
 """
 
 from __future__ import annotations
@@ -26,25 +33,30 @@ import dataclasses
 import logging
 import re
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
 from service.catalog import part_links
 from service.engine import SuggestionEngine
-from service.errors import ConflictError, InputError, NotFoundError, StorageFullError
+from service.errors import ConflictError, InputError, NotFoundError, StorageFullError, UnavailableError
+from service.follow import ChangeFollower
 from service.geometry import resample_points
 from service.part_prep import embed_geometry
+from service.pg_store import KeyTakenError, PgCatalogStore
 from service.settings import Settings
 from service.snapshot import AddedPart, CatalogBuilder, combined_index, read_index_file, write_index_file
-from service.store import CatalogStore, NewPart, PartGeometry, StoredPart, StoreError
+from service.store import CatalogStore, NewPart, PartGeometry, StoredPart, StoreError, StoreUnavailableError
 
 log = logging.getLogger(__name__)
 
 # Ids and names a client may choose: shape ids become part of part ids and URLs.
 SHAPE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
 CATEGORY = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._-]{0,63}$")
+# The Idempotency-Key header of an add: 1-200 visible ASCII characters (a UUID fits).
+IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,200}$")
 
 
 def added_record(p: StoredPart) -> dict[str, Any]:
@@ -63,7 +75,7 @@ def stored_part_out(p: StoredPart, n_points: int) -> dict[str, Any]:
 class CatalogWriter:
     """Owns a data folder for one process and publishes the engine (snapshot) to serve."""
 
-    def __init__(self, store: CatalogStore, base: SuggestionEngine, settings: Settings,
+    def __init__(self, store: CatalogStore | PgCatalogStore, base: SuggestionEngine, settings: Settings,
                  publish: Callable[[SuggestionEngine], None]):
         self.store = store
         self.base = base
@@ -80,12 +92,15 @@ class CatalogWriter:
         self._sync_lock = threading.Lock()
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
+        self.follower: ChangeFollower | None = None     # the postgres backend's
 
     # ------------------------------------------------------------------ start
     @classmethod
     def open(cls, settings: Settings, base: SuggestionEngine,
              publish: Callable[[SuggestionEngine], None]) -> CatalogWriter:
         """Open the data folder, reconcile it and publish the first snapshot (see module doc)."""
+        if settings.catalog_backend == "postgres":
+            return cls._open_postgres(settings, base, publish)
         assert settings.data_dir is not None, "CatalogWriter.open needs settings.data_dir"
         store = CatalogStore(settings.data_dir)
         writer = cls(store, base, settings, publish)
@@ -104,10 +119,37 @@ class CatalogWriter:
             writer._poller.start()
         return writer
 
+    @classmethod
+    def _open_postgres(cls, settings: Settings, base: SuggestionEngine,
+                       publish: Callable[[SuggestionEngine], None]) -> CatalogWriter:
+        """Connect to the shared database, load its parts, publish, then follow its changes."""
+        assert settings.database_url is not None, "the postgres backend needs settings.database_url"
+        store = PgCatalogStore(settings.database_url.get_secret_value(), base.model_version,
+                               pool_size=settings.database_pool_size, timeout=settings.database_timeout,
+                               idle_seconds=settings.request_timeout,
+                               migrate_schema=settings.database_migrate)
+        writer = cls(store, base, settings, publish)
+        try:
+            writer._reembed_stale()
+            writer._load_all()
+        except BaseException:
+            store.close()
+            raise
+        log.info("catalog additions from %s: %d part(s) at change %d%s", store.location, len(writer.parts),
+                 writer.seq, f", {len(writer.skipped)} left out" if writer.skipped else "")
+        follower = ChangeFollower(store.connect_listener, store.last_seq, writer.sync, lambda: writer.seq,
+                                  settings.catalog_poll_seconds)
+        follower.heard(writer.seq)
+        writer.follower = follower
+        follower.start()
+        return writer
+
     def close(self) -> None:
         self._stop.set()
         if self._poller is not None:
             self._poller.join(timeout=10)
+        if self.follower is not None:
+            self.follower.stop()
         self.store.close()
 
     @property
@@ -145,6 +187,7 @@ class CatalogWriter:
 
     def _reconcile_index(self) -> None:
         """Keep the index file if it matches the database exactly; rebuild it otherwise."""
+        assert self.store.index_path is not None, "only the data folder has an index file"
         found = read_index_file(self.store.index_path)
         ids = np.array(list(self.parts), dtype=np.int64)
         emb = self._added_embeddings()
@@ -175,22 +218,84 @@ class CatalogWriter:
             CommitRefusedError: ``may_commit`` said no.
         """
         self._check_names(part.category, shape_id)
-        if self.store.counts()[0] >= self.settings.max_added_parts:
-            raise StorageFullError("catalog_full", f"the data folder holds {self.settings.max_added_parts} "
-                                   "added parts, the most COMPLEMENTME_MAX_ADDED_PARTS allows")
-        stored = self.store.add(part, shape_id, may_commit)
-        self.catch_up(stored.added_seq)
+        with self._reachable():
+            self._check_room()
+            stored = self.store.add(part, shape_id, may_commit)
+        self._serve_own(stored.added_seq)
         return stored
+
+    def add_once(self, prepare: Callable[[], NewPart], shape_id: str | None, key: str, request_sha256: str,
+                 may_commit: Callable[[], bool] | None = None) -> tuple[StoredPart, bool]:
+        """``add`` under an idempotency key: the first request with ``key`` adds the part that
+        ``prepare`` makes; a retry of it (same ``request_sha256``) gets that part back without
+        adding anything. Returns the part and whether it was added before (a replay).
+
+        Raises:
+            InputError: ``idempotency_key_reused`` (the key came with another request), or
+            ``idempotency_unsupported`` (the SQLite backend); as ``add`` otherwise.
+        """
+        store = self.store
+        if not isinstance(store, PgCatalogStore):
+            raise InputError("idempotency_unsupported", "the Idempotency-Key header needs the postgres "
+                             "catalog backend (COMPLEMENTME_CATALOG_BACKEND); send the add without it")
+        if not IDEMPOTENCY_KEY.match(key):
+            raise InputError("invalid_idempotency_key", "Idempotency-Key must be 1-200 visible ASCII "
+                             "characters (a UUID, for example)")
+        with self._reachable():
+            found = store.find_key(key)
+        if found is None:
+            part = prepare()
+            self._check_names(part.category, shape_id)
+            with self._reachable():
+                self._check_room()
+                try:
+                    stored = store.add(part, shape_id, may_commit, idempotency_key=key,
+                                       request_sha256=request_sha256)
+                    self._serve_own(stored.added_seq)
+                    return stored, False
+                except KeyTakenError as exc:  # the same key's other request committed first
+                    found = (exc.stored, exc.request_sha256)
+        stored, sha = found
+        if sha != request_sha256:
+            raise InputError("idempotency_key_reused", f"Idempotency-Key {key!r} was used for another "
+                             f"request (it added part {stored.part_id!r}); use a new key for each new part")
+        self._serve_own(stored.added_seq)
+        return stored, True
+
+    def _check_room(self) -> None:
+        if self.store.counts()[0] >= self.settings.max_added_parts:
+            raise StorageFullError("catalog_full", f"the catalog holds {self.settings.max_added_parts} "
+                                   "added parts, the most COMPLEMENTME_MAX_ADDED_PARTS allows")
+
+    @contextmanager
+    def _reachable(self) -> Iterator[None]:
+        """An unreachable database as 503 ``database_unavailable`` with Retry-After."""
+        try:
+            yield
+        except StoreUnavailableError as exc:
+            raise UnavailableError("database_unavailable", f"the catalog database cannot be reached "
+                                   f"({exc}); nothing was stored or deleted: retry later",
+                                   self.settings.database_retry_after) from None
+
+    def _serve_own(self, seq: int) -> None:
+        """After a commit: serve change ``seq`` before answering. The change is stored whatever
+        happens here, so a database gone just after the commit is logged, not answered: the
+        follower applies the change when the database is back."""
+        try:
+            self.catch_up(seq)
+        except StoreUnavailableError as exc:
+            log.warning("change %d is committed but not yet served here: %s", seq, exc)
 
     def delete(self, part_id: str) -> None:
         """Remove an added part from the catalog; shipped parts cannot be deleted (409)."""
         if part_id in self.base.catalog.index_of:
             raise ConflictError("shipped_part", f"part {part_id!r} ships with the model's artifacts and "
                                 "cannot be deleted; leave it out per request with exclude_parts")
-        seq = self.store.delete(part_id)
+        with self._reachable():
+            seq = self.store.delete(part_id)
         if seq is None:
             raise NotFoundError("unknown_part", f"part {part_id!r} is not in the catalog")
-        self.catch_up(seq)
+        self._serve_own(seq)
 
     def _check_names(self, category: str, shape_id: str | None) -> None:
         if not CATEGORY.match(category):
@@ -230,46 +335,68 @@ class CatalogWriter:
             else:
                 rows = self.store.parts([c.part for c in changes
                                          if c.part is not None and c.part not in self.parts])
+        # Every read of the database first: one that fails (the database went away) must leave
+        # the replica as it was, at its old change, to apply these changes again later.
+        cached = {pid: part.geometry for pid, part in self.parts.items()} if full else {}
+        loaded = self._read_geometries(rows, cached)
         self.seq = last
         if full:
-            cached = {pid: part.geometry for pid, part in self.parts.items()}
             self.parts, self.skipped = {}, {}
-            self._admit(rows, cached)
+            self._admit(rows, cached, loaded)
             self.builder.set_parts(list(self.parts.values()))
         else:
-            self.builder.append(self._admit(rows))
+            self.builder.append(self._admit(rows, loaded=loaded))
         self._publish_snapshot()
-        self._write_index()
+        if self.store.index_path is not None:
+            self._write_index()
+        if self.follower is not None:
+            self.follower.heard(last)
         return True
 
-    def _admit(self, rows: list[StoredPart], cached: dict[int, PartGeometry] | None = None
-               ) -> list[AddedPart]:
-        """Load rows' geometry (or take it from ``cached``) and add them to ``self.parts``, in order;
-        rows that cannot be served are listed in ``self.skipped`` instead."""
+    def _read_geometries(self, rows: list[StoredPart], cached: dict[int, PartGeometry]
+                         ) -> dict[int, PartGeometry | StoreError]:
+        wanted = [p for p in rows if p.id not in cached]
+        return self.store.read_geometries(wanted) if wanted else {}
+
+    def _admit(self, rows: list[StoredPart], cached: dict[int, PartGeometry] | None = None,
+               loaded: dict[int, PartGeometry | StoreError] | None = None) -> list[AddedPart]:
+        """Add rows to ``self.parts``, in order, with their geometry from ``cached``, ``loaded`` or
+        (rows in neither) the store; rows that cannot be served are listed in ``self.skipped``."""
         D = self.base.catalog.embeddings.shape[1]
         Fp = self.base.catalog.part_features.shape[1]
         S = self.builder.n_points
         admitted = []
+        loaded = loaded if loaded is not None else self._read_geometries(rows, cached or {})
         for p in rows:
             reason = None
+            # A part a replica of another model added to the shared database (a rolling update)
+            # is embedded here from its mesh, with the seeded samples the start would use; the
+            # next start stores the vectors (_reembed_stale). Storing them now would make every
+            # such add a re-embedding change, and every replica reload its catalog for it.
+            restamp = p.model_version != self.model_version and isinstance(self.store, PgCatalogStore)
             if p.part_id in self.base.catalog.index_of:
                 reason = "its id is also the id of a shipped part"
-            elif p.embedding.shape != (D,) or p.part_feature.shape != (Fp,):
+            elif not restamp and (p.embedding.shape != (D,) or p.part_feature.shape != (Fp,)):
                 reason = (f"embedding/feature sizes {p.embedding.shape}/{p.part_feature.shape} do not fit "
                           f"the model ({D}, {Fp})")
-            elif p.model_version != self.model_version:
+            elif not restamp and p.model_version != self.model_version:
                 reason = f"embedded by model {p.model_version}, not re-embedded"
             if reason is None and cached is not None and p.id in cached:
                 g = cached[p.id]
             elif reason is None:
-                try:
-                    g = self.store.read_geometry(p)
-                except StoreError as exc:
-                    reason = str(exc)
+                got = loaded[p.id]
+                if isinstance(got, StoreError):
+                    reason = str(got)
+                else:
+                    g = got
             if reason is not None:
                 log.error("added part %s is left out of the catalog: %s", p.part_id, reason)
                 self.skipped[p.id] = {"part_id": p.part_id, "reason": reason}
                 continue
+            if restamp:
+                e, f = embed_geometry(self.base.networks, g.vertices, g.faces, self.base.artifacts.n_points,
+                                      self.settings.seed)
+                p = dataclasses.replace(p, embedding=e, part_feature=f, model_version=self.model_version)
             if len(g.points) != S:  # preview size of another artifact version
                 g = dataclasses.replace(g, points=resample_points(g.points, S, self.settings.seed))
             part = AddedPart(p.id, added_record(p), p.embedding, p.part_feature, g)
@@ -292,6 +419,7 @@ class CatalogWriter:
         return np.stack([p.embedding for p in self.parts.values()]).astype(np.float32)
 
     def _write_index(self) -> None:
+        assert self.store.index_path is not None, "only the data folder has an index file"
         write_index_file(self.store.index_path, self.seq, self.model_version, list(self.parts),
                          self._added_embeddings(), self.base.index.metric_type)
         self.index_seq = self.seq
@@ -302,16 +430,34 @@ class CatalogWriter:
                 if self.store.last_seq() > self.seq:
                     self.sync()
             except Exception:  # keep polling: a failed refresh must not stop later ones
-                log.exception("refreshing the catalog from %s failed", self.store.folder)
+                log.exception("refreshing the catalog from %s failed", self.store.location)
 
     # ------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
-        deleted = self.store.counts()[1]
+        deleted: int | None
+        last: int | None
+        try:
+            if self.follower is not None and not self.follower.up:
+                raise StoreUnavailableError("known to be unreachable")  # answer at once, not after a timeout
+            deleted, last = self.store.counts()[1], self.store.last_seq()
+        except StoreUnavailableError:  # the database is down: what this replica knows
+            deleted, last = None, self.follower.database_seq if self.follower is not None else None
         return {
-            "writable": True, "shipped_parts": len(self.base.catalog), "added_parts": len(self.parts),
-            "deleted_parts": deleted, "parts": len(self.engine.catalog), "sequence": self.seq,
-            "database_sequence": self.store.last_seq(), "index_sequence": self.index_seq,
+            "writable": True, "backend": self.store.backend, "shipped_parts": len(self.base.catalog),
+            "added_parts": len(self.parts), "deleted_parts": deleted, "parts": len(self.engine.catalog),
+            "sequence": self.seq, "database_sequence": last,
+            "index_sequence": self.index_seq if self.store.index_path is not None else None,
             "index_rebuilt_at_start": self.index_rebuilt, "reembedded_at_start": self.reembedded,
-            "left_out": list(self.skipped.values()),
+            "left_out": list(self.skipped.values()), "replication": self.replication(),
         }
+
+    def replication(self) -> dict[str, Any] | None:
+        """Where this replica is in the shared database's changes (None for the SQLite backend)."""
+        f = self.follower
+        if f is None:
+            return None
+        up = f.up and getattr(self.store, "available", True)
+        return {"database": "up" if up else "unreachable", "applied_change": self.seq,
+                "database_change": f.database_seq, "lag_changes": f.lag_changes,
+                "lag_seconds": round(f.lag_seconds, 3), "last_error": None if up else f.last_error}
 

@@ -6,7 +6,7 @@ compared in constant time (``hmac.compare_digest``). The order of refusals:
 1. no key configured: 403 ``writes_disabled`` (a server nobody configured accepts no writes);
 2. no or malformed credentials: 401 ``missing_credentials``; wrong key: 401
    ``invalid_credentials`` (both with ``WWW-Authenticate: Bearer``);
-3. no data folder configured: 403 ``read_only``;
+3. no data folder (and not the postgres backend) configured: 403 ``read_only``;
 4. artifacts not loaded yet: 503 ``not_ready``.
 """
 
@@ -44,7 +44,7 @@ async def require_writer(request: Request,
     """The catalog writer, for a request that may write (else the refusal above)."""
     settings: Settings = request.app.state.settings
     check_api_key(settings, credentials)
-    if settings.data_dir is None:
+    if not settings.catalog_enabled:
         raise ForbiddenError("read_only", "this server's catalog is read-only: no data folder is configured "
                              "(COMPLEMENTME_DATA_DIR)")
     writer: CatalogWriter | None = getattr(request.app.state, "writer", None)

@@ -36,6 +36,23 @@ def _frame_options(up_axis: str | None, center: str | None, radius: float | None
     return frame
 
 
+def _check_catalog(s: Any) -> None:
+    """Open the catalog store as the server will (``StoreError`` if it cannot be served)."""
+    if s.catalog_backend == "postgres":
+        from service.pg_store import PgCatalogStore
+
+        PgCatalogStore(s.database_url.get_secret_value(), timeout=s.database_timeout,
+                       migrate_schema=s.database_migrate).close()
+        return
+    from service.store import CatalogStore
+
+    store = CatalogStore(s.data_dir)
+    try:
+        store.check_folder()
+    finally:
+        store.close()
+
+
 def _options(k: int | None, category: list[str] | None, exclude_shape: list[str] | None,
              frame: dict[str, Any] | None, fit: bool = False) -> dict[str, Any]:
     opts: dict[str, Any] = {"k": k, "frame": frame}
@@ -92,17 +109,14 @@ def register_service_commands(app: typer.Typer) -> None:
         except ValidationError as exc:
             typer.echo(f"error: invalid {ENV_PREFIX}* setting:\n{exc}", err=True)
             raise typer.Exit(2) from None
-        if s.data_dir is not None:
-            # The lifespan checks the data folder too, but a refusal there ends in uvicorn's
-            # start-up traceback; checked here first, it is one line that names the files.
-            from service.store import CatalogStore, StoreError
+        if s.catalog_enabled:
+            # The lifespan checks the data folder (or the database) too, but a refusal there ends
+            # in uvicorn's start-up traceback; checked here first, it is one line that names the
+            # files (or the database, its password left out).
+            from service.store import StoreError
 
             try:
-                store = CatalogStore(s.data_dir)
-                try:
-                    store.check_folder()
-                finally:
-                    store.close()
+                _check_catalog(s)
             except StoreError as exc:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(1) from None

@@ -50,6 +50,20 @@ class NotReadyError(ServiceError):
     status = 503
 
 
+class UnavailableError(ServiceError):
+    """A catalog write while the database cannot be reached: nothing was stored; retry later."""
+
+    status = 503
+
+    def __init__(self, code: str, message: str, retry_after: int):
+        super().__init__(code, message)
+        self.retry_after = retry_after
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Retry-After": str(self.retry_after)}
+
+
 class UnauthorizedError(ServiceError):
     """A catalog write without the API key, or with a wrong one (answered with WWW-Authenticate)."""
 

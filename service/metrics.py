@@ -93,6 +93,36 @@ class Metrics:
         self.queued_requests = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
                                      multiprocess_mode="livesum", registry=r)
 
+    def watch_replication(self, replication: Callable[[], dict[str, Any] | None]) -> None:
+        """Gauges of a postgres-backed replica's place in the database's changes (registered only
+        then: a SQLite server has no such place). With several workers, the most behind one counts."""
+        r = self.registry
+        gauges = {
+            "applied_change": Gauge("complementme_catalog_applied_change", "The last catalog database "
+                                    "change this replica's served catalog includes.",
+                                    multiprocess_mode="livemin", registry=r),
+            "database_change": Gauge("complementme_catalog_database_change", "The latest catalog database "
+                                     "change this replica knows of.", multiprocess_mode="livemax",
+                                     registry=r),
+            "lag_changes": Gauge("complementme_catalog_lag_changes", "Catalog database changes known but not "
+                                 "yet applied.", multiprocess_mode="livemax", registry=r),
+            "lag_seconds": Gauge("complementme_catalog_lag_seconds", "How long this replica has known of a "
+                                 "change it has not applied (0: up to date).", multiprocess_mode="livemax",
+                                 registry=r),
+            "database": Gauge("complementme_catalog_database_up", "1 while the catalog database is "
+                              "reachable, 0 while it is not.", multiprocess_mode="livemin", registry=r),
+        }
+
+        def reader(key: str) -> Callable[[], float]:
+            def read() -> float:
+                state = replication() or {}
+                value = state.get(key, 0)
+                return float(value == "up") if key == "database" else float(value or 0)
+            return read
+
+        for key, gauge in gauges.items():
+            self.watch(gauge, reader(key))
+
     def watch(self, gauge: Gauge, read: Callable[[], float]) -> None:
         """Report ``read()`` as the gauge's value: at each scrape, or (multiprocess mode) as of the
         last ``refresh_live``."""

@@ -13,7 +13,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ENV_PREFIX = "COMPLEMENTME_"
@@ -327,8 +327,8 @@ class Settings(BaseSettings):
     # --- catalog additions (docs/catalog.md) --------------------------------------------------
     data_dir: Path | None = Field(default=None, description=(
         "Folder of catalog additions: an SQLite database (the source of truth), the added parts' "
-        "geometry files and the derived index. Unset: the catalog is read-only and the write "
-        "endpoints answer 403."))
+        "geometry files and the derived index. Unset (with the `sqlite` backend): the catalog is "
+        "read-only and the write endpoints answer 403."))
     api_key: SecretStr | None = Field(default=None, description=(
         "Key that catalog writes must carry as `Authorization: Bearer <key>` (at least 16 "
         "characters). Unset: catalog writes are refused with 403."))
@@ -343,7 +343,31 @@ class Settings(BaseSettings):
         "sent without its `frame`."))
     catalog_poll_seconds: float = Field(default=2.0, ge=0, description=(
         "How often the server looks for additions made by other processes on the same data folder "
-        "(other workers, `complementme catalog add --data-dir`); 0: never."))
+        "(other workers, `complementme catalog add --data-dir`), or, with the `postgres` backend, "
+        "asks the database for changes it was not notified of (LISTEN/NOTIFY brings them at once; "
+        "this is the fallback); 0: never (with `postgres`: notifications alone)."))
+    catalog_backend: Literal["sqlite", "postgres"] = Field(default="sqlite", description=(
+        "Where added parts live. `sqlite`: the data folder (`data_dir`) of one machine. `postgres`: "
+        "a PostgreSQL database (`database_url`) shared by any number of replicas, each of which "
+        "takes writes and follows the others' changes (docs/catalog.md, docs/deploy.md); "
+        "`data_dir` is not used then."))
+    database_url: SecretStr | None = Field(default=None, description=(
+        "With the `postgres` backend: the database's connection URL, "
+        "`postgresql://USER:PASSWORD@HOST:5432/DBNAME` (libpq parameters such as `sslmode` may "
+        "follow as `?sslmode=require`). Kept secret: never logged or shown."))
+    database_migrate: bool = Field(default=False, description=(
+        "Apply the database's schema migrations at start (idempotent, under a lock, so replicas "
+        "starting together apply each once). Off: a database whose schema is not the one this "
+        "version needs refuses the start, and `complementme catalog migrate` applies them."))
+    database_pool_size: int = Field(default=4, ge=1, le=100, description=(
+        "Most connections to the database per server process (writes and catch-up reads; the "
+        "LISTEN connection of the replica is one more)."))
+    database_timeout: float = Field(default=5.0, gt=0, le=300, description=(
+        "Seconds a catalog write waits for a database connection, to connect, or for the lock "
+        "that orders writes across replicas; past it the write answers 503 `database_unavailable` "
+        "with Retry-After and nothing is stored."))
+    database_retry_after: int = Field(default=5, ge=1, le=3600, description=(
+        "Seconds the Retry-After header of a 503 `database_unavailable` asks a client to wait."))
     write_commit_margin: float = Field(default=5.0, ge=0, description=(
         "Seconds of its deadline (`request_timeout`) that an addition must still have when it is "
         "about to commit (at most half the timeout is used): a later one is rolled back and answered "
@@ -385,7 +409,7 @@ class Settings(BaseSettings):
             raise ValueError("assemble_complete_quantiles must be two quantiles 0 <= low <= high <= 1")
         return value
 
-    @field_validator("api_key", mode="before")
+    @field_validator("api_key", "database_url", mode="before")
     @classmethod
     def _empty_key_is_unset(cls, value: object) -> object:
         return None if value == "" else value
@@ -396,6 +420,17 @@ class Settings(BaseSettings):
         if value is not None and len(value.get_secret_value()) < 16:
             raise ValueError("api_key must be at least 16 characters (use a random token)")
         return value
+
+    @model_validator(mode="after")
+    def _backend_has_its_database(self) -> Settings:
+        if self.catalog_backend == "postgres" and self.database_url is None:
+            raise ValueError("catalog_backend postgres needs database_url (COMPLEMENTME_DATABASE_URL)")
+        return self
+
+    @property
+    def catalog_enabled(self) -> bool:
+        """Whether this server stores added parts at all (a data folder, or the database)."""
+        return self.catalog_backend == "postgres" or self.data_dir is not None
 
 
 @lru_cache

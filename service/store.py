@@ -109,6 +109,10 @@ class CommitRefusedError(StoreError):
     """An add was rolled back because its request's deadline would not leave time to answer."""
 
 
+class StoreUnavailableError(StoreError):
+    """The database cannot be reached now (PostgreSQL down, a timeout): nothing was written."""
+
+
 @dataclass
 class PartGeometry:
     """A part's centred mesh and preview samples, as kept in its geometry file.
@@ -188,9 +192,13 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
 
-def _vec_json(v: np.ndarray) -> str:
+def vec6(v: np.ndarray) -> list[float]:
     # Six decimals, as the exporter writes catalog.json: float32 noise is not information.
-    return json.dumps([round(float(x), 6) for x in v])
+    return [round(float(x), 6) for x in v]
+
+
+def _vec_json(v: np.ndarray) -> str:
+    return json.dumps(vec6(v))
 
 
 def _blob(a: np.ndarray) -> bytes:
@@ -436,8 +444,11 @@ class CatalogStore:
     """The data folder: thread-safe (one writer and one reader connection, each behind a lock).
 
     SQLite serialises writers across processes too, so several server workers (or the server
-    and ``complementme catalog add --data-dir``) may share one folder.
+    and ``complementme catalog add --data-dir``) may share one folder. ``service.pg_store``
+    offers the same methods on PostgreSQL.
     """
+
+    backend = "sqlite"
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
@@ -721,6 +732,21 @@ class CatalogStore:
         if not path.exists() and (self.geometry_dir / (name + PENDING)).exists():
             return self.geometry_dir / (name + PENDING)
         return path
+
+    @property
+    def location(self) -> str:
+        """Where the store is, for logs and errors."""
+        return str(self.folder)
+
+    def read_geometries(self, parts: list[StoredPart]) -> dict[int, PartGeometry | StoreError]:
+        """``read_geometry`` of several parts, by ``parts.id``; a part that fails gets its error."""
+        found: dict[int, PartGeometry | StoreError] = {}
+        for p in parts:
+            try:
+                found[p.id] = self.read_geometry(p)
+            except StoreError as exc:
+                found[p.id] = exc
+        return found
 
     def read_geometry(self, part: StoredPart) -> PartGeometry:
         """Load and check a part's geometry file (SHA-256 against its row)."""

@@ -1,7 +1,8 @@
 """`complementme catalog ...`: add a folder of shapes to the catalog; back up, verify and
-recover a data folder.
+recover a data folder; migrate the postgres catalog's schema.
 
-Thin wrappers over ``training.catalog_import``, ``service.store`` and ``service.recovery``.
+Thin wrappers over ``training.catalog_import``, ``service.store``, ``service.recovery`` and
+``service.pg_store``.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import typer
 if TYPE_CHECKING:
     from service.recovery import Report
 
-catalog_app = typer.Typer(help="The growing catalog: import shapes; back up, verify, recover a data folder.",
+catalog_app = typer.Typer(help=("The growing catalog: import shapes; back up, verify, recover a data folder; "
+                                "migrate the postgres catalog."),
                           no_args_is_help=True)
 
 
@@ -143,3 +145,37 @@ def recover_cmd(
     typer.echo(f"{data_dir}: {len(report.restored)} part(s) restored")
     if not report.ok:
         raise typer.Exit(1)
+
+
+@catalog_app.command("migrate")
+def migrate_cmd(
+    database_url: str | None = typer.Option(None, envvar="COMPLEMENTME_DATABASE_URL", show_envvar=True, help=(
+        "The postgres catalog's URL, postgresql://USER:PASSWORD@HOST:5432/DBNAME "
+        "(default: COMPLEMENTME_DATABASE_URL).")),
+    timeout: float = typer.Option(10.0, help="Seconds to wait for the connection."),
+) -> None:
+    """Create or upgrade the postgres catalog's schema: the versioned migrations it lacks, in one
+    transaction. Safe to run again, and while replicas run (they need the new version only after
+    an upgrade of the service).
+
+    Exits with 2 when the database cannot be reached or has a newer schema than this version knows.
+    """
+    import math
+
+    import psycopg
+
+    from service.pg_store import SCHEMA_VERSION, migrate, redacted
+    from service.store import StoreError
+
+    if not database_url:
+        raise typer.BadParameter("give --database-url (or set COMPLEMENTME_DATABASE_URL)")
+    where = redacted(database_url)
+    try:
+        with psycopg.connect(database_url, connect_timeout=max(1, math.ceil(timeout))) as conn:
+            applied = migrate(conn)
+    except (psycopg.Error, StoreError) as exc:
+        reason = (str(exc).strip().splitlines() or [repr(exc)])[0]
+        typer.echo(f"error: {where}: {reason}", err=True)
+        raise typer.Exit(2) from None
+    done = f"applied migration(s) {', '.join(map(str, applied))}" if applied else "nothing to apply"
+    typer.echo(f"{where}: schema version {SCHEMA_VERSION} ({done})")

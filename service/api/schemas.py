@@ -472,9 +472,30 @@ class ModelInfo(BaseModel):
     limits: dict[str, int]
 
 
+class Replication(BaseModel):
+    """Where a replica of the postgres backend is in the shared database's changes."""
+
+    database: Literal["up", "unreachable"] = Field(..., description=(
+        "Whether the replica reaches the database now (unreachable: reads serve the last snapshot, "
+        "writes answer 503)."))
+    applied_change: int = Field(..., description="The last change the served catalog includes.")
+    database_change: int = Field(..., description="The latest change the replica knows the database has.")
+    lag_changes: int = Field(..., description="database_change - applied_change.")
+    lag_seconds: float = Field(..., description=(
+        "How long the replica has known of a change it has not applied yet (0: up to date)."))
+    last_error: str | None = Field(..., description="Why the database is unreachable, if it is.")
+
+
 class Health(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [
-        {"status": "ok"}, {"status": "ready", "model_version": "2025.01-chairs"}]})
+        {"status": "ok"}, {"status": "ready", "model_version": "2025.01-chairs"},
+        {"status": "degraded", "model_version": "2025.01-chairs", "catalog": {
+            "database": "unreachable", "applied_change": 412, "database_change": 412, "lag_changes": 0,
+            "lag_seconds": 0.0, "last_error": "connection refused"}}]})
 
-    status: str
+    status: str = Field(..., description=(
+        "ok (liveness), ready, or degraded: ready, but the catalog database cannot be reached "
+        "(suggestions are served from the last snapshot; catalog writes answer 503)."))
     model_version: str | None = None
+    catalog: Replication | None = Field(default=None, description=(
+        "With the postgres catalog backend: this replica's place in the database's changes."))

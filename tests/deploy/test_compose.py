@@ -28,7 +28,11 @@ def compose() -> dict[str, Any]:
 def test_compose_file_follows_the_specification() -> None:
     parsed = PyCompose.from_yaml(COMPOSE.read_text())
     parsed.validate()
-    assert sorted(parsed.service_names()) == ["complementme", "grafana", "prometheus"]
+    assert sorted(parsed.service_names()) == ["complementme", "complementme-2", "grafana", "postgres",
+                                              "prometheus"]
+
+
+REPLICAS = ("complementme", "complementme-2")
 
 
 @pytest.mark.parametrize("broken", [
@@ -60,27 +64,39 @@ def test_references_resolve() -> None:
             assert (context / service["build"]["dockerfile"]).is_file()
 
 
-def test_service_keeps_its_catalog_data_on_a_named_volume() -> None:
-    api = compose()["services"]["complementme"]
-    targets = {v["target"]: v for v in api["volumes"]}
-    assert targets["/data"]["type"] == "volume"
-    dockerfile = (REPO / "Dockerfile").read_text()
-    assert "COMPLEMENTME_DATA_DIR=/data" in dockerfile, "the image's data folder moved: update compose"
+def test_replicas_share_the_postgres_catalog_kept_on_a_named_volume() -> None:
+    services = compose()["services"]
+    urls = set()
+    for name in REPLICAS:
+        env = services[name]["environment"]
+        assert env["COMPLEMENTME_CATALOG_BACKEND"] == "postgres", name
+        urls.add(env["COMPLEMENTME_DATABASE_URL"])
+        assert services[name]["depends_on"]["postgres"]["condition"] == "service_healthy", name
+        assert services[name]["image"] == services["complementme"]["image"]
+    assert len(urls) == 1, "both replicas must use the one database"
+    assert "@postgres:5432/" in urls.pop()
+    db = services["postgres"]
+    targets = {v["target"]: v for v in db["volumes"]}
+    assert targets["/var/lib/postgresql/data"]["type"] == "volume"
+    published = {p.split(":")[0] for name in REPLICAS for p in services[name]["ports"]}
+    assert len(published) == len(REPLICAS), "each replica needs a host port of its own"
 
 
 def test_environment_names_real_settings_within_the_cpu_budget() -> None:
-    api = compose()["services"]["complementme"]
-    env = api["environment"]
     fields = {f"{ENV_PREFIX}{name.upper()}" for name in Settings.model_fields}
-    unknown = sorted(set(env) - fields)
-    assert not unknown, f"not settings of service/settings.py: {unknown}"
-    workers = int(env.get("COMPLEMENTME_WORKERS", "1"))
-    for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):
-        assert workers * int(env.get(threads, "1")) <= float(api["cpus"]), threads
+    for name in REPLICAS:
+        api = compose()["services"][name]
+        env = api["environment"]
+        unknown = sorted(set(env) - fields)
+        assert not unknown, f"not settings of service/settings.py: {unknown}"
+        Settings.model_validate({k[len(ENV_PREFIX):].lower(): v for k, v in env.items()
+                                 if k != f"{ENV_PREFIX}API_KEY"})
+        workers = int(env.get("COMPLEMENTME_WORKERS", "1"))
+        for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):
+            assert workers * int(env.get(threads, "1")) <= float(api["cpus"]), threads
 
 
 def test_image_tag_is_the_project_version() -> None:
     with open(REPO / "pyproject.toml", "rb") as fh:
         version = tomllib.load(fh)["project"]["version"]
     assert compose()["services"]["complementme"]["image"] == f"complementme:{version}"
-

@@ -16,6 +16,10 @@ from service.settings import ENV_PREFIX, Settings
 
 K8S = REPO / "docker" / "k8s"
 WRITER = K8S / "single-writer"
+DATABASE = K8S / "postgres-example"
+# What the replicas' Secret (complementme-secrets) holds, as placeholders for the settings check.
+SECRET_SETTINGS = {f"{ENV_PREFIX}API_KEY": "x" * 24,
+                   f"{ENV_PREFIX}DATABASE_URL": "postgresql://complementme:pw@complementme-postgres:5432/complementme"}
 # The oldest Kubernetes release the manifests are meant for, and the newest the validator knows.
 VERSIONS = ["1.29.0", latest_version()]
 
@@ -40,12 +44,14 @@ def test_the_expected_resources_are_there() -> None:
     assert kinds == ["ConfigMap", "Deployment", "HorizontalPodAutoscaler", "PodDisruptionBudget", "Service"]
     writer = sorted(doc["kind"] for _, doc in load_all(WRITER))
     assert writer == ["Deployment", "PersistentVolumeClaim", "Service"]
+    database = sorted(doc["kind"] for _, doc in load_all(DATABASE))
+    assert database == ["Service", "StatefulSet"]
 
 
 @pytest.mark.parametrize("version", VERSIONS)
 def test_manifests_match_the_kubernetes_schema(version: str) -> None:
     errors = []
-    for path, doc in load_all(K8S) + load_all(WRITER):
+    for path, doc in load_all(K8S) + load_all(WRITER) + load_all(DATABASE):
         try:
             kubernetes_validate.validate(doc, version, strict=True)
         except kubernetes_validate.ValidationError as exc:
@@ -115,11 +121,15 @@ def test_configmap_sets_only_real_settings_as_strings() -> None:
     assert all(isinstance(v, str) for v in data.values()), data
     unknown = sorted(set(data) - fields)
     assert not unknown, f"not settings of service/settings.py: {unknown}"
-    # Every value must parse as that setting (e.g. a port in range, a known log level).
-    Settings.model_validate({k[len(ENV_PREFIX):].lower(): v for k, v in data.items()})
-    assert f"{ENV_PREFIX}API_KEY" not in data, "the API key belongs in a Secret, and only the writer gets it"
-    refs = [s["configMapRef"]["name"] for s in container()["envFrom"]]
-    assert refs == [one("ConfigMap")["metadata"]["name"]]
+    # Every value must parse as that setting (e.g. a port in range, a known log level), with the
+    # Secret's settings beside them (the postgres backend needs its URL).
+    Settings.model_validate({k[len(ENV_PREFIX):].lower(): v for k, v in {**data, **SECRET_SETTINGS}.items()})
+    for secret in SECRET_SETTINGS:
+        assert secret not in data, f"{secret} belongs in a Secret"
+    sources = container()["envFrom"]
+    maps = [s["configMapRef"]["name"] for s in sources if "configMapRef" in s]
+    assert maps == [one("ConfigMap")["metadata"]["name"]]
+    assert [s["secretRef"]["name"] for s in sources if "secretRef" in s] == ["complementme-secrets"]
 
 
 def cpu_cores(quantity: str) -> float:
@@ -180,6 +190,8 @@ def test_one_writer_on_its_own_volume() -> None:
     sources = writer_container()["envFrom"]
     assert {"configMapRef": {"name": one("ConfigMap")["metadata"]["name"]}} in sources
     assert any("secretRef" in s for s in sources), "the writer needs the API key Secret"
+    env = {e["name"]: e["value"] for e in writer_container()["env"]}
+    assert env[f"{ENV_PREFIX}CATALOG_BACKEND"] == "sqlite", "the single writer keeps its data folder"
     hpa_target = one("HorizontalPodAutoscaler")["spec"]["scaleTargetRef"]["name"]
     assert hpa_target != writer["metadata"]["name"], "the writer must not be scaled out"
 
@@ -202,3 +214,24 @@ def test_writer_runs_the_same_image_and_probes() -> None:
     assert writer["image"] == reader["image"]
     for key in ("ports", "startupProbe", "livenessProbe", "readinessProbe", "resources", "securityContext"):
         assert writer[key] == reader[key], f"writer {key} differs from the readers'"
+
+
+def test_replicas_share_the_database_and_the_example_database_is_consistent() -> None:
+    assert settings_env()[f"{ENV_PREFIX}CATALOG_BACKEND"] == "postgres"
+    assert one("Deployment")["spec"]["replicas"] >= 2, "every replica takes writes: scale freely"
+    db, service = one("StatefulSet", DATABASE), one("Service", DATABASE)
+    assert db["spec"]["replicas"] == 1 and db["spec"]["serviceName"] == service["metadata"]["name"]
+    pods = db["spec"]["template"]["metadata"]["labels"]
+    assert db["spec"]["selector"]["matchLabels"].items() <= pods.items()
+    assert service["spec"]["selector"].items() <= pods.items()
+    api_pods = one("Deployment")["spec"]["template"]["metadata"]["labels"]
+    assert not service["spec"]["selector"].items() <= api_pods.items(), "database traffic to the API"
+    assert not one("Service")["spec"]["selector"].items() <= pods.items(), "API traffic to the database"
+    claim = db["spec"]["volumeClaimTemplates"][0]
+    container_ = db["spec"]["template"]["spec"]["containers"][0]
+    mounts = {m["name"]: m["mountPath"] for m in container_["volumeMounts"]}
+    assert mounts[claim["metadata"]["name"]] == "/var/lib/postgresql/data"
+    port = service["spec"]["ports"][0]
+    assert port["port"] == 5432
+    url = SECRET_SETTINGS[f"{ENV_PREFIX}DATABASE_URL"]
+    assert f"@{service['metadata']['name']}:{port['port']}/" in url

@@ -111,10 +111,13 @@ def test_prometheus_scrapes_the_service_metrics_endpoint() -> None:
     job = jobs["complementme"]
     assert job.get("metrics_path", "/metrics") == "/metrics"
     targets = [t for sc in job["static_configs"] for t in sc["targets"]]
-    host, port = targets[0].split(":")
-    assert host in compose["services"], f"scrape target {host} is no compose service"
-    published = [p.split(":")[-1] for p in compose["services"][host]["ports"]]
-    assert port in published, f"scrape port {port} is not the service's port {published}"
+    for target in targets:  # every replica
+        host, port = target.split(":")
+        assert host in compose["services"], f"scrape target {host} is no compose service"
+        published = [p.split(":")[-1] for p in compose["services"][host]["ports"]]
+        assert port in published, f"scrape port {port} is not the service's port {published}"
+    replicas = {n for n, s in compose["services"].items() if s.get("image", "").startswith("complementme:")}
+    assert {t.split(":")[0] for t in targets} == replicas, "Prometheus must scrape every replica"
 
 
 def test_grafana_provisioning_matches_the_compose_mounts() -> None:

@@ -17,6 +17,7 @@ import pytest
 warnings.filterwarnings("ignore", message=".*httpx.*starlette.testclient.*")
 
 from fastapi.testclient import TestClient  # noqa: E402
+from pg_testkit import PostgresCluster, find_postgres  # noqa: E402
 from service_testkit import (  # noqa: E402
     ARTIFACTS_ENV,
     AssemblyQuery,
@@ -68,3 +69,22 @@ def query(catalog: Catalog, engine: SuggestionEngine) -> AssemblyQuery:
     shape = multi_part_shapes(catalog, 1)[0]
     last = [r["part_id"] for r in catalog.records if r["shape_id"] == shape][-1]
     return assembly_query(catalog, shape, last, engine.artifacts.n_points)
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[PostgresCluster]:
+    """A real PostgreSQL server for the session (skips, saying why, only when it cannot run here)."""
+    bindir, why = find_postgres()
+    if bindir is None:
+        pytest.skip(why)
+    cluster = PostgresCluster(bindir).init().start()
+    try:
+        yield cluster
+    finally:
+        cluster.remove()
+
+
+@pytest.fixture
+def database_url(postgres: PostgresCluster) -> str:
+    """A new, empty database of the session's server."""
+    return postgres.new_database()

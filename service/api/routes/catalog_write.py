@@ -18,12 +18,13 @@ rolls back.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import threading
 import time
-from typing import Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, FastAPI, Header, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -34,7 +35,7 @@ from service.additions import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out
 from service.api.deps import SettingsDep
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
-from service.api.schemas import ErrorResponse, FrameIn, PartOut
+from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
 from service.auth import WriterDep
 from service.catalog import part_links
 from service.engine import SuggestionEngine
@@ -43,9 +44,14 @@ from service.frames import Frame
 from service.inputs import mesh_format
 from service.part_prep import prepare_part
 from service.settings import Settings
-from service.store import CommitRefusedError, StoredPart
+from service.store import CommitRefusedError, NewPart, StoredPart
 
 router = APIRouter(tags=["catalog"])
+
+IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", description=(
+    "A key unique to this add (a UUID): a retry with the same key and request answers the part the "
+    "first one added instead of adding it again (postgres backend only)."),
+    examples=["3f1c2a9e-7b1d-4c55-9d0e-1a2b3c4d5e6f"])]
 
 _AUTH_ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "No API key, or a wrong one (with WWW-Authenticate)."},
@@ -113,14 +119,17 @@ _UPLOAD_BODY: dict[str, Any] = {"requestBody": {"required": True, "content": {"m
 
 class CatalogStatus(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{
-        "writable": True, "shipped_parts": 7315, "added_parts": 12, "deleted_parts": 1, "parts": 7327,
-        "sequence": 14, "database_sequence": 14, "index_sequence": 14, "index_rebuilt_at_start": False,
-        "reembedded_at_start": 0, "left_out": []}]})
+        "writable": True, "backend": "sqlite", "shipped_parts": 7315, "added_parts": 12, "deleted_parts": 1,
+        "parts": 7327, "sequence": 14, "database_sequence": 14, "index_sequence": 14,
+        "index_rebuilt_at_start": False, "reembedded_at_start": 0, "left_out": [], "replication": None}]})
 
     writable: bool = Field(..., description="Whether this server accepts catalog writes at all.")
+    backend: Literal["sqlite", "postgres"] | None = Field(..., description=(
+        "Where added parts live (COMPLEMENTME_CATALOG_BACKEND); null for a read-only server."))
     shipped_parts: int
     added_parts: int = Field(..., description="Added parts served now.")
-    deleted_parts: int
+    deleted_parts: int | None = Field(..., description=(
+        "Deleted parts (null while the database is unreachable)."))
     parts: int = Field(..., description="Parts served now (shipped + added).")
     sequence: int | None = Field(..., description="The last database change the served catalog includes.")
     database_sequence: int | None = Field(..., description="The database's last change.")
@@ -130,6 +139,7 @@ class CatalogStatus(BaseModel):
     reembedded_at_start: int = Field(..., description="Added parts re-embedded for a new model at start.")
     left_out: list[dict[str, str]] = Field(..., description=(
         "Added parts that could not be served (damaged geometry file, id clash), with the reason."))
+    replication: Replication | None = Field(..., description="The postgres backend's replica state.")
 
 
 async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
@@ -165,13 +175,18 @@ async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
     422: {"model": ErrorResponse, "description": "Missing file or category, bad fields, corrupt or "
           "empty mesh, external references, a part too large for the canonical frame."},
+    503: {"model": ErrorResponse, "description": "The catalog database cannot be reached "
+          "(database_unavailable, with Retry-After): nothing was stored."},
     507: {"model": ErrorResponse, "description": "The data folder holds COMPLEMENTME_MAX_ADDED_PARTS parts."},
 })
-async def post_part(request: Request, writer: WriterDep, settings: SettingsDep) -> OrjsonResponse:
+async def post_part(request: Request, writer: WriterDep, settings: SettingsDep,
+                    idempotency_key: IdempotencyKey = None) -> OrjsonResponse:
     """Upload one part's mesh: it is checked, centred, embedded and searchable by the next request.
 
     The mesh is in the canonical frame of the complete object it belongs to (unit radius, y up)
-    unless `frame` says otherwise; its bounding-box centre becomes its `translation`.
+    unless `frame` says otherwise; its bounding-box centre becomes its `translation`. With an
+    `Idempotency-Key` (postgres backend), a retry of the same request answers the part the first
+    one added (header `Idempotent-Replayed: true`) instead of adding it twice.
     """
     upload, meta = await _read_form(request)
     fmt = mesh_format(upload.filename, meta.format)
@@ -181,17 +196,19 @@ async def post_part(request: Request, writer: WriterDep, settings: SettingsDep) 
     window = CommitWindow(deadline - min(settings.write_commit_margin, settings.request_timeout / 2))
     name = upload.filename or "upload"
     task = asyncio.ensure_future(
-        run_in_threadpool(_add, writer, settings, data, fmt, name, frame, meta, window))
+        run_in_threadpool(_add, writer, settings, data, fmt, name, frame, meta, window, idempotency_key))
     done, _ = await asyncio.wait({task}, timeout=max(0.0, window.close_at - time.monotonic()))
     if task not in done and window.expire():
         task.add_done_callback(_consume)  # the thread rolls back (or never starts its transaction)
         raise _not_stored(settings)
     try:
-        stored = await task  # done, or committing: then its answer is the truth
+        stored, replayed = await task  # done, or committing: then its answer is the truth
     except CommitRefusedError:
         raise _not_stored(settings) from None
-    return OrjsonResponse(stored_part_out(stored, writer.builder.n_points), status_code=201,
-                          headers={"Location": part_links(stored.part_id)["part"]})
+    headers = {"Location": part_links(stored.part_id)["part"]}
+    if replayed:
+        headers["Idempotent-Replayed"] = "true"
+    return OrjsonResponse(stored_part_out(stored, writer.builder.n_points), status_code=201, headers=headers)
 
 
 class CommitWindow:
@@ -233,18 +250,30 @@ def _consume(task: asyncio.Future[Any]) -> None:
 
 
 def _add(writer: CatalogWriter, settings: Settings, data: bytes, fmt: str, name: str, frame: Frame,
-         meta: PartUploadIn, window: CommitWindow) -> StoredPart:
+         meta: PartUploadIn, window: CommitWindow, key: str | None) -> tuple[StoredPart, bool]:
+    """The add in the threadpool: the stored part, and whether an earlier request stored it."""
     if window.expired:  # the handler already answered 504: do not start the work
         raise CommitRefusedError("the request's deadline passed before the add started")
-    engine = writer.engine
-    part = prepare_part(data, fmt, name=name, frame=frame, networks=engine.networks,
-                        n_points=engine.artifacts.n_points, preview_points=writer.builder.n_points,
-                        seed=settings.seed, max_vertices=settings.max_mesh_vertices,
-                        max_faces=settings.max_mesh_faces, max_nodes=settings.max_mesh_nodes,
-                        max_nesting=settings.max_mesh_nesting, max_extent=settings.max_part_extent,
-                        category=meta.category, part_name=meta.name, style=meta.style, label=meta.label,
-                        model_version=engine.model_version)
-    return writer.add(part, meta.shape_id, window.may_commit)
+
+    def prepare() -> NewPart:
+        engine = writer.engine
+        return prepare_part(data, fmt, name=name, frame=frame, networks=engine.networks,
+                            n_points=engine.artifacts.n_points, preview_points=writer.builder.n_points,
+                            seed=settings.seed, max_vertices=settings.max_mesh_vertices,
+                            max_faces=settings.max_mesh_faces, max_nodes=settings.max_mesh_nodes,
+                            max_nesting=settings.max_mesh_nesting, max_extent=settings.max_part_extent,
+                            category=meta.category, part_name=meta.name, style=meta.style, label=meta.label,
+                            model_version=engine.model_version)
+
+    if key is None:
+        return writer.add(prepare(), meta.shape_id, window.may_commit), False
+    return writer.add_once(prepare, meta.shape_id, key, _request_sha256(data, fmt, meta), window.may_commit)
+
+
+def _request_sha256(data: bytes, fmt: str, meta: PartUploadIn) -> str:
+    """What makes two adds the same request: the mesh bytes, its format and every form field."""
+    fields = json.dumps({"format": fmt, **meta.model_dump()}, sort_keys=True).encode()
+    return hashlib.sha256(fields + b"\0" + data).hexdigest()
 
 
 @router.delete("/parts/{part_id:path}", status_code=204, response_class=Response,
@@ -252,6 +281,8 @@ def _add(writer: CatalogWriter, settings: Settings, data: bytes, fmt: str, name:
     **_AUTH_ERRORS,
     404: {"model": ErrorResponse, "description": "No such part."},
     409: {"model": ErrorResponse, "description": "The part ships with the artifacts (shipped_part)."},
+    503: {"model": ErrorResponse, "description": "The catalog database cannot be reached "
+          "(database_unavailable, with Retry-After): nothing was deleted."},
 })
 async def delete_part(part_id: PartId, writer: WriterDep) -> Response:
     """The part stops being suggested at once; shipped parts cannot be deleted (409)."""
@@ -266,20 +297,24 @@ def get_catalog_status(request: Request) -> OrjsonResponse:
         return OrjsonResponse(writer.status())
     engine: SuggestionEngine | None = request.app.state.engine
     n = len(engine.catalog) if engine is not None else 0
-    return OrjsonResponse({"writable": False, "shipped_parts": n, "added_parts": 0, "deleted_parts": 0,
-                           "parts": n, "sequence": None, "database_sequence": None, "index_sequence": None,
-                           "index_rebuilt_at_start": False, "reembedded_at_start": 0, "left_out": []})
+    return OrjsonResponse({"writable": False, "backend": None, "shipped_parts": n, "added_parts": 0,
+                           "deleted_parts": 0, "parts": n, "sequence": None, "database_sequence": None,
+                           "index_sequence": None, "index_rebuilt_at_start": False, "reembedded_at_start": 0,
+                           "left_out": [], "replication": None})
 
 
 def start_catalog_writer(app: FastAPI, engine: SuggestionEngine) -> CatalogWriter | None:
     """Open the data folder (if configured) and serve its snapshot; None for a read-only server."""
     settings: Settings = app.state.settings
-    if settings.data_dir is None:
+    if not settings.catalog_enabled:
         return None
 
     def publish(snapshot: SuggestionEngine) -> None:
         app.state.engine = snapshot  # one reference swap: requests hold the engine they started with
         app.state.metrics.set_model(snapshot.model_version, len(snapshot.catalog))
 
-    return CatalogWriter.open(settings, engine, publish)
+    writer = CatalogWriter.open(settings, engine, publish)
+    if writer.follower is not None:
+        app.state.metrics.watch_replication(writer.replication)
+    return writer
 

@@ -36,10 +36,20 @@ async def get_healthz() -> OrjsonResponse:
 @router.get("/readyz", response_model=Health, summary="Readiness: artifacts loaded and warm-up passed",
             responses={503: {"model": ErrorResponse, "description": "Not ready (yet)."}})
 async def get_readyz(request: Request) -> OrjsonResponse:
+    """200 once the artifacts are loaded and warm. With the postgres catalog backend the answer also
+    says where the replica is in the database's changes, and `status` is `degraded` (still 200:
+    suggestions are served from the last snapshot) while the database cannot be reached."""
     engine = getattr(request.app.state, "engine", None)
     if engine is None or not request.app.state.ready:
         return error_response(503, "not_ready", "artifacts not loaded or warm-up not passed")
-    return OrjsonResponse({"status": "ready", "model_version": engine.model_version})
+    body: dict[str, Any] = {"status": "ready", "model_version": engine.model_version}
+    writer = getattr(request.app.state, "writer", None)
+    replication = writer.replication() if writer is not None else None
+    if replication is not None:
+        body["catalog"] = replication
+        if replication["database"] != "up":
+            body["status"] = "degraded"
+    return OrjsonResponse(body)
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response,
