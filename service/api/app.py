@@ -41,7 +41,7 @@ from service.errors import ServiceError
 from service.inputs import MeshUploads
 from service.loading import load_served_artifacts
 from service.metrics import Metrics
-from service.overload import OverloadMiddleware
+from service.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.settings import Settings, get_settings
 from service.store import StoreError
 
@@ -196,6 +196,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["X-Model-Version"])
+    if settings.client_error_burst:  # outside the body checks: their refusals count as errors
+        app.add_middleware(ErrorBudgetMiddleware, rate=settings.client_error_rate,
+                           burst=settings.client_error_burst,
+                           refusal_delay=settings.overload_refusal_delay, metrics=app.state.metrics)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
     app.add_middleware(HeadAsGetMiddleware)
     return app
