@@ -191,15 +191,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes,
                        body_read_timeout=settings.body_read_timeout)
+    if settings.client_error_burst:
+        # Outside the body checks (their refusals count as errors), inside CORS (a browser can
+        # read the 429).
+        app.add_middleware(ErrorBudgetMiddleware, rate=settings.client_error_rate,
+                           burst=settings.client_error_burst,
+                           refusal_delay=settings.overload_refusal_delay, metrics=app.state.metrics)
     if settings.cors_origins:  # browsers only; none by default
         app.add_middleware(JsonCorsMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["X-Model-Version"])
-    if settings.client_error_burst:  # outside the body checks: their refusals count as errors
-        app.add_middleware(ErrorBudgetMiddleware, rate=settings.client_error_rate,
-                           burst=settings.client_error_burst,
-                           refusal_delay=settings.overload_refusal_delay, metrics=app.state.metrics)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics, model_version=model_version)
     app.add_middleware(HeadAsGetMiddleware)
     return app

@@ -80,8 +80,9 @@ async def _probe_while(port: int, busy: asyncio.Event, done: asyncio.Event,
 
 
 async def _send_paced(port: int, request: bytes, chunk: int, pause: float) -> tuple[int, bytes]:
-    """Send ``request`` in ``chunk``-byte pieces ``pause`` seconds apart, as a client on a network
-    would (about 13 MB/s with 64 KiB every 5 ms); the answer, which may come before the last piece."""
+    """Send ``request`` in ``chunk``-byte pieces ``pause`` seconds apart, as a client on a slow
+    network would (3 MB/s with 64 KiB every 20 ms: long enough for the probes to overlap the
+    reading); the answer, which may come before the last piece."""
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     try:
         answer = asyncio.ensure_future(read_response(reader))
@@ -124,7 +125,7 @@ def test_a_million_point_body_never_stalls_healthz(artifacts: Path, tmp_path: Pa
         probes = asyncio.ensure_future(_probe_while(server.port, busy, done))
         await asyncio.sleep(0.2)
         busy.set()
-        answers = await asyncio.gather(*(_send_paced(server.port, request, 64 * 1024, 0.005)
+        answers = await asyncio.gather(*(_send_paced(server.port, request, 64 * 1024, 0.02)
                                          for _ in range(4)))
         busy.clear()
         await asyncio.sleep(0.2)
