@@ -126,8 +126,8 @@ def test_large_uploads_leave_memory_behind_no_more_than_150_mb(big_client: TestC
     """``UPLOADS`` uploads of an 18 MB OBJ (the acceptance: 200) keep RSS within 150 MB of where it
     started, after every one of them. Before the fix each left about 60 MB behind.
 
-    Each upload costs 3-5 s of CPU (the OBJ parse), so the acceptance's 200 take 10-17 minutes:
-    more than the suite's CI budget. CI runs 10, which would have grown RSS by 600 MB before the
+    Each upload costs about 4 s (the OBJ parse), so the acceptance's 200 take about 13 minutes:
+    more than half of the suite's CI budget. CI runs 10, which would have grown RSS by 600 MB before the
     fix; ``COMPLEMENTME_TEST_UPLOADS=200`` runs the acceptance's count (docs/performance.md,
     "Memory under repeated uploads", has that run's figures).
     """
