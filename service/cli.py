@@ -121,11 +121,11 @@ def register_service_commands(app: typer.Typer) -> None:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(1) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
-        from service.workers import APP_FACTORY, GRACEFUL_SECONDS, Supervisor
+        from service.workers import APP_FACTORY, GRACEFUL_SECONDS, HTTP_PROTOCOL, Supervisor
 
         if s.workers == 1:
-            uvicorn.run(APP_FACTORY, factory=True, host=s.host, port=s.port, log_level=s.log_level,
-                        timeout_graceful_shutdown=GRACEFUL_SECONDS)
+            uvicorn.run(APP_FACTORY, factory=True, http=HTTP_PROTOCOL, host=s.host, port=s.port,
+                        log_level=s.log_level, timeout_graceful_shutdown=GRACEFUL_SECONDS)
             return
 
         try:

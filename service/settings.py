@@ -389,10 +389,21 @@ class Settings(BaseSettings):
         "Requests that may wait for an inference slot; past this the service answers 503 with "
         "Retry-After at once."))
     overload_refusal_delay: float = Field(default=0.5, ge=0, le=10, description=(
-        "Seconds a request refused with 503 `overloaded` waits (on no CPU) before its answer. "
+        "Seconds a request refused with 503 `overloaded` (or 429 `too_many_errors`) waits (on no "
+        "CPU) before its answer. "
         "Clients that retry at once, ignoring Retry-After, then come back a few times a second "
         "each instead of hundreds: 128 such clients of `/suggest` on one worker made 840 refusals a "
         "second without it and cut goodput to 60% of that at concurrency 32."))
+    client_error_burst: int = Field(default=100, ge=0, description=(
+        "Error answers (4xx) one client (address) may get in a row before its requests are "
+        "refused with 429 `too_many_errors` (before their body is read; `Retry-After`, held "
+        "`overload_refusal_delay` like a 503); the budget refills at `client_error_rate`. So a "
+        "flood of cheap invalid requests cannot starve other clients (docs/catalog.md, "
+        "\"Overload\"). Per worker process; the probes are never refused. Behind a proxy, clients "
+        "are told apart only "
+        "by `X-Forwarded-For` from an address in uvicorn's `FORWARDED_ALLOW_IPS`. 0: no limit."))
+    client_error_rate: float = Field(default=20.0, gt=0, description=(
+        "Error answers a second that refill a client's budget (`client_error_burst`)."))
     body_read_timeout: float = Field(default=10.0, gt=0, description=(
         "Seconds a request body may go without a byte arriving; past this it is answered 408 "
         "`body_timeout` (a client that stalls, or declared a Content-Length longer than what it "

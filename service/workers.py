@@ -37,6 +37,8 @@ from service.metrics import MULTIPROC_ENV
 log = logging.getLogger(__name__)
 
 APP_FACTORY = "service.api.app:create_app"  # what uvicorn serves, with one worker or many
+# uvicorn's httptools protocol answering parser errors with the JSON error body (its ``http``).
+HTTP_PROTOCOL = "service.api.http_protocol:JsonErrorProtocol"
 GRACEFUL_SECONDS = 10  # uvicorn's grace for requests in flight at a stop
 BACKLOG = 2048  # uvicorn's default listen backlog
 _POLL_SECONDS = 0.5  # how often the supervisor looks for dead workers and stop signals
@@ -73,7 +75,8 @@ def run_worker(config: WorkerConfig, channel: socket.socket) -> None:
 
     logging.basicConfig(level=config.root_log_level, format=LOG_FORMAT)
     quiet_libraries()
-    server = HandedServer(uvicorn.Config(APP_FACTORY, factory=True, log_level=config.log_level,
+    server = HandedServer(uvicorn.Config(APP_FACTORY, factory=True, http=HTTP_PROTOCOL,
+                                         log_level=config.log_level,
                                          timeout_graceful_shutdown=config.graceful_seconds), channel)
     server.run()
     if not server.started:

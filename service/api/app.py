@@ -41,7 +41,7 @@ from service.errors import ServiceError
 from service.inputs import MeshUploads
 from service.loading import load_served_artifacts
 from service.metrics import Metrics
-from service.overload import OverloadMiddleware
+from service.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.settings import Settings, get_settings
 from service.store import StoreError
 
@@ -191,6 +191,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes,
                        body_read_timeout=settings.body_read_timeout)
+    if settings.client_error_burst:
+        # Outside the body checks (their refusals count as errors), inside CORS (a browser can
+        # read the 429).
+        app.add_middleware(ErrorBudgetMiddleware, rate=settings.client_error_rate,
+                           burst=settings.client_error_burst,
+                           refusal_delay=settings.overload_refusal_delay, metrics=app.state.metrics)
     if settings.cors_origins:  # browsers only; none by default
         app.add_middleware(JsonCorsMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "DELETE"],

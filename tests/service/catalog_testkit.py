@@ -22,6 +22,7 @@ import trimesh
 from service_testkit import make_settings
 
 from service.settings import Settings
+from service.workers import HTTP_PROTOCOL
 
 KEY = "test-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -75,7 +76,7 @@ class LiveServer:
         with open(self.log, "ab") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "uvicorn", "--factory", "service.api.app:create_app", "--host",
-                 "127.0.0.1", "--port", str(self.port), "--log-level", "warning"],
+                 "127.0.0.1", "--port", str(self.port), "--log-level", "warning", "--http", HTTP_PROTOCOL],
                 env=self.env, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:

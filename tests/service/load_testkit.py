@@ -3,7 +3,9 @@
 asyncio streams with hand-written HTTP/1.1 (keep-alive, Content-Length bodies): a client in the
 test process cheap enough that 128 connections leave the CPU to the server under test. Closed
 loop: each connection sends its next request as soon as the previous answer is in, so a 503 is
-retried at once (the clients of finding 8).
+retried at once (the clients of finding 8). A client may send from another loopback address
+(``source``, e.g. 127.0.0.2: all of 127.0.0.0/8 is loopback), which the server sees as another
+client, as it would hostile clients elsewhere on a network.
 """
 
 from __future__ import annotations
@@ -53,8 +55,16 @@ class LoadResult:
         return float(np.percentile(self.latencies, q)) if self.latencies else float("nan")
 
 
-async def closed_loop(port: int, request: bytes, concurrency: int, seconds: float) -> LoadResult:
-    """``concurrency`` connections sending ``request`` back to back for ``seconds``."""
+LOCAL = "127.0.0.1"
+
+
+async def _connect(port: int, source: str) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    return await asyncio.open_connection("127.0.0.1", port, local_addr=(source, 0))
+
+
+async def closed_loop(port: int, request: bytes, concurrency: int, seconds: float,
+                      source: str = LOCAL) -> LoadResult:
+    """``concurrency`` connections from ``source`` sending ``request`` back to back for ``seconds``."""
     out = LoadResult()
     stop = time.monotonic() + seconds
 
@@ -63,7 +73,7 @@ async def closed_loop(port: int, request: bytes, concurrency: int, seconds: floa
         while time.monotonic() < stop:
             try:
                 if writer is None:
-                    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+                    reader, writer = await _connect(port, source)
                 assert reader is not None
                 t = time.monotonic()
                 writer.write(request)
@@ -108,13 +118,14 @@ async def probe(port: int, request: bytes, every: float, seconds: float) -> list
 
 
 @contextlib.asynccontextmanager
-async def slow_clients(port: int, request: bytes, count: int, byte_every: float = 1.0):
-    """``count`` connections that send ``request``'s head and then its body one byte at a time."""
+async def slow_clients(port: int, request: bytes, count: int, byte_every: float = 1.0, source: str = LOCAL):
+    """``count`` connections from ``source`` that send ``request``'s head and then its body one
+    byte at a time."""
     head, _, body = request.partition(b"\r\n\r\n")
     stop = asyncio.Event()
 
     async def trickle() -> None:
-        _, writer = await asyncio.open_connection("127.0.0.1", port)
+        _, writer = await _connect(port, source)
         try:
             writer.write(head + b"\r\n\r\n")
             for i in range(len(body)):

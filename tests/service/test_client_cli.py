@@ -77,14 +77,17 @@ def test_client_retries_connection_errors() -> None:
         assert not c.ready()
 
 
-def test_client_retries_503_then_succeeds() -> None:
-    # A stand-in server that is not ready twice, then answers.
-    answers = iter([503, 503, 200])
+def test_client_retries_503_and_429_then_succeeds() -> None:
+    # A stand-in server that is not ready, then refuses the client for its errors, then answers.
+    answers = iter([503, 503, 429, 200])
 
     def handler(request: httpx.Request) -> httpx.Response:
         status = next(answers)
         if status == 503:
             return httpx.Response(503, json={"error": {"code": "not_ready", "message": "loading"}})
+        if status == 429:
+            return httpx.Response(429, json={"error": {"code": "too_many_errors", "message": "later"}},
+                                  headers={"Retry-After": "0"})
         return httpx.Response(200, json={"model_version": "v"})
 
     transport = httpx.MockTransport(handler)

@@ -30,6 +30,7 @@ from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
 from service.inputs import points_to_base64
 from service.preferences import Preferences
+from service.settings import Settings
 
 pytestmark = pytest.mark.slow
 
@@ -110,17 +111,26 @@ def test_a_heavy_batch_does_not_delay_a_concurrent_suggest(live: LiveServer, que
 
 def test_poisoning_clients_leave_every_normal_request_200(live: LiveServer, engine: SuggestionEngine,
                                                           query: AssemblyQuery) -> None:
-    """2 clients with mode_weights all zero beside 8 normal ones: the normal ones all get 200."""
+    """2 clients with mode_weights all zero beside 8 normal ones: the normal ones all get 200.
+
+    The poisoning clients send from another address: past their error budget
+    (``client_error_burst``, then ``client_error_rate`` a second) they are refused with 429
+    before their bodies are parsed, and the normal clients are not.
+    """
     normal = _request("/suggest", _suggest(query, k=5))
     poison = _request("/suggest", _suggest(query, k=5, mode_weights=[0] * engine.artifacts.n_modes))
 
     async def main() -> tuple[Any, Any]:
         return await asyncio.gather(closed_loop(live.port, normal, 8, 4.0),
-                                    closed_loop(live.port, poison, 2, 4.0))
+                                    closed_loop(live.port, poison, 2, 4.0, source="127.0.0.2"))
 
     good, bad = asyncio.run(main())
     assert good.statuses[200] >= 20 and set(good.statuses) == {200}, good.statuses
-    assert set(bad.statuses) == {422}, bad.statuses
+    assert set(bad.statuses) == {422, 429}, bad.statuses
+    # Their 422s: the burst, then the refill; never the hundreds a second of a free-running client.
+    burst, rate = Settings.model_fields["client_error_burst"].default, Settings.model_fields[
+        "client_error_rate"].default
+    assert bad.statuses[422] <= burst + rate * bad.seconds + 2, bad.statuses
     log = live.log.read_text()
     assert "Traceback" not in log and "all_modes_excluded" not in log, log[-2000:]
 

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
-import threading
+import asyncio
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import orjson
 import pytest
+from catalog_testkit import LiveServer
 from fastapi.testclient import TestClient
-from service_testkit import AssemblyQuery, make_settings
+from load_testkit import http_request, read_response
+from service_testkit import AssemblyQuery
 
-from service.api import create_app
+from service.settings import Settings
+
+# Probes of /healthz that must overlap the 1M-point bodies for the test to say anything.
+MIN_OVERLAPPING = 5
 
 
 def test_a_non_json_media_type_gets_415(client: TestClient, query: AssemblyQuery) -> None:
@@ -51,42 +55,92 @@ def test_a_batch_with_too_many_points_in_all_is_refused_before_parsing(client: T
     assert str(limit) in response.json()["error"]["message"]
 
 
-@pytest.fixture(scope="module")
-def roomy_client(artifacts: Path) -> Iterator[TestClient]:
-    """A body limit large enough for the issue's 8.3 MB body of 1.04M points."""
-    with TestClient(create_app(make_settings(artifacts, max_body_bytes=16 * 2**20))) as c:
-        yield c
+async def _probe_while(port: int, busy: asyncio.Event, done: asyncio.Event,
+                      every: float = 0.005) -> tuple[list[float], list[float]]:
+    """/healthz latencies on a keep-alive connection of its own until ``done``: (all, those that
+    overlapped a time when ``busy`` was set)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    request = http_request("GET", "/healthz")
+    every_probe: list[float] = []
+    overlapped: list[float] = []
+    try:
+        while not done.is_set():
+            was_busy = busy.is_set()
+            t = time.perf_counter()
+            writer.write(request)
+            status, body, _ = await read_response(reader)
+            assert status == 200, body[:300]
+            every_probe.append(time.perf_counter() - t)
+            if was_busy or busy.is_set():
+                overlapped.append(every_probe[-1])
+            await asyncio.sleep(every)
+    finally:
+        writer.close()
+    return every_probe, overlapped
 
 
-def _worst_healthz(client: TestClient, probes: int) -> float:
-    worst = 0.0
-    for _ in range(probes):
-        start = time.perf_counter()
-        assert client.get("/healthz").status_code == 200
-        worst = max(worst, time.perf_counter() - start)
-        time.sleep(0.005)
-    return worst
+async def _send_paced(port: int, request: bytes, chunk: int, pause: float) -> tuple[int, bytes]:
+    """Send ``request`` in ``chunk``-byte pieces ``pause`` seconds apart, as a client on a slow
+    network would (3 MB/s with 64 KiB every 20 ms: long enough for the probes to overlap the
+    reading); the answer, which may come before the last piece."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        answer = asyncio.ensure_future(read_response(reader))
+        for i in range(0, len(request), chunk):
+            if answer.done():
+                break
+            writer.write(request[i:i + chunk])
+            try:
+                await writer.drain()
+            except ConnectionError:  # the server answered and closed before the rest was in
+                break
+            await asyncio.sleep(pause)
+        status, body, _ = await answer
+        return status, body
+    finally:
+        writer.close()
 
 
-def test_a_million_point_body_never_stalls_healthz(roomy_client: TestClient) -> None:
-    """Before the count, the parse held the event loop 1.4-1.7 s. The bound is 50 ms beyond the
-    worst of as many probes of an idle server (the in-process client's own delays on a loaded
-    2-core machine reached 20-50 ms there)."""
+@pytest.mark.slow
+def test_a_million_point_body_never_stalls_healthz(artifacts: Path, tmp_path: Path) -> None:
+    """Four clients send the issue's 8.3 MB body of 1.04M points at once to a live server with its
+    default limits, while /healthz is probed every 5 ms on a connection of its own. Before the
+    count, each body was parsed on the event loop (1.4-1.7 s each; four pushed /healthz to
+    1-4.7 s). The probes that overlap the bodies (from the first byte to the last answer; at least
+    ``MIN_OVERLAPPING``) must stay within 50 ms of the worst probe of the idle server: the
+    issue's 50 ms, as an excess over the scheduling delays of this shared 2-core machine (the
+    idle probes themselves took up to 20-50 ms with model training on both cores)."""
     body = orjson.dumps({"points": np.random.default_rng(0).integers(0, 10, (1_040_000, 3)).tolist()})
-    assert len(body) > 8e6
-    idle = _worst_healthz(roomy_client, 20)
-    answer: list[object] = []
-    sender = threading.Thread(target=lambda: answer.append(roomy_client.post(
-        "/suggest", content=body, headers={"content-type": "application/json"})))
-    worst, probes = 0.0, 0
-    sender.start()
-    while sender.is_alive() or probes < 20:
-        start = time.perf_counter()
-        assert roomy_client.get("/healthz").status_code == 200
-        worst = max(worst, time.perf_counter() - start)
-        probes += 1
-        time.sleep(0.005)
-    sender.join()
-    response = answer[0]
-    assert response.status_code == 422 and response.json()["error"]["code"] == "too_many_points"  # type: ignore[attr-defined]
-    assert worst < 0.05 + idle, f"/healthz took {worst * 1000:.0f} ms (idle: {idle * 1000:.0f} ms)"
+    assert 8e6 < len(body) <= Settings.model_fields["max_body_bytes"].default
+    request = http_request("POST", "/suggest", body)
+    server = LiveServer(artifacts, tmp_path / "data").start()
+
+    async def main() -> tuple[list[float], list[float], list[tuple[int, bytes]]]:
+        busy, done = asyncio.Event(), asyncio.Event()
+        idle_probes = asyncio.ensure_future(_probe_while(server.port, busy, done))
+        await asyncio.sleep(1.0)
+        done.set()
+        idle, _ = await idle_probes
+        done.clear()
+        probes = asyncio.ensure_future(_probe_while(server.port, busy, done))
+        await asyncio.sleep(0.2)
+        busy.set()
+        answers = await asyncio.gather(*(_send_paced(server.port, request, 64 * 1024, 0.02)
+                                         for _ in range(4)))
+        busy.clear()
+        await asyncio.sleep(0.2)
+        done.set()
+        _, overlapped = await probes
+        return idle, overlapped, answers
+
+    try:
+        idle, overlapped, answers = asyncio.run(main())
+    finally:
+        server.stop()
+    for status, answer in answers:
+        assert status == 422 and orjson.loads(answer)["error"]["code"] == "too_many_points", answer[:300]
+    assert len(overlapped) >= MIN_OVERLAPPING, f"only {len(overlapped)} probes overlapped the bodies"
+    print(f"\n/healthz beside four 1M-point bodies: worst {max(overlapped) * 1000:.1f} ms over "
+          f"{len(overlapped)} probes; idle worst {max(idle) * 1000:.1f} ms")
+    assert max(overlapped) < max(idle) + 0.05, (
+        f"/healthz took {max(overlapped) * 1000:.0f} ms beside the bodies (idle: {max(idle) * 1000:.0f} ms)")

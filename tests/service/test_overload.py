@@ -15,7 +15,7 @@ from service_testkit import AssemblyQuery, make_settings
 from starlette.types import Receive, Scope, Send
 
 from service.api import create_app
-from service.overload import InferenceGate, OverloadMiddleware
+from service.overload import ClientErrorBudget, ErrorBudgetMiddleware, InferenceGate, OverloadMiddleware
 
 
 def test_gate_admits_queues_and_refuses() -> None:
@@ -165,3 +165,94 @@ def test_a_full_gate_refuses_before_reading_and_slow_bodies_hold_no_slot() -> No
     assert statuses[:2] == [200, 503]
     assert statuses[2] in (200, 503)  # its body came in while the fast one still ran
     assert "/refused" not in reads, "the refused request's body was never read"
+
+
+# ------------------------------------------------------------------ per-client error budget
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_error_budget_refills_and_tracks_each_client_apart() -> None:
+    clock = _Clock()
+    budget = ClientErrorBudget(rate=2.0, burst=3, max_clients=2, clock=clock)
+    assert budget.wait("a") == 0 and len(budget) == 0, "a client without errors is not even remembered"
+    for _ in range(3):
+        budget.charge("a")
+    assert budget.wait("a") == pytest.approx(0.5), "empty: one token comes back in 1 / rate seconds"
+    assert budget.wait("b") == 0, "another client is not touched"
+    budget.charge("a")  # a request already running when the bucket emptied: a debt
+    assert budget.wait("a") == pytest.approx(1.0)
+    clock.now += 1.0
+    assert budget.wait("a") == 0
+    # Past max_clients, clients whose bucket is full again are forgotten first, then the oldest.
+    budget.charge("b")
+    clock.now += 10
+    budget.charge("a")
+    budget.charge("c")
+    assert len(budget) == 2 and budget.wait("c") == 0
+    for _ in range(3):
+        budget.charge("c")
+    budget.charge("d")  # neither a nor c is full: a's last error is the oldest
+    assert len(budget) == 2 and budget.wait("c") > 0
+
+
+def _error_app(status: int, reads: list[str]) -> Any:
+    """An app that reads the whole body, then answers ``status``."""
+    async def app(scope: Scope, receive: Receive, send: Send) -> None:
+        while (await receive()).get("more_body", False):
+            pass
+        reads.append(scope["path"])
+        await send({"type": "http.response.start", "status": status, "headers": []})
+        await send({"type": "http.response.body", "body": b"no"})
+    return app
+
+
+def test_a_client_past_its_error_budget_is_refused_before_its_body_is_read() -> None:
+    reads: list[str] = []
+    mw = ErrorBudgetMiddleware(_error_app(422, reads), rate=0.01, burst=3)
+
+    async def main() -> tuple[list[httpx.Response], httpx.Response, httpx.Response, httpx.Response]:
+        attacker = httpx.ASGITransport(app=mw, client=("10.0.0.1", 5000))
+        other = httpx.ASGITransport(app=mw, client=("10.0.0.2", 5000))
+        async with (httpx.AsyncClient(transport=attacker, base_url="http://test") as bad,
+                    httpx.AsyncClient(transport=other, base_url="http://test") as good):
+            errors = [await bad.post(f"/suggest/{i}", content=b"{}") for i in range(5)]
+            return errors, await bad.get("/healthz"), await good.post("/suggest/other", content=b"{}"), \
+                await bad.post("/suggest/after")
+
+    errors, probe, other, after = asyncio.run(main())
+    assert [a.status_code for a in errors] == [422, 422, 422, 429, 429]
+    refused = errors[3].json()["error"]
+    assert refused["code"] == "too_many_errors" and "COMPLEMENTME_CLIENT_ERROR_BURST" in refused["message"]
+    assert "10.0.0.1" in refused["message"] and int(errors[3].headers["retry-after"]) >= 1
+    assert reads[:3] == ["/suggest/0", "/suggest/1", "/suggest/2"] and "/suggest/3" not in reads, (
+        "a refused request's body is not read")
+    assert probe.status_code == 422, "the probes are never refused (this app answers 422 to all)"
+    assert other.status_code == 422, "another client still reaches the app"
+    assert after.status_code == 429
+    assert mw.budget.wait("10.0.0.1") > 0 and mw.budget.wait("10.0.0.2") == 0
+
+
+def test_real_app_refuses_a_client_with_too_many_errors(artifacts: Path, query: AssemblyQuery) -> None:
+    settings = make_settings(artifacts, verify_checksums=False, client_error_burst=2, client_error_rate=0.01,
+                             overload_refusal_delay=0)
+    app = create_app(settings)
+    good = {"points": query.points.tolist(), "k": 3}
+    ok = TestClient(app, client=("10.0.0.2", 5000))  # the lifespan runs once, in ``bad``'s block
+    with TestClient(app, client=("10.0.0.1", 5000)) as bad:
+        answers = [bad.post("/suggest", content=b"{not json", headers={"content-type": "application/json"})
+                   for _ in range(3)]
+        codes = [a.json()["error"]["code"] for a in answers]
+        assert codes == ["invalid_json", "invalid_json", "too_many_errors"], "the third was not parsed"
+        refused = bad.post("/suggest", json=good)
+        assert refused.status_code == 429 and refused.json()["error"]["code"] == "too_many_errors"
+        assert bad.get("/healthz").status_code == 200
+        assert ok.post("/suggest", json=good).status_code == 200
+        metrics = ok.get("/metrics").text
+    assert 'complementme_overload_rejections_total{reason="too_many_errors"} 2.0' in metrics

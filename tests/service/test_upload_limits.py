@@ -3,6 +3,7 @@ upload limit on every mesh route, and memory that uploads leave behind."""
 
 from __future__ import annotations
 
+import os
 import resource
 import time
 from collections.abc import Iterator
@@ -95,6 +96,10 @@ def test_assemble_mesh_is_held_to_the_upload_limit(client: TestClient, settings:
     assert response.status_code == 413
 
 
+# 18 MB uploads in the memory test: the acceptance's 200 do not fit the CI budget (see the test).
+UPLOADS = int(os.environ.get("COMPLEMENTME_TEST_UPLOADS", "10"))
+
+
 def _rss_mb() -> float:
     return int(Path("/proc/self/statm").read_text().split()[1]) * resource.getpagesize() / 2**20
 
@@ -118,16 +123,28 @@ def big_client(artifacts: Path) -> Iterator[TestClient]:
 
 @pytest.mark.slow
 def test_large_uploads_leave_memory_behind_no_more_than_150_mb(big_client: TestClient) -> None:
-    """The issue's 200 uploads would take 10-15 minutes here (3-5 s each on a loaded 2-core
-    machine); 10 show the same thing: before the fix each left about 60 MB (600 MB in all)."""
+    """``UPLOADS`` uploads of an 18 MB OBJ (the acceptance: 200) keep RSS within 150 MB of where it
+    started, after every one of them. Before the fix each left about 60 MB behind.
+
+    Each upload costs about 4 s (the OBJ parse), so the acceptance's 200 take about 13 minutes:
+    more than half of the suite's CI budget. CI runs 10, which would have grown RSS by 600 MB before the
+    fix; ``COMPLEMENTME_TEST_UPLOADS=200`` runs the acceptance's count (docs/performance.md,
+    "Memory under repeated uploads", has that run's figures).
+    """
     obj = _big_obj()
     assert len(obj) > 18e6
     assert big_client.post("/suggest/mesh", files={"file": ("big.obj", obj)}).status_code == 200
     start = _rss_mb()
-    for _ in range(10):
+    after: list[float] = []
+    for i in range(UPLOADS):
+        t = time.monotonic()
         response = big_client.post("/suggest/mesh", files={"file": ("big.obj", obj)})
         assert response.status_code == 200, response.text
-    assert _rss_mb() - start < 150, f"RSS grew from {start:.0f} MB to {_rss_mb():.0f} MB"
+        after.append(_rss_mb())
+        print(f"upload {i + 1}/{UPLOADS}: {time.monotonic() - t:.1f} s, RSS {after[-1]:.0f} MB", flush=True)
+    print(f"RSS: {start:.0f} MB after the first upload, at most {max(after):.0f} MB over {UPLOADS} more, "
+          f"{after[-1]:.0f} MB at the end")
+    assert max(after) - start < 150, f"RSS grew from {start:.0f} MB to {max(after):.0f} MB"
     assert "process_resident_memory_bytes" in big_client.get("/metrics").text
 
 

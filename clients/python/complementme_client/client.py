@@ -4,7 +4,8 @@ It needs httpx and numpy only (not the service's onnxruntime, FAISS, scipy or tr
 ``pip install ./clients/python`` from the repository. ``service.client`` re-exports it.
 
 Retries cover what a restart or a rolling deploy looks like from outside: connection errors,
-timeouts while connecting, and 503 (not ready). Everything else (4xx, other 5xx) is raised at
+timeouts while connecting, 503 (not ready, overloaded) and 429 (``too_many_errors``: this client
+had too many error answers; refused before it ran). Everything else (4xx, other 5xx) is raised at
 once as ``ClientError`` carrying the service's error code and message.
 
     client = ComplementMeClient("http://127.0.0.1:8000")
@@ -30,6 +31,9 @@ log = logging.getLogger(__name__)
 POINT_SUFFIXES = (".npy", ".xyz", ".pts", ".txt")
 REQUEST_SUFFIXES = (".json",)  # a POST /suggest body, e.g. examples/chair-without-legs.json
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+# Answers that mean the request did not run and may run later: not ready or overloaded (503), or
+# this client past its budget of error answers (429); retried after Retry-After.
+RETRIED_STATUSES = frozenset({429, 503})
 
 
 def points_to_base64(points: np.ndarray) -> str:
@@ -53,7 +57,7 @@ class ComplementMeClient:
     Args:
         base_url: e.g. ``http://127.0.0.1:8000``.
         timeout: seconds for each request (connect, read and write).
-        retries: extra attempts after a connection error or a 503.
+        retries: extra attempts after a connection error, a 503 or a 429.
         backoff: seconds before the first retry; doubled each time (or the answer's Retry-After).
         api_key: the key catalog writes need (sent as ``Authorization: Bearer``).
     """
@@ -80,7 +84,7 @@ class ComplementMeClient:
         """One call with retries; raises ``ClientError`` for an error answer or no answer.
 
         A call that is not ``idempotent`` (a catalog add) is retried only when it surely did not
-        run: the connection failed, or the service refused it with 503.
+        run: the connection failed, or the service refused it with 503 or 429.
         """
         delay = self.backoff
         for attempt in range(self.retries + 1):
@@ -97,8 +101,8 @@ class ComplementMeClient:
             except httpx.TimeoutException as exc:  # a read timeout: the request may have run; no retry
                 raise ClientError(None, "timeout", f"{method} {path}: {exc}") from exc
             else:
-                if response.status_code == 503 and not last:
-                    log.debug("retrying %s %s after 503", method, path)
+                if response.status_code in RETRIED_STATUSES and not last:
+                    log.debug("retrying %s %s after %d", method, path, response.status_code)
                     delay = max(delay, min(30.0, _retry_after(response)))
                 elif response.status_code >= 400:
                     raise _error_of(response)
