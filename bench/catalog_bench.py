@@ -30,7 +30,7 @@ from bench.replicate import ReplicatedCatalog, replicate_embeddings
 from bench.stats import summarize_seconds
 from service.catalog import partial_assemblies
 from service.engine import SuggestionEngine
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.indexing import build_index, configure_search
 
 log = logging.getLogger(__name__)

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import orjson
 
-from service.geometry import resample_points
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
+from service.geometry.mesh import resample_points
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "examples" / "chair-without-legs.json"

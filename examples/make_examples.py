@@ -20,7 +20,7 @@ import numpy as np
 import trimesh
 
 from service.artifacts import CATALOG_JSON
-from service.geometry import sample_surface
+from service.geometry.mesh import sample_surface
 from service.settings import DEFAULT_ARTIFACTS
 from training.data.generator.generate import generate_shape
 from training.data.shapes import RawShape

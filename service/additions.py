@@ -43,7 +43,7 @@ from service.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import ConflictError, InputError, NotFoundError, StorageFullError, UnavailableError
 from service.follow import ChangeFollower
-from service.geometry import resample_points
+from service.geometry.mesh import resample_points
 from service.part_prep import embed_geometry
 from service.pg_store import KeyTakenError, PgCatalogStore
 from service.settings import Settings

@@ -67,7 +67,7 @@ from scipy.spatial import cKDTree
 from service.contact import Assembly, Surface
 from service.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
 from service.errors import InputError
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.mixture import mixture_log_likelihood
 from service.preferences import Preferences
 

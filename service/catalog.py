@@ -19,7 +19,7 @@ import numpy as np
 
 from service.artifacts import CATALOG_FIELDS, ArtifactError
 from service.errors import InputError, NotFoundError
-from service.geometry import resample_points
+from service.geometry.mesh import resample_points
 
 log = logging.getLogger(__name__)
 

@@ -49,7 +49,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.catalog import Catalog
-from service.geometry import triangle_areas
+from service.geometry.mesh import triangle_areas
 
 # cos(45 deg): a sample counts as inside only if it lies roughly behind the nearest sample.
 _BEHIND = float(np.sqrt(0.5))

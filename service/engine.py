@@ -42,9 +42,9 @@ import numpy as np
 from service.complement import covered_share, demote_covered
 from service.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
-from service.frames import Frame
-from service.geometry import resample_points
-from service.inputs import check_points
+from service.geometry.frames import Frame
+from service.geometry.inputs import check_points
+from service.geometry.mesh import resample_points
 from service.loading import Artifacts
 from service.mixture import mixture_log_likelihood
 from service.neighbours import BruteForceNeighbours

@@ -20,7 +20,7 @@ import trimesh
 
 from service.catalog import Catalog
 from service.errors import InputError
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 ExportFormat = Literal["glb", "obj"]
 MEDIA_TYPES: dict[str, str] = {"glb": "model/gltf-binary", "obj": "model/obj"}

@@ -1,7 +1,7 @@
 """The complete object's frame, estimated from a partial one (an upload in its own units).
 
 The networks work in the canonical frame of the *complete* object: its box centred at the
-origin, its surface reaching radius 1, y up (``service.frames``). A designer uploading a chair
+origin, its surface reaching radius 1, y up (``service.geometry.frames``). A designer uploading a chair
 without legs, in millimetres and z up, cannot say where the centre and the radius of a chair
 that does not exist yet are; scaling the partial mesh by its own box blows the seat and back up
 to the size of a whole chair, and the model answers with seats and table tops.
@@ -26,7 +26,7 @@ import numpy as np
 
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
-from service.frames import Frame, UpAxis
+from service.geometry.frames import Frame, UpAxis
 from service.settings import Settings
 
 UP_AXES: tuple[UpAxis, ...] = ("y", "z")

@@ -1,6 +1,6 @@
 """An uploaded part mesh -> a part ready to store: checked, centred, sampled, embedded.
 
-The upload is untrusted: it goes through ``service.geometry.load_mesh_bytes`` with the size
+The upload is untrusted: it goes through ``service.geometry.mesh.load_mesh_bytes`` with the size
 limits, and external references are refused (not dropped, as ``/suggest/mesh`` does: catalog
 content must be self-contained). The mesh is mapped from the caller's frame to the canonical
 one (parts keep the scale of their complete object, which has unit radius), centred at its
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from service.errors import InputError, PayloadTooLargeError, ServiceError, UnsupportedMediaError
-from service.frames import Frame
-from service.geometry import MeshError, load_mesh_bytes, mesh_area, sample_surface
+from service.geometry.frames import Frame
+from service.geometry.mesh import MeshError, load_mesh_bytes, mesh_area, sample_surface
 from service.models import Networks
 from service.store import NewPart, PartGeometry
 

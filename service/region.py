@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.errors import InputError
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 
 @dataclass(frozen=True)

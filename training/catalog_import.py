@@ -27,7 +27,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from service.frames import Frame
+from service.geometry.frames import Frame
 from training.data.ingest import IngestConfig, ShapeFileError, find_shape_files, load_shape_file
 from training.data.preprocess import PreprocessConfig, preprocess_shape
 

@@ -38,7 +38,7 @@ from service.artifacts import ArtifactError
 from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
-from service.inputs import MeshUploads
+from service.geometry.inputs import MeshUploads
 from service.loading import load_served_artifacts
 from service.metrics import Metrics
 from service.overload import ErrorBudgetMiddleware, OverloadMiddleware

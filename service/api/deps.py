@@ -13,7 +13,7 @@ from fastapi import Depends, Request
 from service.batching import MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import InputError, NotReadyError
-from service.inputs import MeshUploads
+from service.geometry.inputs import MeshUploads
 from service.metrics import Metrics
 from service.settings import Settings
 

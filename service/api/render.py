@@ -12,7 +12,7 @@ import numpy as np
 
 from service.catalog import Catalog, part_links
 from service.engine import PlaceResult, SuggestResult
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 
 def _vec(a: np.ndarray) -> list[float]:

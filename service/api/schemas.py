@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validat
 
 from service.engine import SuggestOptions
 from service.errors import InputError
-from service.frames import Frame
-from service.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
+from service.geometry.frames import Frame
+from service.geometry.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
 from service.preferences import Preferences
 from service.region import Region
 

@@ -25,7 +25,7 @@ from service.api.schemas import (
 )
 from service.assembly import AssembleOptions
 from service.export_mesh import ExportItem
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.preferences import Preferences
 
 

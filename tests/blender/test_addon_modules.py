@@ -20,8 +20,8 @@ import pytest
 import trimesh
 
 from service.export_mesh import ExportItem, placed_meshes
-from service.frames import Frame
-from service.geometry import load_mesh_bytes
+from service.geometry.frames import Frame
+from service.geometry.mesh import load_mesh_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "clients" / "blender"))
 

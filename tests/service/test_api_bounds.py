@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from service_testkit import AssemblyQuery
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 # Integers around every boundary that matters: signs, 32, 53, 63 and 64 bits, and beyond.
 _EDGES = [0, -1, 1, 2, 3, 2**31 - 1, 2**31, 2**53 + 1, 2**63 - 1, 2**63, 2**64 - 1, 2**64, 2**100]

@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import TEST_LIMITS, AssemblyQuery
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 from service.settings import Settings
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 _SCALARS: list[Any] = [None, True, 0, -1, 1, 3, 10**30, 1.5, -0.0, 1e308, "", "x", "chair", "NaN", [], {}]
 

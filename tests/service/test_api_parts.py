@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from service.api.schemas import CategoryOut, PartOut, PartPointsOut, PartsPage
 from service.catalog import Catalog
-from service.inputs import points_from_base64
+from service.geometry.inputs import points_from_base64
 
 
 def test_pages_cover_the_catalog_once(client: TestClient, catalog: Catalog) -> None:

@@ -14,8 +14,8 @@ from service_testkit import TEST_LIMITS, AssemblyQuery, assembly_query, multi_pa
 from service.api.schemas import BatchResponse, PlaceResponse, SuggestResponse
 from service.catalog import Catalog
 from service.engine import SuggestionEngine
-from service.geometry import load_mesh_bytes, sample_surface
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
+from service.geometry.mesh import load_mesh_bytes, sample_surface
 from service.settings import Settings
 
 

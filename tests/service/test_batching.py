@@ -24,7 +24,7 @@ from service.api import create_app
 from service.batching import MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import DeadlineError, InputError, NotReadyError, ServiceError
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 Query = tuple[np.ndarray, SuggestOptions]
 

@@ -7,7 +7,7 @@ from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.complement import covered_share, demote_covered
 from service.engine import SuggestionEngine, SuggestOptions
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 
 def _square(n: int = 40, y: float = 0.0) -> np.ndarray:

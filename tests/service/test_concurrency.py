@@ -16,7 +16,7 @@ import numpy as np
 from catalog_testkit import AUTH, LiveServer, part_mesh
 from service_testkit import AssemblyQuery
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 WRITERS, ADDS_EACH, READERS = 8, 50, 8
 

@@ -25,7 +25,7 @@ from service.contact import (
     sample_oriented,
 )
 from service.engine import SuggestionEngine, SuggestOptions
-from service.frames import Frame
+from service.geometry.frames import Frame
 from training.evaluate.contact import Mesh, contact
 
 REPO = Path(__file__).resolve().parents[2]

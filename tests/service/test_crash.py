@@ -21,7 +21,7 @@ import httpx
 import numpy as np
 from catalog_testkit import AUTH, LiveServer, part_mesh
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 WRITERS = 6
 KILL_AFTER = (3, 12, 25)  # acknowledged adds of the round before the SIGKILL

@@ -10,7 +10,7 @@ from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, NotFoundError, ServiceError
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.mixture import mixture_log_likelihood
 from service.settings import Settings
 

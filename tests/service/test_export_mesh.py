@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from service.catalog import Catalog
 from service.errors import InputError, NotFoundError
 from service.export_mesh import ExportItem, export_assembly
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.settings import Settings
 
 

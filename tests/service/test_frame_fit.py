@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from service.catalog import Catalog
 from service.engine import SuggestionEngine, SuggestOptions
 from service.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj"
 # The example in a designer's units: millimetres (the complete chair about 450 mm in radius),

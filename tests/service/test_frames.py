@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.frames import Frame
+from service.geometry.frames import Frame
 
 
 def test_round_trip() -> None:

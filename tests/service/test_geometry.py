@@ -1,4 +1,4 @@
-"""Tests of service.geometry: safe loading of each format, refusals, sampling and frames."""
+"""Tests of service.geometry.mesh: safe loading of each format, refusals, sampling and frames."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.geometry import (
+from service.geometry.mesh import (
     MeshError,
     _prepare_obj,
     connected_components,

@@ -28,7 +28,7 @@ from service_testkit import AssemblyQuery, make_settings
 from service.api import create_app
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 from service.preferences import Preferences
 from service.settings import Settings
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.errors import InputError, UnsupportedMediaError
-from service.inputs import (
+from service.geometry.inputs import (
     check_points,
     mesh_format,
     points_from_base64,

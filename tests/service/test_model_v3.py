@@ -16,7 +16,7 @@ from service_testkit import assembly_query
 
 from service.catalog import Catalog
 from service.engine import SuggestionEngine, SuggestOptions
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.preferences import share_order
 
 

@@ -30,7 +30,7 @@ import pytest
 from catalog_testkit import free_port
 from service_testkit import AssemblyQuery
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 REPO = Path(__file__).resolve().parents[2]
 WINDOW = float(os.environ.get("COMPLEMENTME_TEST_OUTBOUND_SECONDS", "20"))

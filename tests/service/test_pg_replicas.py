@@ -35,7 +35,7 @@ import trimesh
 from catalog_testkit import AUTH, LiveServer, part_mesh
 from pg_testkit import PostgresCluster, find_postgres
 
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 REPLICATION_TARGET_SECONDS = 1.0   # issue 21: each replica suggests a part within 1 s of its 201
 WRITERS_PER_REPLICA = 4

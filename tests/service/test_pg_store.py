@@ -21,7 +21,7 @@ from fastapi.testclient import TestClient
 from pg_testkit import PG_PASSWORD, PG_USER
 
 from service.api import create_app
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 from service.pg_store import SCHEMA_VERSION, PgCatalogStore
 from service.settings import Settings
 from service.store import NewPart, PartGeometry, StoreError

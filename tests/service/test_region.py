@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from service.api.schemas import BatchResponse, SuggestResponse
 from service.catalog import Catalog
 from service.errors import InputError
-from service.frames import Frame
+from service.geometry.frames import Frame
 from service.region import Region
 from service.settings import Settings
 

@@ -29,7 +29,7 @@ from load_testkit import LoadResult, closed_loop, http_request, probe, slow_clie
 from service_testkit import AssemblyQuery
 
 from service.engine import SuggestionEngine
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 pytestmark = pytest.mark.slow
 

@@ -15,7 +15,7 @@ from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
 
 from service.api import create_app
-from service.geometry import sample_surface
+from service.geometry.mesh import sample_surface
 from service.settings import Settings
 from service.store import INDEX_FILE, CatalogStore, NewPart, PartGeometry, StoreError, decode_geometry
 

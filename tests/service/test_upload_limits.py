@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from service_testkit import TRIANGLE, glb, make_settings
 
 from service.api import create_app
-from service.geometry import MeshError, load_mesh_bytes
+from service.geometry.mesh import MeshError, load_mesh_bytes
 
 
 def triangle_tree(nodes: list[dict[str, Any]], roots: list[int]) -> dict[str, Any]:

@@ -12,7 +12,7 @@ import pytest
 
 from service.assembly import AssembleResult, Node, Start
 from service.engine import Suggestion
-from service.frames import Frame
+from service.geometry.frames import Frame
 from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
     measure_run,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.geometry import mesh_area
+from service.geometry.mesh import mesh_area
 from training.data.ingest import IngestConfig, ShapeFileError, ingest_folder, load_shape_file
 from training.data.preprocess import PreprocessConfig, preprocess_folder
 

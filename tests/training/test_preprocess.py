@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.geometry import points_to_mesh_distance, sample_surface
+from service.geometry.mesh import points_to_mesh_distance, sample_surface
 from training.data.preprocess import PreprocessConfig, preprocess_folder, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.shapes import RawPiece, RawShape

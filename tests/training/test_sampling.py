@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.geometry import points_to_mesh_distance
+from service.geometry.mesh import points_to_mesh_distance
 from training.data.preprocess import PreprocessConfig, assemble, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.sampling import (

@@ -13,7 +13,7 @@ Accepted inputs, one shape per file:
   Each segment is a piece with points but no triangles (``faces`` has shape (0, 3)), labelled by
   its segment id.
 
-Files are untrusted: they are read through ``service.geometry``, which refuses any reference to
+Files are untrusted: they are read through ``service.geometry.mesh``, which refuses any reference to
 another file or URL, so a shape file can never make the loader read anything but itself (and
 the sidecar that *we* look for by name).
 """
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from service.geometry import MeshError, check_points, load_scene_leaves
+from service.geometry.mesh import MeshError, check_points, load_scene_leaves
 from training.data.shapes import SIDECAR_SUFFIX, RawPiece, RawShape
 
 log = logging.getLogger(__name__)

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from service.geometry import (
+from service.geometry.mesh import (
     MeshError,
     mesh_area,
     normalize_frame,

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from service.catalog import Catalog
-from service.geometry import MeshError, resample_points, sample_surface
+from service.geometry.mesh import MeshError, resample_points, sample_surface
 from training.evaluate.descriptors import descriptors
 
 SETTINGS = ("all_but_one", "single")

@@ -27,8 +27,8 @@ from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
 from service.export_mesh import MEDIA_TYPES, export_assembly
 from service.frame_fit import fit_frame, fit_requested, up_axes_for
-from service.frames import Frame
-from service.inputs import mesh_format
+from service.geometry.frames import Frame
+from service.geometry.inputs import mesh_format
 
 router = APIRouter(tags=["modeling"])
 

@@ -40,8 +40,8 @@ from service.auth import WriterDep
 from service.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import DeadlineError, InputError
-from service.frames import Frame
-from service.inputs import mesh_format
+from service.geometry.frames import Frame
+from service.geometry.inputs import mesh_format
 from service.part_prep import prepare_part
 from service.settings import Settings
 from service.store import CommitRefusedError, NewPart, StoredPart

@@ -20,7 +20,7 @@ from service.api.render import render_part
 from service.api.responses import OrjsonResponse
 from service.api.schemas import CategoryOut, ErrorResponse, PartOut, PartPointsOut, PartsPage
 from service.errors import InputError
-from service.inputs import points_to_base64
+from service.geometry.inputs import points_to_base64
 
 router = APIRouter(tags=["parts"])
 

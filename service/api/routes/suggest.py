@@ -43,7 +43,7 @@ from service.api.schemas import (
 from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
 from service.frame_fit import best_frame, fit_queries, fit_requested, up_axes_for
-from service.inputs import mesh_format
+from service.geometry.inputs import mesh_format
 from service.region import Region
 
 # Stands for any region in a cost estimate (the cost does not depend on where the region is).

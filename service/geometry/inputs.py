@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, UnsupportedMediaError
-from service.geometry import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface, triangle_areas
+from service.geometry.mesh import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface, triangle_areas
 from service.settings import Settings
 
 # Mesh error codes that are the caller's format or size choice rather than a broken file.
@@ -162,7 +162,7 @@ def points_from_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: st
                      max_vertices: int, max_faces: int, **limits: int) -> np.ndarray:
     """Load an uploaded mesh and sample ``n`` points on its surface, area-weighted and seeded.
 
-    ``limits``: ``max_nodes`` and ``max_nesting`` of ``service.geometry.load_mesh_bytes``.
+    ``limits``: ``max_nodes`` and ``max_nesting`` of ``service.geometry.mesh.load_mesh_bytes``.
 
     Shapes:
         returns (n, 3) float32, in the mesh's own frame.
