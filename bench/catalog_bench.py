@@ -1,7 +1,7 @@
 """Benchmark c: catalog scaling, 10k to 1M parts made from the real catalog.
 
 For each size: the replicated embeddings (``bench.replicate``), the index the service would
-build for them (``service.indexing.build_index``; built once and cached under ``bench/.cache``),
+build for them (``service.artifacts.indexing.build_index``; built once and cached under ``bench/.cache``),
 its build time and parameters, the search latency for one query's K mixture means, recall@64
 against exact flat search over the mixture means of held-out queries, and the whole engine's
 /suggest latency with that index and a catalog of that size plugged in, the sizes' requests
@@ -28,10 +28,10 @@ from bench.engine_bench import contact_default, request_once
 from bench.query import BenchQuery
 from bench.replicate import ReplicatedCatalog, replicate_embeddings
 from bench.stats import summarize_seconds
-from service.catalog import partial_assemblies
+from service.artifacts.catalog import partial_assemblies
+from service.artifacts.indexing import build_index, configure_search
 from service.engine import SuggestionEngine
 from service.geometry.frames import Frame
-from service.indexing import build_index, configure_search
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,8 @@ class CatalogBenchConfig:
     engine_reps: int = 300         # timed whole /suggest requests per size
     warmup: int = 20
     max_seconds: float = 30.0      # a timing loop stops early past this (its count is recorded)
-    index_kind: str = "auto"       # service.indexing kind: auto (the service's choice), flat, ivf, hnsw
+    # service.artifacts.indexing kind: auto (the service's choice), flat, ivf, hnsw
+    index_kind: str = "auto"
     flat_max: int | None = None    # None: build_index's own default
     body: str = "json"             # request body of the engine runs
     refine_contact: bool | None = None  # None: the request does not say (the service's default)

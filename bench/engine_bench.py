@@ -30,8 +30,8 @@ from bench.query import BODY_KINDS, BenchQuery
 from bench.stats import summarize_seconds
 from service.api.render import render_suggest
 from service.api.schemas import SuggestRequest
+from service.artifacts.loading import load_served_artifacts
 from service.engine import SuggestionEngine
-from service.loading import load_served_artifacts
 from service.settings import Settings
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ from typing import Any, cast, overload
 
 import numpy as np
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 
 
 def replicate_embeddings(base: np.ndarray, n: int, noise: float, seed: int) -> np.ndarray:

@@ -229,7 +229,8 @@ def _catalog(data: dict[str, Any]) -> list[str]:
     base = shipped["engine"]["suggest"]["p50_ms"] if shipped else None
     lines = [
         f"Replicas of the real catalog's embeddings with seeded noise ({cfg['noise']} x each dimension's "
-        f"std; copy 0 exact), indexed by `service.indexing.build_index` (kind `{cfg['index_kind']}`). "
+        f"std; copy 0 exact), indexed by `service.artifacts.indexing.build_index` "
+        f"(kind `{cfg['index_kind']}`). "
         f"Search: one query's {r['n_modes']} mixture means, top {cfg['recall_k']}. Recall@{cfg['recall_k']} "
         f"against exact flat search over the means of {cfg['recall_queries'] + 1} queries. /suggest: the "
         f"engine's wall time for the benchmark query ({r['query']['body']} body, "

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from service.artifacts import CATALOG_JSON
+from service.artifacts.layout import CATALOG_JSON
 from service.geometry.mesh import sample_surface
 from service.settings import DEFAULT_ARTIFACTS
 from training.data.generator.generate import generate_shape

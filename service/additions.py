@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from service.catalog import part_links
+from service.artifacts.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import ConflictError, InputError, NotFoundError, StorageFullError, UnavailableError
 from service.follow import ChangeFollower

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.geometry.mesh import triangle_areas
 
 # cos(45 deg): a sample counts as inside only if it lies roughly behind the nearest sample.

@@ -39,13 +39,13 @@ from typing import Any
 import faiss
 import numpy as np
 
+from service.artifacts.loading import Artifacts
 from service.complement import covered_share, demote_covered
 from service.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
 from service.geometry.frames import Frame
 from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
-from service.loading import Artifacts
 from service.mixture import mixture_log_likelihood
 from service.neighbours import BruteForceNeighbours
 from service.preferences import Preferences, diverse_order, share_order

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 import trimesh
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.errors import InputError
 from service.geometry.frames import Frame
 

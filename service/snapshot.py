@@ -29,7 +29,7 @@ from typing import Any
 import faiss
 import numpy as np
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.store import PartGeometry, write_file_atomic
 
 log = logging.getLogger(__name__)

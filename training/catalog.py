@@ -16,13 +16,13 @@ import faiss
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.artifacts import CATALOG_FIELDS
+from service.artifacts.layout import CATALOG_FIELDS
 from training.data.processed import ProcessedDataset
 from training.data.sampling import sample_part
 
 
 def part_records(ds: ProcessedDataset, split_of_shape: list[str]) -> list[dict[str, Any]]:
-    """Catalog records (fields of ``service.artifacts.CATALOG_FIELDS``), ``duplicate_of`` unset."""
+    """Catalog records (fields of ``service.artifacts.layout.CATALOG_FIELDS``), ``duplicate_of`` unset."""
     records = []
     for c in range(ds.n_components):
         s = int(ds.shape_of[c])

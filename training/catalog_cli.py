@@ -44,7 +44,7 @@ def add_cmd(
     Re-running continues an interrupted import; skipped files are listed with their reason and
     make the command exit with status 1.
     """
-    from service.artifacts import ArtifactError
+    from service.artifacts.layout import ArtifactError
     from service.client import ClientError, ComplementMeClient
     from service.store import StoreError
     from training.catalog_import import HttpSink, LocalSink, import_folder

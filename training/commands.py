@@ -125,7 +125,7 @@ def export_command(
         help="Export the networks of this artifact folder instead of the run's checkpoint (the run then "
              "gives only the split and dataset): an exported model's catalog rebuilt over other data."),
 ) -> None:
-    """Export a run: ONNX graphs, FAISS index, part catalog and manifest (layout: service/artifacts.py)."""
+    """Export a run: ONNX graphs, FAISS index, part catalog and manifest (service/artifacts/layout.py)."""
     from training.export import ExportOptions, export_run
     from training.from_onnx import trained_from_artifacts
 

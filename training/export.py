@@ -1,4 +1,4 @@
-"""Export a trained run as the artifact folder the service loads (layout: ``service.artifacts``).
+"""Export a trained run as the artifact folder the service loads (layout: ``service.artifacts.layout``).
 
 Writes the five ONNX graphs (f, g, h_query, h_part, h_head; one file each, dynamic batch and
 point axes), then computes the catalog with the *exported* graphs run in onnxruntime (so the
@@ -30,7 +30,9 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
-from service.artifacts import (
+from service.artifacts.catalog import load_catalog, partial_assemblies
+from service.artifacts.indexing import IndexKind, build_index, index_entry
+from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_JSON,
     GRAPH_FILES,
@@ -40,9 +42,7 @@ from service.artifacts import (
     graph_outputs,
     write_manifest,
 )
-from service.catalog import load_catalog, partial_assemblies
-from service.indexing import IndexKind, build_index, index_entry
-from service.loading import session_options
+from service.artifacts.loading import session_options
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained, load_trained_config
 from training.config import config_to_dict
@@ -85,7 +85,7 @@ class ExportOptions:
     index_target_recall: float = 0.95
     index_recall_k: int = 64
     # The approximate index is tuned on g's mixture means of this many training shapes with one
-    # part left out (the queries it will serve), not on jittered embeddings (service.indexing).
+    # part left out (the queries it will serve), not on jittered embeddings (service.artifacts.indexing).
     index_tuning_shapes: int = 128
     opset: int = 17
     # Parts per onnxruntime call when encoding the catalog.
@@ -93,7 +93,7 @@ class ExportOptions:
 
 
 def output_names(graph: str, module: nn.Module) -> list[str]:
-    """The graph's output names, with the optional heads its module has (service.artifacts)."""
+    """The graph's output names, with the optional heads its module has (service.artifacts.layout)."""
     return graph_outputs(graph, category_head=getattr(module, "category_head", None) is not None,
                          scale_head=bool(getattr(module, "predict_scale", False)))
 
@@ -148,7 +148,7 @@ def export_graphs(pair: RetrievalPair, placement: PlacementNet, folder: Path, op
 
 
 def open_session(path: Path) -> ort.InferenceSession:
-    """A graph opened with the service's session options (one owner: ``service.loading``)."""
+    """A graph opened with the service's session options (one owner: ``service.artifacts.loading``)."""
     return ort.InferenceSession(str(path), sess_options=session_options(max(1, torch.get_num_threads())),
                                 providers=["CPUExecutionProvider"])
 
@@ -298,7 +298,7 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "points": preview, **meshes})
 
     # Exact (flat) up to index_flat_max parts; above, IVF tuned to the recall target on g's means
-    # of training queries, its parameters recorded in the manifest (service.indexing).
+    # of training queries, its parameters recorded in the manifest (service.artifacts.indexing).
     approximate = opts.index_kind in ("ivf", "hnsw") or (opts.index_kind == "auto"
                                                          and len(records) > opts.index_flat_max)
     tuning = (tuning_means(folder, len(records), cfg.model.embedding_dim, n_points, opts) if approximate

@@ -31,7 +31,7 @@ import torch
 from onnx import numpy_helper
 from torch import nn
 
-from service.artifacts import GRAPH_FILES, GRAPH_INPUTS, GRAPH_OUTPUTS, MANIFEST
+from service.artifacts.layout import GRAPH_FILES, GRAPH_INPUTS, GRAPH_OUTPUTS, MANIFEST
 from training.checkpoint import Trained
 from training.config import ModelConfig, TrainConfig, model_config_from_dict
 from training.export import example_inputs, graph_modules

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.artifacts import write_json_atomic
+from service.artifacts.layout import write_json_atomic
 from training.data.processed import ProcessedDataset
 
 SPLIT_FILE = "split.json"

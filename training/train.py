@@ -32,7 +32,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from service.artifacts import write_json_atomic
+from service.artifacts.layout import write_json_atomic
 from training.batches import batch_stream
 from training.checkpoint import CONFIG_FILE, checkpoint_path, load_checkpoint, make_state, save_checkpoint
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict

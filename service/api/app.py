@@ -34,12 +34,12 @@ from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, Metr
 from service.api.openapi_extras import add_common_responses
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
-from service.artifacts import ArtifactError
+from service.artifacts.layout import ArtifactError
+from service.artifacts.loading import load_served_artifacts
 from service.batching import BatchStats, MicroBatcher
 from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
 from service.geometry.inputs import MeshUploads
-from service.loading import load_served_artifacts
 from service.metrics import Metrics
 from service.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.settings import Settings, get_settings

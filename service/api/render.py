@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from service.catalog import Catalog, part_links
+from service.artifacts.catalog import Catalog, part_links
 from service.engine import PlaceResult, SuggestResult
 from service.geometry.frames import Frame
 

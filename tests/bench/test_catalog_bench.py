@@ -9,8 +9,8 @@ import pytest
 
 from bench.catalog_bench import recall_at_k, time_calls
 from bench.replicate import ReplicatedCatalog, replicate_embeddings
-from service.artifacts import CATALOG_ARRAYS, CATALOG_JSON, read_manifest
-from service.catalog import Catalog, load_catalog
+from service.artifacts.catalog import Catalog, load_catalog
+from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, read_manifest
 from service.settings import DEFAULT_ARTIFACTS
 
 

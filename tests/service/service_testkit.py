@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.settings import DEFAULT_ARTIFACTS, Settings
 
 ARTIFACTS_ENV = "COMPLEMENTME_TEST_ARTIFACTS"

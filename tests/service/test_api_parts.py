@@ -11,7 +11,7 @@ import trimesh
 from fastapi.testclient import TestClient
 
 from service.api.schemas import CategoryOut, PartOut, PartPointsOut, PartsPage
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.geometry.inputs import points_from_base64
 
 

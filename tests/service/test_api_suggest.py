@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from service_testkit import TEST_LIMITS, AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.api.schemas import BatchResponse, PlaceResponse, SuggestResponse
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.engine import SuggestionEngine
 from service.geometry.inputs import points_to_base64
 from service.geometry.mesh import load_mesh_bytes, sample_surface

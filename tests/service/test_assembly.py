@@ -18,6 +18,8 @@ import trimesh
 from fastapi.testclient import TestClient
 from service_testkit import make_settings
 
+from service.artifacts.catalog import Catalog
+from service.artifacts.loading import load_artifacts
 from service.assembly import (
     STOP_REASONS,
     AssembleOptions,
@@ -29,12 +31,10 @@ from service.assembly import (
     _State,
     estimate_area,
 )
-from service.catalog import Catalog
 from service.contact import Assembly as ContactAssembly
 from service.contact import Surface, measure_contact
 from service.engine import SuggestionEngine
 from service.errors import InputError, ServiceError
-from service.loading import load_artifacts
 from service.settings import DEFAULT_ARTIFACTS, Settings
 
 # What a complete shape of each category must hold (labels of training/data/generator).

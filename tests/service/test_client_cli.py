@@ -19,7 +19,7 @@ from service_testkit import AssemblyQuery
 from typer.testing import CliRunner
 
 from service.api import create_app
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.cli import register_service_commands
 from service.client import ClientError, ComplementMeClient, read_points_file
 from service.settings import Settings

@@ -12,7 +12,7 @@ import trimesh
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.contact import (
     Assembly,
     ContactParams,

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.errors import InputError, NotFoundError
 from service.export_mesh import ExportItem, export_assembly
 from service.geometry.frames import Frame

@@ -15,7 +15,7 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.engine import SuggestionEngine, SuggestOptions
 from service.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
 from service.geometry.frames import Frame

@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 from golden_testkit import answer_values, golden_path, graph_values
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.engine import SuggestionEngine
 
 # Float32 graphs on another CPU (AVX2 against AVX-512 kernels) differ in the last bits.

@@ -11,9 +11,7 @@ import numpy as np
 import pytest
 from service_testkit import make_settings
 
-from service.artifacts import ArtifactError, read_manifest, write_manifest
-from service.engine import SuggestionEngine, SuggestOptions
-from service.indexing import (
+from service.artifacts.indexing import (
     build_index,
     configure_search,
     exact_search,
@@ -22,7 +20,9 @@ from service.indexing import (
     params_from_entry,
     recall_at_k,
 )
-from service.loading import load_artifacts
+from service.artifacts.layout import ArtifactError, read_manifest, write_manifest
+from service.artifacts.loading import load_artifacts
+from service.engine import SuggestionEngine, SuggestOptions
 
 
 def _clustered(n: int, d: int = 16, seed: int = 0) -> np.ndarray:

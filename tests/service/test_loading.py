@@ -22,8 +22,8 @@ from fastapi.testclient import TestClient
 from service_testkit import make_settings
 
 from service.api import create_app
-from service.artifacts import ArtifactError, read_manifest, write_manifest
-from service.loading import load_artifacts
+from service.artifacts.layout import ArtifactError, read_manifest, write_manifest
+from service.artifacts.loading import load_artifacts
 
 REPO = Path(__file__).resolve().parents[2]
 

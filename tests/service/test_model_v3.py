@@ -14,7 +14,7 @@ import trimesh
 from fastapi.testclient import TestClient
 from service_testkit import assembly_query
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.engine import SuggestionEngine, SuggestOptions
 from service.geometry.frames import Frame
 from service.preferences import share_order
@@ -53,7 +53,7 @@ def test_share_order_deals_slots_in_proportion_to_the_weights() -> None:
 def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query: object) -> None:
     from service_testkit import make_settings
 
-    from service.loading import load_served_artifacts
+    from service.artifacts.loading import load_served_artifacts
 
     settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
     engine = SuggestionEngine(load_served_artifacts(settings), settings)
@@ -97,7 +97,7 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
 def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
     from service_testkit import make_settings
 
-    from service.loading import load_served_artifacts
+    from service.artifacts.loading import load_served_artifacts
 
     settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
     engine = SuggestionEngine(load_served_artifacts(settings), settings)

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 

@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import assembly_query
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.engine import SuggestionEngine
 
 QUERIES_PER_CATEGORY = 5

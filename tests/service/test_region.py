@@ -16,7 +16,7 @@ import trimesh
 from fastapi.testclient import TestClient
 
 from service.api.schemas import BatchResponse, SuggestResponse
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.errors import InputError
 from service.geometry.frames import Frame
 from service.region import Region

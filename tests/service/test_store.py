@@ -236,7 +236,7 @@ def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path
 
 def test_snapshots_extend_to_what_a_full_build_gives(catalog) -> None:
     """Appended snapshots are built incrementally; they must equal a Catalog built in full."""
-    from service.catalog import Catalog
+    from service.artifacts.catalog import Catalog
     from service.snapshot import AddedPart, CatalogBuilder, _extension_ok
 
     builder = CatalogBuilder(catalog)

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 from conftest import make_toy_dataset
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from training.catalog import concat_meshes, part_records, sample_parts
 from training.data.processed import ProcessedDataset
 from training.evaluate.baselines import CK10Method, Method, RandomMethod, rank_by_scores
@@ -395,8 +395,8 @@ def tiny_artifacts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def test_engine_method_respects_the_pool(tiny_artifacts: dict[str, Path]) -> None:
+    from service.artifacts.loading import load_artifacts
     from service.engine import SuggestionEngine
-    from service.loading import load_artifacts
     from service.settings import Settings
     from training.evaluate.ours import EngineMethod
 

@@ -12,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from service.artifacts import (
+from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_FIELDS,
     CATALOG_JSON,
@@ -163,7 +163,7 @@ def test_export_refuses_to_exceed_the_size_limit(tiny_run: Path, tmp_path: Path)
 
 def test_a_catalog_past_index_flat_max_gets_a_tuned_index(tiny_run: Path, tmp_path: Path):
     """Above the threshold the export builds IVF, records its search breadth, and the service uses it."""
-    from service.loading import load_artifacts
+    from service.artifacts.loading import load_artifacts
 
     out = tmp_path / "exported"
     manifest = export_run(tiny_run, out, options=ExportOptions(index_flat_max=1, index_recall_k=8))

@@ -11,7 +11,7 @@ import onnx
 import pytest
 import torch
 
-from service.artifacts import CATALOG_ARRAYS, GRAPH_FILES, MANIFEST
+from service.artifacts.layout import CATALOG_ARRAYS, GRAPH_FILES, MANIFEST
 from training.checkpoint import load_trained
 from training.export import export_run, graph_modules
 from training.from_onnx import (

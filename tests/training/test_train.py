@@ -16,7 +16,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from service.artifacts import GRAPH_FILES, INDEX_FILE, read_manifest
+from service.artifacts.layout import GRAPH_FILES, INDEX_FILE, read_manifest
 from training.checkpoint import load_checkpoint, load_trained
 from training.cli import app
 from training.config import resolve_config

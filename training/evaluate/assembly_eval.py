@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from service.artifacts import write_json_atomic
+from service.artifacts.layout import write_json_atomic
+from service.artifacts.loading import load_artifacts
 from service.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
 from service.engine import SuggestionEngine
-from service.loading import load_artifacts
 from service.settings import Settings
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.evaluation import box_iou

@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from training.evaluate.descriptors import DESCRIPTOR_NAME, Standardizer, descriptors
 from training.evaluate.protocol import Query, ShapeIndex, sample_rows, stable_code
 

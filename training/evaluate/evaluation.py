@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from training.evaluate.baselines import Method, rank_by_scores
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.metrics import (

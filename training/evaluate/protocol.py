@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from service.catalog import Catalog
+from service.artifacts.catalog import Catalog
 from service.geometry.mesh import MeshError, resample_points, sample_surface
 from training.evaluate.descriptors import descriptors
 

@@ -52,9 +52,9 @@ from typing import Any
 
 import numpy as np
 
-from service.artifacts import write_json_atomic
+from service.artifacts.layout import write_json_atomic
+from service.artifacts.loading import load_artifacts
 from service.engine import SuggestionEngine
-from service.loading import load_artifacts
 from service.settings import Settings
 from training.evaluate.baselines import CK10Method, Method, RandomMethod
 from training.evaluate.evaluation import (

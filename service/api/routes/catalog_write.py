@@ -36,8 +36,8 @@ from service.api.deps import SettingsDep
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
+from service.artifacts.catalog import part_links
 from service.auth import WriterDep
-from service.catalog import part_links
 from service.engine import SuggestionEngine
 from service.errors import DeadlineError, InputError
 from service.geometry.frames import Frame

@@ -17,7 +17,7 @@ from urllib.parse import quote
 
 import numpy as np
 
-from service.artifacts import CATALOG_FIELDS, ArtifactError
+from service.artifacts.layout import CATALOG_FIELDS, ArtifactError
 from service.errors import InputError, NotFoundError
 from service.geometry.mesh import resample_points
 

@@ -19,7 +19,9 @@ import numpy as np
 import onnxruntime as ort
 from threadpoolctl import threadpool_limits
 
-from service.artifacts import (
+from service.artifacts.catalog import Catalog, load_catalog
+from service.artifacts.indexing import configure_search, params_from_entry
+from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_JSON,
     GRAPH_FILES,
@@ -30,9 +32,7 @@ from service.artifacts import (
     ArtifactError,
     read_manifest,
 )
-from service.catalog import Catalog, load_catalog
-from service.indexing import configure_search, params_from_entry
-from service.models import Networks
+from service.artifacts.models import Networks
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: i
     """Read the FAISS index, check it holds ``count`` vectors of size ``dim``, and configure it.
 
     ``params`` is the manifest's ``"index"`` entry: its type must be the file's, and its search
-    parameters (``nprobe``, ``efSearch``; ``service.indexing``) are applied. Older manifests
+    parameters (``nprobe``, ``efSearch``; ``service.artifacts.indexing``) are applied. Older manifests
     (a flat index, no search parameters) load as before.
     """
     if not path.is_file():
