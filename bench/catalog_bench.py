@@ -30,8 +30,8 @@ from bench.replicate import ReplicatedCatalog, replicate_embeddings
 from bench.stats import summarize_seconds
 from service.artifacts.catalog import partial_assemblies
 from service.artifacts.indexing import build_index, configure_search
-from service.engine import SuggestionEngine
 from service.geometry.frames import Frame
+from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
 

@@ -31,8 +31,8 @@ from bench.stats import summarize_seconds
 from service.api.render import render_suggest
 from service.api.schemas import SuggestRequest
 from service.artifacts.loading import load_served_artifacts
-from service.engine import SuggestionEngine
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
 

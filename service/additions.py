@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 
 from service.artifacts.catalog import part_links
-from service.engine import SuggestionEngine
 from service.errors import ConflictError, InputError, NotFoundError, StorageFullError, UnavailableError
 from service.follow import ChangeFollower
 from service.geometry.mesh import resample_points
@@ -49,6 +48,7 @@ from service.pg_store import KeyTakenError, PgCatalogStore
 from service.settings import Settings
 from service.snapshot import AddedPart, CatalogBuilder, combined_index, read_index_file, write_index_file
 from service.store import CatalogStore, NewPart, PartGeometry, StoredPart, StoreError, StoreUnavailableError
+from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
 

@@ -41,7 +41,7 @@ every step or, for a tree of possibilities, several choices per step. Each step 
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely eligible part (seeded);
 6. refines the chosen part's placement (fitted in size) against the placed parts' oriented
-   samples (``SuggestionEngine.refine_against``: ``service.contact``'s bounded search, then a
+   samples (``SuggestionEngine.refine_against``: ``service.suggest.contact``'s bounded search, then a
    longer one for a part left floating; off with ``refine_contact=False``).
 
 The reasons a chain (or a branch) ends are ``STOP_REASONS``. With ``branching`` b >= 2 every
@@ -64,12 +64,12 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.contact import Assembly, Surface
-from service.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
 from service.errors import InputError
 from service.geometry.frames import Frame
-from service.mixture import mixture_log_likelihood
-from service.preferences import Preferences
+from service.suggest.contact import Assembly, Surface
+from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
+from service.suggest.mixture import mixture_log_likelihood
+from service.suggest.preferences import Preferences
 
 Strategy = Literal["greedy", "sample"]
 

@@ -181,8 +181,8 @@ class LocalSink:
     def __init__(self, artifacts: Path, data_dir: Path):
         from service.additions import CatalogWriter
         from service.artifacts.loading import load_artifacts
-        from service.engine import SuggestionEngine
         from service.settings import Settings
+        from service.suggest.engine import SuggestionEngine
 
         self.settings = Settings(artifacts=artifacts, data_dir=data_dir, catalog_poll_seconds=0)
         loaded = load_artifacts(artifacts, verify_checksums=self.settings.verify_checksums)

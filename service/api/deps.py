@@ -11,11 +11,11 @@ import numpy as np
 from fastapi import Depends, Request
 
 from service.batching import MicroBatcher
-from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import InputError, NotReadyError
 from service.geometry.inputs import MeshUploads
 from service.metrics import Metrics
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 
 # The micro-batcher of suggestion queries: (points, options) in, SuggestResult out.
 SuggestBatcher = MicroBatcher[tuple[np.ndarray, SuggestOptions], SuggestResult]

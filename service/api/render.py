@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from service.artifacts.catalog import Catalog, part_links
-from service.engine import PlaceResult, SuggestResult
 from service.geometry.frames import Frame
+from service.suggest.engine import PlaceResult, SuggestResult
 
 
 def _vec(a: np.ndarray) -> list[float]:

@@ -8,7 +8,7 @@ import numpy as np
 
 from service.api.render import part_links, render_frame
 from service.assembly import STOP_REASONS, AssembleResult, Node
-from service.engine import SuggestionEngine
+from service.suggest.engine import SuggestionEngine
 
 
 def _vec(a: np.ndarray) -> list[float]:

@@ -13,12 +13,12 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validator
 
-from service.engine import SuggestOptions
 from service.errors import InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
-from service.preferences import Preferences
-from service.region import Region
+from service.suggest.engine import SuggestOptions
+from service.suggest.preferences import Preferences
+from service.suggest.region import Region
 
 # Request numbers and flags are strict: JSON `false` or `"1"` is not a coordinate, a count or a
 # flag (pydantic would otherwise coerce them). Integers are still accepted for floats.
@@ -137,7 +137,7 @@ class SuggestOptionsIn(_Strict):
     fit_frame: Flag | None = Field(default=None, description=(
         "Estimate the complete object's frame from the partial one and answer in it: centre, radius "
         "and (without `frame`) the up axis, the hypothesis under which the model is surest "
-        "(`service/frame_fit.py`); the answer's `frame` is the one used and `frame_fitted` is true. "
+        "(`service/suggest/frame_fit.py`); the answer's `frame` is the one used and `frame_fitted` is true. "
         "With `frame`, only its `up_axis` is kept. Omitted: fitted for mesh uploads sent without "
         "`frame` when COMPLEMENTME_FIT_FRAME_UPLOADS is on (off by default), never for JSON points."))
 

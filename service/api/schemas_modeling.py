@@ -26,7 +26,7 @@ from service.api.schemas import (
 from service.assembly import AssembleOptions
 from service.export_mesh import ExportItem
 from service.geometry.frames import Frame
-from service.preferences import Preferences
+from service.suggest.preferences import Preferences
 
 
 class AssembleOptionsIn(_Strict):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench.query import EXAMPLE, REPO, load_query
-from service.mixture import mixture_log_likelihood
+from service.suggest.mixture import mixture_log_likelihood
 
 ARTIFACTS = REPO / "exported"
 
@@ -43,8 +43,8 @@ def peer_client() -> Iterator[TestClient]:
 
 def test_peer_answers_the_example_like_the_service(peer_client: TestClient) -> None:
     from bench.engine_bench import load_engine
-    from service.engine import SuggestOptions
     from service.settings import Settings
+    from service.suggest.engine import SuggestOptions
 
     q = load_query(EXAMPLE)
     r = peer_client.post("/suggest", content=q.body("json", k=5),

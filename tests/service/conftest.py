@@ -29,8 +29,8 @@ from service_testkit import (  # noqa: E402
 
 from service.api import create_app  # noqa: E402
 from service.artifacts.catalog import Catalog  # noqa: E402
-from service.engine import SuggestionEngine  # noqa: E402
 from service.settings import Settings  # noqa: E402
+from service.suggest.engine import SuggestionEngine  # noqa: E402
 
 
 @pytest.fixture(scope="session")

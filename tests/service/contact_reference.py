@@ -1,6 +1,6 @@
 """The contact refinement as it was before the batched search (commit 5dbd0ab), kept as the oracle.
 
-``service.contact.refine_offsets`` must choose the same offsets as this reference: one part at a
+``service.suggest.contact.refine_offsets`` must choose the same offsets as this reference: one part at a
 time, a KD-tree per part, every candidate offset measured on all samples. Copied verbatim except
 for the imports; the tests compare the two on synthetic contacts and on real catalog parts.
 """
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.contact import Assembly, ContactParams, ContactState, Refinement, Surface
+from service.suggest.contact import Assembly, ContactParams, ContactState, Refinement, Surface
 
 _BEHIND = float(np.sqrt(0.5))
 _AXES = np.concatenate([np.eye(3), -np.eye(3)])

@@ -8,8 +8,8 @@ from service_testkit import AssemblyQuery
 
 from service.api import create_app
 from service.api.schemas import ModelInfo
-from service.engine import SuggestionEngine
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine
 
 
 def test_healthz_and_readyz(client: TestClient, engine: SuggestionEngine) -> None:

@@ -13,10 +13,10 @@ from service_testkit import TEST_LIMITS, AssemblyQuery, assembly_query, multi_pa
 
 from service.api.schemas import BatchResponse, PlaceResponse, SuggestResponse
 from service.artifacts.catalog import Catalog
-from service.engine import SuggestionEngine
 from service.geometry.inputs import points_to_base64
 from service.geometry.mesh import load_mesh_bytes, sample_surface
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine
 
 
 def suggest(client: TestClient, **body: Any) -> dict[str, Any]:

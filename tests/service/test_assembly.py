@@ -31,11 +31,11 @@ from service.assembly import (
     _State,
     estimate_area,
 )
-from service.contact import Assembly as ContactAssembly
-from service.contact import Surface, measure_contact
-from service.engine import SuggestionEngine
 from service.errors import InputError, ServiceError
 from service.settings import DEFAULT_ARTIFACTS, Settings
+from service.suggest.contact import Assembly as ContactAssembly
+from service.suggest.contact import Surface, measure_contact
+from service.suggest.engine import SuggestionEngine
 
 # What a complete shape of each category must hold (labels of training/data/generator).
 ESSENTIAL = {

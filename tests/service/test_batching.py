@@ -22,9 +22,9 @@ from service_testkit import AssemblyQuery, assembly_query, make_settings, multi_
 
 from service.api import create_app
 from service.batching import MicroBatcher
-from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import DeadlineError, InputError, NotReadyError, ServiceError
 from service.geometry.inputs import points_to_base64
+from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 
 Query = tuple[np.ndarray, SuggestOptions]
 

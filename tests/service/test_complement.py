@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
-from service.complement import covered_share, demote_covered
-from service.engine import SuggestionEngine, SuggestOptions
 from service.geometry.frames import Frame
+from service.suggest.complement import covered_share, demote_covered
+from service.suggest.engine import SuggestionEngine, SuggestOptions
 
 
 def _square(n: int = 40, y: float = 0.0) -> np.ndarray:

@@ -13,7 +13,8 @@ from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.artifacts.catalog import Catalog
-from service.contact import (
+from service.geometry.frames import Frame
+from service.suggest.contact import (
     Assembly,
     ContactParams,
     Refinement,
@@ -24,8 +25,7 @@ from service.contact import (
     refine_offsets,
     sample_oriented,
 )
-from service.engine import SuggestionEngine, SuggestOptions
-from service.geometry.frames import Frame
+from service.suggest.engine import SuggestionEngine, SuggestOptions
 from training.evaluate.contact import Mesh, contact
 
 REPO = Path(__file__).resolve().parents[2]

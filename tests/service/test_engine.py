@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
-from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, NotFoundError, ServiceError
 from service.geometry.frames import Frame
-from service.mixture import mixture_log_likelihood
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.mixture import mixture_log_likelihood
 
 
 @pytest.fixture(scope="module")

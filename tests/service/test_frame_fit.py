@@ -1,4 +1,4 @@
-"""Frames for partial uploads (service.frame_fit): hypotheses, the choice, and the API.
+"""Frames for partial uploads (service.suggest.frame_fit): hypotheses, the choice, and the API.
 
 The quality check runs on the artifacts under test: the example chair without legs, uploaded in
 millimetres and z up without a frame, must get legs (its label is read only in the check).
@@ -16,9 +16,9 @@ import trimesh
 from fastapi.testclient import TestClient
 
 from service.artifacts.catalog import Catalog
-from service.engine import SuggestionEngine, SuggestOptions
-from service.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
 from service.geometry.frames import Frame
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj"
 # The example in a designer's units: millimetres (the complete chair about 450 mm in radius),

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from golden_testkit import answer_values, golden_path, graph_values
 
 from service.artifacts.catalog import Catalog
-from service.engine import SuggestionEngine
+from service.suggest.engine import SuggestionEngine
 
 # Float32 graphs on another CPU (AVX2 against AVX-512 kernels) differ in the last bits.
 ATOL = 1e-4

@@ -26,11 +26,11 @@ from load_testkit import closed_loop, http_request, probe, read_response, slow_c
 from service_testkit import AssemblyQuery, make_settings
 
 from service.api import create_app
-from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
 from service.geometry.inputs import points_to_base64
-from service.preferences import Preferences
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.preferences import Preferences
 
 pytestmark = pytest.mark.slow
 

@@ -22,7 +22,7 @@ from service.artifacts.indexing import (
 )
 from service.artifacts.layout import ArtifactError, read_manifest, write_manifest
 from service.artifacts.loading import load_artifacts
-from service.engine import SuggestionEngine, SuggestOptions
+from service.suggest.engine import SuggestionEngine, SuggestOptions
 
 
 def _clustered(n: int, d: int = 16, seed: int = 0) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import multivariate_normal
 
-from service.mixture import component_log_densities, logsumexp_rows, mixture_log_likelihood
+from service.suggest.mixture import component_log_densities, logsumexp_rows, mixture_log_likelihood
 
 
 def _mixture(rng: np.random.Generator, K: int, D: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -15,9 +15,9 @@ from fastapi.testclient import TestClient
 from service_testkit import assembly_query
 
 from service.artifacts.catalog import Catalog
-from service.engine import SuggestionEngine, SuggestOptions
 from service.geometry.frames import Frame
-from service.preferences import share_order
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.preferences import share_order
 
 
 def _held_out_shapes(catalog: Catalog, per_category: int) -> list[str]:

@@ -1,4 +1,4 @@
-"""numpy brute force gives the parts a FAISS flat index gives (service/neighbours.py)."""
+"""numpy brute force gives the parts a FAISS flat index gives (service/suggest/neighbours.py)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from service_testkit import AssemblyQuery
 
-from service.engine import SuggestionEngine, SuggestOptions
-from service.neighbours import BruteForceNeighbours
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.neighbours import BruteForceNeighbours
 
 
 def _faiss_union(emb: np.ndarray, means: np.ndarray, modes: int, nn: int, metric: int,

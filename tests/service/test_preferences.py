@@ -7,9 +7,9 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery
 
-from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
-from service.preferences import Preferences, diverse_order
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.preferences import Preferences, diverse_order
 
 
 def test_weights_reweight_and_exclude() -> None:

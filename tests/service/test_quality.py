@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from service_testkit import assembly_query
 
 from service.artifacts.catalog import Catalog
-from service.engine import SuggestionEngine
+from service.suggest.engine import SuggestionEngine
 
 QUERIES_PER_CATEGORY = 5
 

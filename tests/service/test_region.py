@@ -19,8 +19,8 @@ from service.api.schemas import BatchResponse, SuggestResponse
 from service.artifacts.catalog import Catalog
 from service.errors import InputError
 from service.geometry.frames import Frame
-from service.region import Region
 from service.settings import Settings
+from service.suggest.region import Region
 
 SEAT, BACK, LEG = "chair-0000/1", "chair-0000/2", "chair-0000/3"  # one chair's parts, the seat the query
 

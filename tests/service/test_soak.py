@@ -28,8 +28,8 @@ from catalog_testkit import LiveServer
 from load_testkit import LoadResult, closed_loop, http_request, probe, slow_clients
 from service_testkit import AssemblyQuery
 
-from service.engine import SuggestionEngine
 from service.geometry.inputs import points_to_base64
+from service.suggest.engine import SuggestionEngine
 
 pytestmark = pytest.mark.slow
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from service.assembly import AssembleResult, Node, Start
-from service.engine import Suggestion
 from service.geometry.frames import Frame
+from service.suggest.engine import Suggestion
 from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
     measure_run,

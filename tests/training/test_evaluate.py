@@ -396,8 +396,8 @@ def tiny_artifacts(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def test_engine_method_respects_the_pool(tiny_artifacts: dict[str, Path]) -> None:
     from service.artifacts.loading import load_artifacts
-    from service.engine import SuggestionEngine
     from service.settings import Settings
+    from service.suggest.engine import SuggestionEngine
     from training.evaluate.ours import EngineMethod
 
     art = load_artifacts(tiny_artifacts["artifacts"])

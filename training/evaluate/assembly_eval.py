@@ -41,8 +41,8 @@ from tqdm import tqdm
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_artifacts
 from service.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
-from service.engine import SuggestionEngine
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.evaluation import box_iou
 from training.evaluate.protocol import ShapeIndex, setting_rng

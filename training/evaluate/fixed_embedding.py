@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from service.mixture import mixture_log_likelihood
+from service.suggest.mixture import mixture_log_likelihood
 from training.config import ModelConfig, config_to_dict
 from training.data.processed import ProcessedDataset
 from training.data.sampling import TripletSampler, sample_assembly

@@ -1,6 +1,6 @@
 """"Ours": the shipped model, evaluated through the service's suggestion engine.
 
-Everything goes through ``service.engine.SuggestionEngine`` on the loaded artifacts, i.e. on
+Everything goes through ``service.suggest.engine.SuggestionEngine`` on the loaded artifacts, i.e. on
 exactly what ships: the ONNX graphs in onnxruntime, the FAISS index, the catalog and the engine's
 filters, scoring and duplicate collapse.
 
@@ -14,7 +14,7 @@ filters, scoring and duplicate collapse.
   top ``max_k`` of the category without collapse and lets ``finalize_ranking`` filter and
   collapse.
 * Full rankings (percentile rank) score every pool part with the engine's networks (g) and its
-  exact mixture log-likelihood (``service.mixture``), without the FAISS shortlist.
+  exact mixture log-likelihood (``service.suggest.mixture``), without the FAISS shortlist.
 * Placement uses ``engine.place`` (h_query, the part's precomputed h_part feature, h_head) with
   the service's contact refinement off: h alone. ``refine`` then applies the service's contact
   refinement the way ``POST /assemble`` does for assemblies of catalog parts: against the
@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.contact import Assembly, Surface
-from service.engine import SuggestionEngine, SuggestOptions
-from service.mixture import mixture_log_likelihood
+from service.suggest.contact import Assembly, Surface
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.mixture import mixture_log_likelihood
 from training.evaluate.protocol import Query
 
 

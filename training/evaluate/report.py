@@ -82,7 +82,7 @@ CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
               "true_h_refined": "True missing component, placed by h, contact-refined",
               "true_gt": "True missing part at its true place (the data's own rate)"}
 REFINEMENT = """
-Contact refinement (`service/contact.py`, on by default in the service) nudges each placement by
+Contact refinement (`service/suggest/contact.py`, on by default in the service) nudges each placement by
 at most {max_offset} of the radius so that the part touches the assembly without sinking into it
 (sampled gap and depth within {tolerance}). The rows "contact-refined" take h's placements of
 the other rows and refine them against the present parts' oriented surface samples, as

@@ -54,8 +54,8 @@ import numpy as np
 
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_artifacts
-from service.engine import SuggestionEngine
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine
 from training.evaluate.baselines import CK10Method, Method, RandomMethod
 from training.evaluate.evaluation import (
     ContactSettings,
@@ -80,7 +80,7 @@ QUERIES_FILE = "queries.json"
 BENCHMARK_VERSION = 1
 METHOD_KEYS = ("random", "ck10", "fixed", "likelihood", "ours")
 # Table order, as in the paper: baselines first. "likelihood" is Ours without the complement
-# check (service.complement): the paper's ranking by the mixture log-likelihood alone.
+# check (service.suggest.complement): the paper's ranking by the mixture log-likelihood alone.
 METHOD_NAMES = {"random": "Random", "ck10": "CK10", "fixed": "Ours (fixed embedding)",
                 "likelihood": "Ours (likelihood only)", "ours": "Ours"}
 

@@ -23,12 +23,12 @@ from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
 from service.api.schemas_modeling import AssembleOptionsIn, AssembleRequest, AssembleResponse, ExportRequest
 from service.assembly import AssembleOptions, Assembler, Start
-from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError
 from service.export_mesh import MEDIA_TYPES, export_assembly
-from service.frame_fit import fit_frame, fit_requested, up_axes_for
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import fit_frame, fit_requested, up_axes_for
 
 router = APIRouter(tags=["modeling"])
 
@@ -66,7 +66,7 @@ def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int, f
 
 def fitted_frame(engine: SuggestionEngine, points: np.ndarray, options: AssembleOptions,
                  framed: bool) -> Frame:
-    """The complete object's frame estimated from start points (``service.frame_fit``)."""
+    """The complete object's frame estimated from start points (``service.suggest.frame_fit``)."""
     fit = fit_frame(engine, points, SuggestOptions(categories=options.categories, styles=options.styles,
                                                    frame=options.frame),
                     up_axes_for(options.frame if framed else None))

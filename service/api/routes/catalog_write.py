@@ -38,13 +38,13 @@ from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
 from service.artifacts.catalog import part_links
 from service.auth import WriterDep
-from service.engine import SuggestionEngine
 from service.errors import DeadlineError, InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
 from service.part_prep import prepare_part
 from service.settings import Settings
 from service.store import CommitRefusedError, NewPart, StoredPart
+from service.suggest.engine import SuggestionEngine
 
 router = APIRouter(tags=["catalog"])
 

@@ -40,11 +40,11 @@ from service.api.schemas import (
     SuggestRequest,
     SuggestResponse,
 )
-from service.engine import SuggestionEngine, SuggestOptions
 from service.errors import InputError, ServiceError
-from service.frame_fit import best_frame, fit_queries, fit_requested, up_axes_for
 from service.geometry.inputs import mesh_format
-from service.region import Region
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import best_frame, fit_queries, fit_requested, up_axes_for
+from service.suggest.region import Region
 
 # Stands for any region in a cost estimate (the cost does not depend on where the region is).
 _ANY_REGION = Region.ball(np.zeros(3), 1.0)
@@ -86,7 +86,7 @@ async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep
 
 async def fitted(engine: SuggestionEngine, batcher: SuggestBatcher, request: Request,
                  points: np.ndarray, options: SuggestOptions, framed: bool) -> SuggestOptions:
-    """The options with the frame estimated from the partial (``service.frame_fit``): every
+    """The options with the frame estimated from the partial (``service.suggest.frame_fit``): every
     hypothesis scored in one batch. ``framed``: the caller gave a frame, whose up axis is kept."""
     frames, queries = fit_queries(engine, points, options, up_axes_for(options.frame if framed else None))
     if not frames:

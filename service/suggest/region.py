@@ -8,7 +8,7 @@ on the underside of a seat means "a leg here", and a leg's centre lies half a le
 seat while its box reaches the spot.
 
 The engine ranks a larger candidate set than k for a region query, places all of it with h,
-and keeps the parts in the region (``service.engine``); ``gap`` also says how far the nearest
+and keeps the parts in the region (``service.suggest.engine``); ``gap`` also says how far the nearest
 placed part missed when none is in.
 """
 

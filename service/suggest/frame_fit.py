@@ -24,10 +24,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from service.engine import SuggestionEngine, SuggestOptions, SuggestResult
 from service.errors import ServiceError
 from service.geometry.frames import Frame, UpAxis
 from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 
 UP_AXES: tuple[UpAxis, ...] = ("y", "z")
 

@@ -11,16 +11,16 @@ One request (or a batch of them) goes through these steps, each one batched:
    parts collapsed (catalog ``duplicate_of``), the top ones kept (k, or ``complement_candidates``
    when the complement check runs);
 5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
-   features from catalog.npz; then the complement check (``service.complement``): parts that h
+   features from catalog.npz; then the complement check (``service.suggest.complement``): parts that h
    places mostly onto the query's own surface, i.e. parts the query already has, move behind
    the others, and the top k stay;
-6. contact refinement (``service.contact``; for suggestions only when asked, or when the setting
+6. contact refinement (``service.suggest.contact``; for suggestions only when asked, or when the setting
    ``suggest_refine_contact`` turns it on by default: it costs about ten times the rest of the
    request): each placed part nudged by at most ``contact_max_offset`` so it touches the
    query's points; translations and boxes mapped back to the caller's frame.
 
 Requests may also reweight or exclude g's modes and ask for a mode-balanced gallery
-(``service.preferences``).
+(``service.suggest.preferences``).
 
 No HTTP here: routes, the CLI and tests call these methods directly.
 """
@@ -40,17 +40,17 @@ import faiss
 import numpy as np
 
 from service.artifacts.loading import Artifacts
-from service.complement import covered_share, demote_covered
-from service.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
 from service.geometry.frames import Frame
 from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
-from service.mixture import mixture_log_likelihood
-from service.neighbours import BruteForceNeighbours
-from service.preferences import Preferences, diverse_order, share_order
-from service.region import Region
 from service.settings import Settings
+from service.suggest.complement import covered_share, demote_covered
+from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
+from service.suggest.mixture import mixture_log_likelihood
+from service.suggest.neighbours import BruteForceNeighbours
+from service.suggest.preferences import Preferences, diverse_order, share_order
+from service.suggest.region import Region
 
 log = logging.getLogger(__name__)
 
@@ -79,9 +79,9 @@ class SuggestOptions:
     exclude_shapes: tuple[str, ...] = ()     # never parts of these source shapes
     collapse_duplicates: bool = True         # one part per near-duplicate group
     frame: Frame = field(default_factory=Frame)
-    refine_contact: bool | None = None       # nudge placements into contact (service.contact);
+    refine_contact: bool | None = None       # nudge placements into contact (service.suggest.contact);
                                              # None: the setting suggest_refine_contact
-    complement_check: bool | None = None     # demote parts the query already has (service.complement);
+    complement_check: bool | None = None     # demote parts the query already has (suggest.complement);
                                              # None: the setting suggest_complement_check
     fit_scale: bool | None = None            # fit parts in size (h's scale head); None: setting fit_scale
     styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
