@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 import psycopg
 
-from service.store import PartGeometry, encode_geometry
+from service.catalog_store.store import PartGeometry, encode_geometry
 
 SIZES = (1_000, 20_000, 200_000)   # vertices (faces: about twice as many) of the meshes measured
 

@@ -18,7 +18,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.additions import CatalogWriter
+from service.catalog_store.writer import CatalogWriter
 from service.errors import ForbiddenError, NotReadyError, UnauthorizedError
 from service.settings import Settings
 

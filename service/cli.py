@@ -39,12 +39,12 @@ def _frame_options(up_axis: str | None, center: str | None, radius: float | None
 def _check_catalog(s: Any) -> None:
     """Open the catalog store as the server will (``StoreError`` if it cannot be served)."""
     if s.catalog_backend == "postgres":
-        from service.pg_store import PgCatalogStore
+        from service.catalog_store.pg_store import PgCatalogStore
 
         PgCatalogStore(s.database_url.get_secret_value(), timeout=s.database_timeout,
                        migrate_schema=s.database_migrate).close()
         return
-    from service.store import CatalogStore
+    from service.catalog_store.store import CatalogStore
 
     store = CatalogStore(s.data_dir)
     try:
@@ -113,7 +113,7 @@ def register_service_commands(app: typer.Typer) -> None:
             # The lifespan checks the data folder (or the database) too, but a refusal there ends
             # in uvicorn's start-up traceback; checked here first, it is one line that names the
             # files (or the database, its password left out).
-            from service.store import StoreError
+            from service.catalog_store.store import StoreError
 
             try:
                 _check_catalog(s)

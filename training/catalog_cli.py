@@ -1,8 +1,8 @@
 """`complementme catalog ...`: add a folder of shapes to the catalog; back up, verify and
 recover a data folder; migrate the postgres catalog's schema.
 
-Thin wrappers over ``training.catalog_import``, ``service.store``, ``service.recovery`` and
-``service.pg_store``.
+Thin wrappers over ``training.catalog_import`` and ``service.catalog_store``'s ``store``, ``recovery``
+and ``pg_store``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:
-    from service.recovery import Report
+    from service.catalog_store.recovery import Report
 
 catalog_app = typer.Typer(help=("The growing catalog: import shapes; back up, verify, recover a data folder; "
                                 "migrate the postgres catalog."),
@@ -45,8 +45,8 @@ def add_cmd(
     make the command exit with status 1.
     """
     from service.artifacts.layout import ArtifactError
+    from service.catalog_store.store import StoreError
     from service.client import ClientError, ComplementMeClient
-    from service.store import StoreError
     from training.catalog_import import HttpSink, LocalSink, import_folder
 
     if (url is None) == (data_dir is None):
@@ -84,7 +84,7 @@ def backup_cmd(
     dest: Path = typer.Argument(..., help="An empty or new folder for the copy."),
 ) -> None:
     """Copy a data folder consistently, also while a server writes to it (SQLite online backup)."""
-    from service.store import CatalogStore, StoreError
+    from service.catalog_store.store import CatalogStore, StoreError
 
     try:
         store = CatalogStore(data_dir)
@@ -115,7 +115,7 @@ def verify_cmd(
 
     Exits with 1 when anything does not match (each problem names its file).
     """
-    from service.recovery import verify
+    from service.catalog_store.recovery import verify
 
     report = verify(data_dir)
     _print_report(report)
@@ -133,8 +133,8 @@ def recover_cmd(
 
     Exits with 1 when something could not be restored (listed), 2 when the folder cannot be opened.
     """
-    from service.recovery import recover
-    from service.store import StoreError
+    from service.catalog_store.recovery import recover
+    from service.catalog_store.store import StoreError
 
     try:
         report = recover(data_dir)
@@ -164,8 +164,8 @@ def migrate_cmd(
 
     import psycopg
 
-    from service.pg_store import SCHEMA_VERSION, migrate, redacted
-    from service.store import StoreError
+    from service.catalog_store.pg_store import SCHEMA_VERSION, migrate, redacted
+    from service.catalog_store.store import StoreError
 
     if not database_url:
         raise typer.BadParameter("give --database-url (or set COMPLEMENTME_DATABASE_URL)")

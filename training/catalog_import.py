@@ -179,8 +179,8 @@ class LocalSink:
     """Parts go straight into a data folder, computed with the artifacts loaded in this process."""
 
     def __init__(self, artifacts: Path, data_dir: Path):
-        from service.additions import CatalogWriter
         from service.artifacts.loading import load_artifacts
+        from service.catalog_store.writer import CatalogWriter
         from service.settings import Settings
         from service.suggest.engine import SuggestionEngine
 
@@ -196,8 +196,8 @@ class LocalSink:
         return sum(p.record["shape_id"] == shape_id for p in self.writer.parts.values())
 
     def add(self, mesh: bytes, filename: str, category: str, **fields: Any) -> str:
+        from service.catalog_store.part_prep import prepare_part
         from service.errors import ServiceError
-        from service.part_prep import prepare_part
 
         s, engine = self.settings, self.writer.engine
         try:

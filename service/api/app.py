@@ -37,12 +37,12 @@ from service.api.routes.page import install_page
 from service.artifacts.layout import ArtifactError
 from service.artifacts.loading import load_served_artifacts
 from service.batching import BatchStats, MicroBatcher
+from service.catalog_store.store import StoreError
 from service.errors import ServiceError
 from service.geometry.inputs import MeshUploads
 from service.metrics import Metrics
 from service.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.settings import Settings, get_settings
-from service.store import StoreError
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 
 log = logging.getLogger(__name__)

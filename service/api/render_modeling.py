@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from service.api.render import part_links, render_frame
-from service.assembly import STOP_REASONS, AssembleResult, Node
+from service.modeling.assembly import STOP_REASONS, AssembleResult, Node
 from service.suggest.engine import SuggestionEngine
 
 

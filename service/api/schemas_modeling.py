@@ -23,9 +23,9 @@ from service.api.schemas import (
     Vec3,
     _Strict,
 )
-from service.assembly import AssembleOptions
-from service.export_mesh import ExportItem
 from service.geometry.frames import Frame
+from service.modeling.assembly import AssembleOptions
+from service.modeling.export_mesh import ExportItem
 from service.suggest.preferences import Preferences
 
 

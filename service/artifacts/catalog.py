@@ -276,7 +276,7 @@ def _part_path(part_id: str) -> str:
 def part_links(part_id: str) -> dict[str, str]:
     """Links to a part's record, mesh and points (ids keep their slash; other characters quoted).
 
-    The API's link format, owned here so that the catalog writer (service.additions) and the
+    The API's link format, owned here so that the catalog writer (service.catalog_store.writer) and the
     HTTP layer share it without the core importing the HTTP layer.
     """
     base = _part_path(part_id)

@@ -79,7 +79,7 @@ class SuggestOptions:
     exclude_shapes: tuple[str, ...] = ()     # never parts of these source shapes
     collapse_duplicates: bool = True         # one part per near-duplicate group
     frame: Frame = field(default_factory=Frame)
-    refine_contact: bool | None = None       # nudge placements into contact (service.suggest.contact);
+    refine_contact: bool | None = None       # nudge placements into contact (suggest.contact);
                                              # None: the setting suggest_refine_contact
     complement_check: bool | None = None     # demote parts the query already has (suggest.complement);
                                              # None: the setting suggest_complement_check

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.export_mesh import ExportItem, placed_meshes
 from service.geometry.frames import Frame
 from service.geometry.mesh import load_mesh_bytes
+from service.modeling.export_mesh import ExportItem, placed_meshes
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "clients" / "blender"))
 

@@ -1,4 +1,4 @@
-"""Automatic assembly (service.assembly, POST /assemble): rules, trees, the API, and shape quality.
+"""Automatic assembly (service.modeling.assembly, POST /assemble): rules, trees, the API, and shape quality.
 
 The quality test runs on the shipped, trained model in exported/ (whatever
 COMPLEMENTME_TEST_ARTIFACTS says) and is skipped only when exported/ has no model: from random
@@ -20,7 +20,8 @@ from service_testkit import make_settings
 
 from service.artifacts.catalog import Catalog
 from service.artifacts.loading import load_artifacts
-from service.assembly import (
+from service.errors import InputError, ServiceError
+from service.modeling.assembly import (
     STOP_REASONS,
     AssembleOptions,
     Assembler,
@@ -31,7 +32,6 @@ from service.assembly import (
     _State,
     estimate_area,
 )
-from service.errors import InputError, ServiceError
 from service.settings import DEFAULT_ARTIFACTS, Settings
 from service.suggest.contact import Assembly as ContactAssembly
 from service.suggest.contact import Surface, measure_contact

@@ -25,8 +25,8 @@ from typer.testing import CliRunner
 
 from service.api import create_app
 from service.api.routes import catalog_write
-from service.recovery import verify
-from service.store import GEOMETRY_DIR, QUARANTINE_DIR, CatalogDamagedError, StoreError
+from service.catalog_store.recovery import verify
+from service.catalog_store.store import GEOMETRY_DIR, QUARANTINE_DIR, CatalogDamagedError, StoreError
 from training.catalog_cli import catalog_app
 
 LOST = 20  # acknowledged adds that live only in the WAL when it is deleted
@@ -205,8 +205,8 @@ def test_recover_reports_lost_changes_and_never_reissues_their_numbers(tmp_path:
     import numpy as np
     from test_store import _new_part
 
-    from service.snapshot import write_index_file
-    from service.store import CatalogStore
+    from service.catalog_store.snapshot import write_index_file
+    from service.catalog_store.store import CatalogStore
 
     store = CatalogStore(tmp_path)
     for seed in range(3):

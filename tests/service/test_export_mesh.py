@@ -1,4 +1,4 @@
-"""POST /export and service.export_mesh: placed catalog parts as one GLB or OBJ file."""
+"""POST /export and service.modeling.export_mesh: placed catalog parts as one GLB or OBJ file."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from fastapi.testclient import TestClient
 
 from service.artifacts.catalog import Catalog
 from service.errors import InputError, NotFoundError
-from service.export_mesh import ExportItem, export_assembly
 from service.geometry.frames import Frame
+from service.modeling.export_mesh import ExportItem, export_assembly
 from service.settings import Settings
 
 

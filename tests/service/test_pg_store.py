@@ -21,10 +21,10 @@ from fastapi.testclient import TestClient
 from pg_testkit import PG_PASSWORD, PG_USER
 
 from service.api import create_app
+from service.catalog_store.pg_store import SCHEMA_VERSION, PgCatalogStore
+from service.catalog_store.store import NewPart, PartGeometry, StoreError
 from service.geometry.inputs import points_to_base64
-from service.pg_store import SCHEMA_VERSION, PgCatalogStore
 from service.settings import Settings
-from service.store import NewPart, PartGeometry, StoreError
 
 
 def pg_settings(artifacts: Path, url: str, **overrides: Any) -> Settings:

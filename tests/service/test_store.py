@@ -15,9 +15,16 @@ from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
 
 from service.api import create_app
+from service.catalog_store.store import (
+    INDEX_FILE,
+    CatalogStore,
+    NewPart,
+    PartGeometry,
+    StoreError,
+    decode_geometry,
+)
 from service.geometry.mesh import sample_surface
 from service.settings import Settings
-from service.store import INDEX_FILE, CatalogStore, NewPart, PartGeometry, StoreError, decode_geometry
 
 
 def _new_part(seed: int, category: str = "widget") -> NewPart:
@@ -237,7 +244,7 @@ def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path
 def test_snapshots_extend_to_what_a_full_build_gives(catalog) -> None:
     """Appended snapshots are built incrementally; they must equal a Catalog built in full."""
     from service.artifacts.catalog import Catalog
-    from service.snapshot import AddedPart, CatalogBuilder, _extension_ok
+    from service.catalog_store.snapshot import AddedPart, CatalogBuilder, _extension_ok
 
     builder = CatalogBuilder(catalog)
     rng = np.random.default_rng(0)

@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.assembly import AssembleResult, Node, Start
 from service.geometry.frames import Frame
+from service.modeling.assembly import AssembleResult, Node, Start
 from service.suggest.engine import Suggestion
 from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,

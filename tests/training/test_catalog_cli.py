@@ -17,8 +17,8 @@ import pytest
 import trimesh
 from typer.testing import CliRunner
 
+from service.catalog_store.store import CatalogStore
 from service.settings import DEFAULT_ARTIFACTS
-from service.store import CatalogStore
 from training.catalog_cli import catalog_app
 from training.catalog_import import shape_components
 

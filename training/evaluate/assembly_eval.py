@@ -1,6 +1,6 @@
 """`complementme evaluate-assembly`: what automatic assembly builds from held-out start parts.
 
-The assembly (``service.assembly``) never reads labels; this evaluation reads them, to measure
+The assembly (``service.modeling.assembly``) never reads labels; this evaluation reads them, to measure
 only. For every category it draws ``starts_per_category`` start parts from the held-out shapes
 (the catalog's ``split`` = test, the same split the benchmark reads through ``ShapeIndex``;
 one component of a distinct shape each, seeded), runs ``POST /assemble``'s code
@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_artifacts
-from service.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
+from service.modeling.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
 from training.evaluate.contact import Mesh, contact

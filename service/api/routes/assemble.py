@@ -1,7 +1,7 @@
 """Automatic assembly and export: ``POST /assemble``, ``/assemble/mesh`` and ``/export``.
 
 Handlers are plain ``def`` (threadpool), like the suggestion routes; the work is in
-``service.assembly`` and ``service.export_mesh``.
+``service.modeling.assembly`` and ``service.modeling.export_mesh``.
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
 from service.api.schemas_modeling import AssembleOptionsIn, AssembleRequest, AssembleResponse, ExportRequest
-from service.assembly import AssembleOptions, Assembler, Start
 from service.errors import InputError
-from service.export_mesh import MEDIA_TYPES, export_assembly
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
+from service.modeling.assembly import AssembleOptions, Assembler, Start
+from service.modeling.export_mesh import MEDIA_TYPES, export_assembly
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import fit_frame, fit_requested, up_axes_for
 

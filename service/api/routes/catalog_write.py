@@ -31,19 +31,19 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
-from service.additions import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out
 from service.api.deps import SettingsDep
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
 from service.artifacts.catalog import part_links
 from service.auth import WriterDep
+from service.catalog_store.part_prep import prepare_part
+from service.catalog_store.store import CommitRefusedError, NewPart, StoredPart
+from service.catalog_store.writer import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out
 from service.errors import DeadlineError, InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
-from service.part_prep import prepare_part
 from service.settings import Settings
-from service.store import CommitRefusedError, NewPart, StoredPart
 from service.suggest.engine import SuggestionEngine
 
 router = APIRouter(tags=["catalog"])

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.snapshot import read_index_file
-from service.store import (
+from service.catalog_store.snapshot import read_index_file
+from service.catalog_store.store import (
     DB_FILE,
     GEOMETRY_DIR,
     INDEX_FILE,

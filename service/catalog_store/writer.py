@@ -20,9 +20,9 @@ included by another writer's rebuild returns at once. Changes made by other proc
 same folder are picked up by a polling thread (``COMPLEMENTME_CATALOG_POLL_SECONDS``).
 
 With ``COMPLEMENTME_CATALOG_BACKEND=postgres`` the store is the shared database
-(``service.pg_store``) and there is no folder to check: the start re-embeds, loads every live
+(``service.catalog_store.pg_store``) and there is no folder to check: the start re-embeds, loads every live
 part from the database and publishes the snapshot, then a ``ChangeFollower``
-(``service.follow``) applies every other replica's changes as they commit. While the database
+(``service.catalog_store.follow``) applies every other replica's changes as they commit. While the database
 cannot be reached, writes raise ``UnavailableError`` (503 with Retry-After, nothing stored)
 and the last snapshot keeps being served.
 """
@@ -40,14 +40,27 @@ from typing import Any
 import numpy as np
 
 from service.artifacts.catalog import part_links
+from service.catalog_store.follow import ChangeFollower
+from service.catalog_store.part_prep import embed_geometry
+from service.catalog_store.pg_store import KeyTakenError, PgCatalogStore
+from service.catalog_store.snapshot import (
+    AddedPart,
+    CatalogBuilder,
+    combined_index,
+    read_index_file,
+    write_index_file,
+)
+from service.catalog_store.store import (
+    CatalogStore,
+    NewPart,
+    PartGeometry,
+    StoredPart,
+    StoreError,
+    StoreUnavailableError,
+)
 from service.errors import ConflictError, InputError, NotFoundError, StorageFullError, UnavailableError
-from service.follow import ChangeFollower
 from service.geometry.mesh import resample_points
-from service.part_prep import embed_geometry
-from service.pg_store import KeyTakenError, PgCatalogStore
 from service.settings import Settings
-from service.snapshot import AddedPart, CatalogBuilder, combined_index, read_index_file, write_index_file
-from service.store import CatalogStore, NewPart, PartGeometry, StoredPart, StoreError, StoreUnavailableError
 from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)

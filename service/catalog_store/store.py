@@ -20,7 +20,7 @@ holds across processes) inserts the change and the row, writes the geometry file
 and commits; only then is the file renamed to its final name. So a final name without a row is
 proof that a committed add was lost (a deleted ``catalog.sqlite3-wal``, an older database put
 back): the server refuses to start and ``complementme catalog recover`` rebuilds the rows from
-the files (``service.recovery``). A pending file without a row is an add that never committed
+the files (``service.catalog_store.recovery``). A pending file without a row is an add that never committed
 (a crash before the commit): it is moved to ``quarantine/`` at the next start. A pending file
 whose row exists (a crash between the commit and the rename) is renamed at the next start, and
 read under its pending name until then. Deleted parts keep their row (marked with the delete's
@@ -444,7 +444,7 @@ class CatalogStore:
     """The data folder: thread-safe (one writer and one reader connection, each behind a lock).
 
     SQLite serialises writers across processes too, so several server workers (or the server
-    and ``complementme catalog add --data-dir``) may share one folder. ``service.pg_store``
+    and ``complementme catalog add --data-dir``) may share one folder. ``service.catalog_store.pg_store``
     offers the same methods on PostgreSQL.
     """
 

@@ -1,7 +1,7 @@
 """A replica follows the shared catalog database: it applies every change, in order, as it commits.
 
 ``ChangeFollower`` runs one thread per server process with a connection of its own that
-LISTENs on the store's channel (``service.pg_store.CHANNEL``). Every write notifies it at
+LISTENs on the store's channel (``service.catalog_store.pg_store.CHANNEL``). Every write notifies it at
 commit with its change number, so a replica learns of another replica's add within a round
 trip; it then calls ``sync`` (the catalog writer's: read the changes after the last one it
 applied, in one consistent read, and publish the next snapshot). Notifications are only a
@@ -26,8 +26,8 @@ from typing import Any
 
 import psycopg
 
-from service.pg_store import CHANNEL
-from service.store import StoreError
+from service.catalog_store.pg_store import CHANNEL
+from service.catalog_store.store import StoreError
 
 log = logging.getLogger(__name__)
 

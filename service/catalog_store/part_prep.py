@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 
 from service.artifacts.models import Networks
+from service.catalog_store.store import NewPart, PartGeometry
 from service.errors import InputError, PayloadTooLargeError, ServiceError, UnsupportedMediaError
 from service.geometry.frames import Frame
 from service.geometry.mesh import MeshError, load_mesh_bytes, mesh_area, sample_surface
-from service.store import NewPart, PartGeometry
 
 _MESH_ERRORS: dict[str, type[ServiceError]] = {
     "unsupported_format": UnsupportedMediaError,

@@ -30,7 +30,7 @@ import faiss
 import numpy as np
 
 from service.artifacts.catalog import Catalog
-from service.store import PartGeometry, write_file_atomic
+from service.catalog_store.store import PartGeometry, write_file_atomic
 
 log = logging.getLogger(__name__)
 

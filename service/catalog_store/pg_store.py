@@ -1,9 +1,9 @@
 """The catalog additions' store on PostgreSQL: one database shared by every replica.
 
-The same methods as ``service.store.CatalogStore`` (the SQLite data folder), so the catalog
+The same methods as ``service.catalog_store.store.CatalogStore`` (the SQLite data folder), so the catalog
 writer and its snapshots do not care which one they use. The database is the source of truth;
-every replica's catalog snapshot and index are a cache of it (``service.additions``), kept up
-to date by ``service.follow``.
+every replica's catalog snapshot and index are a cache of it (``service.catalog_store.writer``), kept up
+to date by ``service.catalog_store.follow``.
 
 Tables (``MIGRATIONS``; ``complementme catalog migrate`` applies them)::
 
@@ -18,7 +18,7 @@ Tables (``MIGRATIONS``; ``complementme catalog migrate`` applies them)::
                        bytea): one per model version, so replicas of two model versions share the
                        catalog during a rolling update
     part_meshes        part -> data (the centred mesh and preview points in the data folder's
-                       npz format, ``service.store.encode_geometry``), bytea stored uncompressed
+                       npz format, ``service.catalog_store.store.encode_geometry``), bytea stored uncompressed
 
 **One order of changes.** Every write transaction starts with ``LOCK TABLE changes IN EXCLUSIVE
 MODE``, which blocks other writers (of every replica) and no reader, and takes the next change
@@ -52,7 +52,7 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict, make_conninfo
 from psycopg_pool import ConnectionPool, PoolTimeout
 
-from service.store import (
+from service.catalog_store.store import (
     Change,
     CommitRefusedError,
     NewPart,
