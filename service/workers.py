@@ -7,7 +7,7 @@ connections, and its queue set the tail latency).
 ``Supervisor`` starts the workers, restarts one that dies after it started serving, stops all of
 them on SIGINT or SIGTERM, and stops with an error when a worker fails during start-up (a broken
 artifact folder fails the same way every time). The workers share one Prometheus multiprocess
-directory, so a scrape of ``/metrics`` on any of them reports all of them (``service/metrics.py``).
+directory, so a scrape of ``/metrics`` on any of them reports all of them (``service/api/metrics.py``).
 A worker whose supervisor disappears (SIGKILL, OOM) sees its channel close and stops by itself
 instead of serving on alone.
 """
@@ -31,8 +31,8 @@ from types import FrameType
 
 from uvicorn.server import STARTUP_FAILURE  # a worker's exit status when it stopped before serving
 
+from service.api.metrics import MULTIPROC_ENV
 from service.balancer import ConnectionBalancer, HandedServer, channel_pair
-from service.metrics import MULTIPROC_ENV
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,9 @@
-"""The HTTP face of the service: app factory, routes by resource, schemas and error handling."""
+"""The HTTP face of the service: the only package that knows HTTP, FastAPI or Starlette.
 
-from service.api.app import create_app
-
-__all__ = ["create_app"]
+Owns the app factory and its lifespan (``app``), typed dependencies (``deps``), who may write
+(``auth``), bounded work under load and the error budget (``overload``), the micro-batcher that
+runs concurrent requests as one engine call (``batching``), middleware and body limits,
+Prometheus metrics (``metrics``), the routes by resource (``routes``), request and response
+schemas, the rendering of engine results into responses, the JSON error envelope, and the
+modeling page's files (``static/``). Core packages never import it.
+"""

@@ -4,7 +4,7 @@
 artifact folder (ONNX sessions, FAISS index, catalog), checks it against the manifest and
 refuses to start with an error naming the bad file; then it runs a warm-up suggestion, after
 which ``/readyz`` answers 200, and starts the micro-batcher that runs suggestions
-(``service.batching``; closed, after answering what is queued, at shutdown).
+(``service.api.batching``; closed, after answering what is queued, at shutdown).
 ``uvicorn --factory service.api.app:create_app`` works too.
 """
 
@@ -27,21 +27,21 @@ from starlette.responses import HTMLResponse
 
 from service import __version__
 from service.api.access_log import install_access_log_redaction
+from service.api.batching import BatchStats, MicroBatcher
 from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
+from service.api.metrics import Metrics
 from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, MetricsMiddleware
 from service.api.openapi_extras import add_common_responses
+from service.api.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
 from service.artifacts.layout import ArtifactError
 from service.artifacts.loading import load_served_artifacts
-from service.batching import BatchStats, MicroBatcher
 from service.catalog_store.store import StoreError
 from service.errors import ServiceError
 from service.geometry.inputs import MeshUploads
-from service.metrics import Metrics
-from service.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.settings import Settings, get_settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 

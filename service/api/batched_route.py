@@ -22,7 +22,7 @@ import orjson
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
 
-from service.batching import Ticket
+from service.api.batching import Ticket
 
 
 class OrjsonRequest(Request):

@@ -10,10 +10,10 @@ from typing import Annotated
 import numpy as np
 from fastapi import Depends, Request
 
-from service.batching import MicroBatcher
+from service.api.batching import MicroBatcher
+from service.api.metrics import Metrics
 from service.errors import InputError, NotReadyError
 from service.geometry.inputs import MeshUploads
-from service.metrics import Metrics
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 

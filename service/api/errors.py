@@ -76,7 +76,7 @@ async def _on_validation_error(request: Request, exc: Exception) -> OrjsonRespon
 
 async def _on_http_error(request: Request, exc: Exception) -> OrjsonResponse:
     assert isinstance(exc, StarletteHTTPException)
-    # Errors raised from the body's receive (service.api.middleware, service.overload,
+    # Errors raised from the body's receive (service.api.middleware, service.api.overload,
     # service.api.json_body) carry their own code.
     code = getattr(exc, "code", None) or _HTTP_CODES.get(exc.status_code, "http_error")
     if exc.status_code == 404 and exc.detail == "Not Found":

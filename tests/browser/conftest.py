@@ -61,7 +61,7 @@ def server(artifacts: Path) -> Iterator[str]:
     import httpx
     import uvicorn
 
-    from service.api import create_app
+    from service.api.app import create_app
 
     settings = Settings(artifacts=artifacts, onnx_threads=1, faiss_threads=1, seed=0)
     port = _free_port()

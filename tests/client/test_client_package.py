@@ -23,7 +23,7 @@ warnings.filterwarnings("ignore", message=".*httpx.*starlette.testclient.*")
 import uvicorn  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 
-from service.api import create_app  # noqa: E402
+from service.api.app import create_app  # noqa: E402
 from service.settings import DEFAULT_ARTIFACTS, Settings  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from service.api import create_app
+from service.api.app import create_app
 from service.settings import Settings
 
 HERE = Path(__file__).resolve().parent

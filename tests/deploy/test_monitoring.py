@@ -17,7 +17,7 @@ import yaml
 from dockerfile_model import REPO
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.metrics import Metrics
+from service.api.metrics import Metrics
 
 DOCKER = REPO / "docker"
 DASHBOARD = DOCKER / "grafana" / "dashboards" / "complementme.json"
@@ -78,7 +78,8 @@ def test_dashboard_query_uses_exported_metrics_and_labels(title: str, expr: str)
     promql_parser.walk(parse(expr), visit)
     assert names, f"panel {title!r}: query selects no metric: {expr}"
     unknown = [n for n in names if n not in series]
-    assert not unknown, f"panel {title!r}: {unknown} not exported by service/metrics.py ({sorted(series)})"
+    assert not unknown, (f"panel {title!r}: {unknown} not exported by service/api/metrics.py "
+                         f"({sorted(series)})")
     labels = set().union(*(series[n] for n in names))
     missing = sorted(set(matcher_labels + grouping) - labels)
     assert not missing, f"panel {title!r}: labels {missing} not on {names}"

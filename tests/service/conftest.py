@@ -27,7 +27,7 @@ from service_testkit import (  # noqa: E402
     multi_part_shapes,
 )
 
-from service.api import create_app  # noqa: E402
+from service.api.app import create_app  # noqa: E402
 from service.artifacts.catalog import Catalog  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.suggest.engine import SuggestionEngine  # noqa: E402

@@ -77,7 +77,7 @@ def answer_values(client: Any, catalog: Any, n_points: int) -> list[dict[str, An
 def pin(folder: Path) -> Path:
     from fastapi.testclient import TestClient
 
-    from service.api import create_app
+    from service.api.app import create_app
 
     with TestClient(create_app(make_settings(folder))) as client:
         engine = client.app.state.engine  # type: ignore[attr-defined]

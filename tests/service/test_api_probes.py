@@ -6,7 +6,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 from service_testkit import AssemblyQuery
 
-from service.api import create_app
+from service.api.app import create_app
 from service.api.schemas import ModelInfo
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine

@@ -11,7 +11,7 @@ from catalog_testkit import AUTH, KEY, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
-from service.api import create_app
+from service.api.app import create_app
 from service.settings import Settings
 
 

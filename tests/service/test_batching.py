@@ -20,8 +20,8 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery, assembly_query, make_settings, multi_part_shapes
 
-from service.api import create_app
-from service.batching import MicroBatcher
+from service.api.app import create_app
+from service.api.batching import MicroBatcher
 from service.errors import DeadlineError, InputError, NotReadyError, ServiceError
 from service.geometry.inputs import points_to_base64
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult

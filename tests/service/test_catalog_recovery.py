@@ -23,7 +23,7 @@ from catalog_testkit import LiveServer, add_part, writable_settings
 from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
-from service.api import create_app
+from service.api.app import create_app
 from service.api.routes import catalog_write
 from service.catalog_store.recovery import verify
 from service.catalog_store.store import GEOMETRY_DIR, QUARANTINE_DIR, CatalogDamagedError, StoreError

@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery
 from typer.testing import CliRunner
 
-from service.api import create_app
+from service.api.app import create_app
 from service.artifacts.catalog import Catalog
 from service.cli import register_service_commands
 from service.client import ClientError, ComplementMeClient, read_points_file

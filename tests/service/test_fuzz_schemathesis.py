@@ -25,7 +25,7 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from service.api import create_app
+from service.api.app import create_app
 
 MAX_EXAMPLES = 20
 # Batches answer 200 with an error entry per malformed item, by design (one bad item fails alone).

@@ -26,7 +26,7 @@ from catalog_testkit import AUTH, writable_settings
 from fastapi.testclient import TestClient
 from service_testkit import TRIANGLE, glb
 
-from service.api import create_app
+from service.api.app import create_app
 
 CANARY_TEXT = b"CANARY-7f3a9c-never-to-be-read"
 

@@ -25,7 +25,7 @@ from fastapi.testclient import TestClient
 from load_testkit import closed_loop, http_request, probe, read_response, slow_clients
 from service_testkit import AssemblyQuery, make_settings
 
-from service.api import create_app
+from service.api.app import create_app
 from service.errors import InputError
 from service.geometry.inputs import points_to_base64
 from service.settings import Settings

@@ -21,7 +21,7 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import make_settings
 
-from service.api import create_app
+from service.api.app import create_app
 from service.artifacts.layout import ArtifactError, read_manifest, write_manifest
 from service.artifacts.loading import load_artifacts
 

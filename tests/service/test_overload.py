@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery, make_settings
 from starlette.types import Receive, Scope, Send
 
-from service.api import create_app
-from service.overload import ClientErrorBudget, ErrorBudgetMiddleware, InferenceGate, OverloadMiddleware
+from service.api.app import create_app
+from service.api.overload import ClientErrorBudget, ErrorBudgetMiddleware, InferenceGate, OverloadMiddleware
 
 
 def test_gate_admits_queues_and_refuses() -> None:

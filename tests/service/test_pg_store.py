@@ -20,7 +20,7 @@ from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
 from pg_testkit import PG_PASSWORD, PG_USER
 
-from service.api import create_app
+from service.api.app import create_app
 from service.catalog_store.pg_store import SCHEMA_VERSION, PgCatalogStore
 from service.catalog_store.store import NewPart, PartGeometry, StoreError
 from service.geometry.inputs import points_to_base64

@@ -12,8 +12,8 @@ from catalog_testkit import AUTH, writable_settings
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
-from service.api import create_app
 from service.api.access_log import RedactSecrets, redact_query
+from service.api.app import create_app
 from service.settings import Settings
 
 

@@ -14,7 +14,7 @@ import trimesh
 from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
 
-from service.api import create_app
+from service.api.app import create_app
 from service.catalog_store.store import (
     INDEX_FILE,
     CatalogStore,

@@ -15,7 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 from service_testkit import TRIANGLE, glb, make_settings
 
-from service.api import create_app
+from service.api.app import create_app
 from service.geometry.mesh import MeshError, load_mesh_bytes
 
 

@@ -1,6 +1,6 @@
 """Catalog writes: ``POST /parts``, ``DELETE /parts/{id}``, and ``GET /catalog`` (its status).
 
-Writes need the API key (``service.auth``) and a data folder. The upload's form is parsed by
+Writes need the API key (``service.api.auth``) and a data folder. The upload's form is parsed by
 the handler itself, after the key was checked, so an unauthenticated client cannot make the
 server read a large body first. The heavy work (mesh checks, sampling, both networks, the
 database transaction) runs in the threadpool.
@@ -31,12 +31,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
+from service.api.auth import WriterDep
 from service.api.deps import SettingsDep
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
 from service.artifacts.catalog import part_links
-from service.auth import WriterDep
 from service.catalog_store.part_prep import prepare_part
 from service.catalog_store.store import CommitRefusedError, NewPart, StoredPart
 from service.catalog_store.writer import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out

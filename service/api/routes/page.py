@@ -1,6 +1,6 @@
 """The modeling web page: ``GET /`` (the page) and ``/static/*`` (its built script and style).
 
-The page is plain files under ``service/static`` (packaged with the service); its script is the
+The page is plain files under ``service/api/static`` (packaged with the service); its script is the
 three.js bundle built from ``web/`` and committed, so nothing is fetched from the internet.
 """
 
@@ -12,7 +12,7 @@ from fastapi import APIRouter, FastAPI
 from fastapi.staticfiles import StaticFiles
 from starlette.responses import FileResponse
 
-STATIC_DIR = Path(__file__).resolve().parent.parent.parent / "static"
+STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
 
 router = APIRouter(tags=["page"])
 

@@ -10,9 +10,9 @@ from starlette.responses import Response
 
 from service.api.deps import EngineDep, MetricsDep, SettingsDep
 from service.api.errors import error_response
+from service.api.metrics import CONTENT_TYPE
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse, Health, ModelInfo
-from service.metrics import CONTENT_TYPE
 
 router = APIRouter(tags=["probes"])
 

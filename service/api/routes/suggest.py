@@ -2,7 +2,7 @@
 
 The suggestion handlers are ``async``: they decode the request on the event loop (a mesh or a
 whole batch of items in the threadpool), hand the queries to the micro-batcher
-(``service.batching``), whose worker runs them through the engine together with other
+(``service.api.batching``), whose worker runs them through the engine together with other
 requests' queries, and render the answer. ``/place`` is a plain ``def`` run in the threadpool.
 """
 

@@ -85,7 +85,7 @@ class Metrics:
                                    multiprocess_mode="livemostrecent", registry=r)
         self.model_info = Gauge("complementme_model_info", "The loaded model version (value 1).",
                                 ["model_version"], multiprocess_mode="livemax", registry=r)
-        # The overload gate's (service/overload.py).
+        # The overload gate's (service/api/overload.py).
         self.rejections = Counter("complementme_overload_rejections", "Requests refused by the overload "
                                   "gate or cut at their deadline, by reason.", ["reason"], registry=r)
         self.inflight_requests = Gauge("complementme_inflight_requests", "Gated requests running now.",

@@ -15,14 +15,14 @@ is read or parsed, so that shedding under overload costs next to nothing.
 Catalog writes (``POST /parts``, ``DELETE /parts/...``) have a gate of their own
 (``max_inflight_writes``): they wait for each other on the database, and must not take the slots
 of suggestion queries while they do. ``POST /suggest`` has one too (``max_inflight_suggest``,
-many slots): its requests mostly wait in the micro-batcher's queue (``service.batching``), whose
+many slots): its requests mostly wait in the micro-batcher's queue (``service.api.batching``), whose
 workers bound the CPU they use, and a batch can only grow as large as the requests let in.
 
 Every request also has a deadline (``request_timeout``, queueing included). A request still
 reading its body at its deadline gets 408 ``body_timeout``, one still waiting for a slot 503;
 one running gets 504 ``deadline_exceeded`` at once, and its late answer is dropped. The work it
 started is not interrupted (the micro-batcher stops a request's queries between its chunks and
-before each one's contact refinement; see ``service.batching``): ONNX Runtime and FAISS cannot
+before each one's contact refinement; see ``service.api.batching``): ONNX Runtime and FAISS cannot
 stop halfway, and asyncio's cancellation does not reach a worker thread (it
 only abandons it). So the request runs to its end and keeps its slot until then: the gate counts
 the CPU really in use. A request still running after a second ``request_timeout`` (stuck on
@@ -60,8 +60,8 @@ import orjson
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.metrics import Metrics
 from service.errors import error_body
-from service.metrics import Metrics
 
 GATED_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # Never refused for a client's errors: orchestrators probe from addresses shared with others.
