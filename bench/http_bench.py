@@ -4,7 +4,7 @@ For each body kind (JSON list of points, base64 float32) and each concurrency le
 that many connections busy for a fixed time after a warm-up: throughput, p50, p99 and errors.
 The server runs with the service's defaults plus the environment given in ``server_env``: by
 default one worker process per usable core (how the service is meant to be run on a machine of
-its own; ``service/workers.py``) and access logging off (it would be the bench measuring its log
+its own; ``service/serve/workers.py``) and access logging off (it would be the bench measuring its log
 file).
 """
 

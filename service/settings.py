@@ -38,7 +38,7 @@ class Settings(BaseSettings):
     workers: int = Field(default=1, ge=1, le=64, description=(
         "Server processes of `complementme serve`; each loads its own copy of the artifacts (about "
         "280 MB). With more than one, a supervisor accepts the connections and deals them to the "
-        "workers in turn. One per core for throughput (`service/workers.py`); `/metrics` sums them "
+        "workers in turn. One per core for throughput (`service/serve/workers.py`); `/metrics` sums them "
         "all."))
     worker_max_pending: int = Field(default=64, ge=1, le=100_000, description=(
         "With several workers: most connections the supervisor hands to a worker that has not yet "

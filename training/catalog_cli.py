@@ -46,7 +46,7 @@ def add_cmd(
     """
     from service.artifacts.layout import ArtifactError
     from service.catalog_store.store import StoreError
-    from service.client import ClientError, ComplementMeClient
+    from service.serve.client import ClientError, ComplementMeClient
     from training.catalog_import import HttpSink, LocalSink, import_folder
 
     if (url is None) == (data_dir is None):

@@ -155,7 +155,7 @@ class HttpSink:
         self.client = client
 
     def present(self, shape_id: str) -> int:
-        from service.client import ClientError
+        from service.serve.client import ClientError
 
         try:
             return int(self.client.parts(shape_id=shape_id, limit=1)["total"])
@@ -165,7 +165,7 @@ class HttpSink:
             raise
 
     def add(self, mesh: bytes, filename: str, category: str, **fields: Any) -> str:
-        from service.client import ClientError
+        from service.serve.client import ClientError
 
         try:
             return str(self.client.add_part(mesh, filename, category, **fields)["part_id"])

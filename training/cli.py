@@ -11,8 +11,8 @@ import sys
 
 import typer
 
-from service.cli import register_service_commands
-from service.logs import LOG_FORMAT, quiet_libraries
+from service.serve.cli import register_service_commands
+from service.serve.logs import LOG_FORMAT, quiet_libraries
 from training.catalog_cli import catalog_app
 from training.data.cli import data_app
 

@@ -1,7 +1,7 @@
 """Prometheus metrics of the server, in a registry of its own.
 
 A registry per app (not prometheus-client's global one) lets tests build many apps in one
-process. With several worker processes (``service/workers.py``) prometheus-client runs in its
+process. With several worker processes (``service/serve/workers.py``) prometheus-client runs in its
 multiprocess mode: the supervisor sets ``PROMETHEUS_MULTIPROC_DIR`` before the workers start, each
 worker writes its samples to files there, and a scrape of any worker sums them all (counters and
 histograms over every worker that ever ran, gauges over the live ones). Gauges read from a

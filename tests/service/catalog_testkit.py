@@ -21,8 +21,8 @@ import numpy as np
 import trimesh
 from service_testkit import make_settings
 
+from service.serve.workers import HTTP_PROTOCOL
 from service.settings import Settings
-from service.workers import HTTP_PROTOCOL
 
 KEY = "test-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}

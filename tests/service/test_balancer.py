@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from service.balancer import READY, STOPPING, TAKEN, ConnectionBalancer, channel_pair
+from service.serve.balancer import READY, STOPPING, TAKEN, ConnectionBalancer, channel_pair
 
 
 class Rig:

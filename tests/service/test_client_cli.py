@@ -20,8 +20,8 @@ from typer.testing import CliRunner
 
 from service.api.app import create_app
 from service.artifacts.catalog import Catalog
-from service.cli import register_service_commands
-from service.client import ClientError, ComplementMeClient, read_points_file
+from service.serve.cli import register_service_commands
+from service.serve.client import ClientError, ComplementMeClient, read_points_file
 from service.settings import Settings
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import tomllib
 
-from service.logs import quiet_libraries
+from service.serve.logs import quiet_libraries
 from training.cli import TRAIN_EXTRA_MODULES
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,7 +1,7 @@
 """A small Python client for the suggestion service, with timeouts and retries.
 
 It needs httpx and numpy only (not the service's onnxruntime, FAISS, scipy or trimesh):
-``pip install ./clients/python`` from the repository. ``service.client`` re-exports it.
+``pip install ./clients/python`` from the repository. ``service.serve.client`` re-exports it.
 
 Retries cover what a restart or a rolling deploy looks like from outside: connection errors,
 timeouts while connecting, 503 (not ready, overloaded) and 429 (``too_many_errors``: this client

@@ -13,7 +13,7 @@ from typing import Any
 
 import typer
 
-from service.logs import quiet_libraries
+from service.serve.logs import quiet_libraries
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ def register_service_commands(app: typer.Typer) -> None:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(1) from None
         log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
-        from service.workers import APP_FACTORY, GRACEFUL_SECONDS, HTTP_PROTOCOL, Supervisor
+        from service.serve.workers import APP_FACTORY, GRACEFUL_SECONDS, HTTP_PROTOCOL, Supervisor
 
         if s.workers == 1:
             uvicorn.run(APP_FACTORY, factory=True, http=HTTP_PROTOCOL, host=s.host, port=s.port,
@@ -160,7 +160,7 @@ def register_service_commands(app: typer.Typer) -> None:
         import orjson
 
         quiet_libraries()
-        from service.client import ClientError, ComplementMeClient, suggest_file
+        from service.serve.client import ClientError, ComplementMeClient, suggest_file
 
         with ComplementMeClient(url, timeout=timeout) as client:
             try:
@@ -195,7 +195,7 @@ def register_service_commands(app: typer.Typer) -> None:
         from tqdm import tqdm
 
         quiet_libraries()
-        from service.client import ComplementMeClient, query_files, run_batch, skipped_files
+        from service.serve.client import ComplementMeClient, query_files, run_batch, skipped_files
 
         files = query_files(folder)
         skipped = skipped_files(folder)

@@ -1,7 +1,7 @@
 """Several server processes on one port: a supervisor that accepts, workers that serve.
 
 The supervisor owns the listening socket and deals the new connections to the workers in turn
-(``service/balancer.py``: the kernel's own spreading left one worker with twice the other's
+(``service/serve/balancer.py``: the kernel's own spreading left one worker with twice the other's
 connections, and its queue set the tail latency).
 
 ``Supervisor`` starts the workers, restarts one that dies after it started serving, stops all of
@@ -32,7 +32,7 @@ from types import FrameType
 from uvicorn.server import STARTUP_FAILURE  # a worker's exit status when it stopped before serving
 
 from service.api.metrics import MULTIPROC_ENV
-from service.balancer import ConnectionBalancer, HandedServer, channel_pair
+from service.serve.balancer import ConnectionBalancer, HandedServer, channel_pair
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def run_worker(config: WorkerConfig, channel: socket.socket) -> None:
     """The body of one worker process: uvicorn serving the connections ``channel`` brings."""
     import uvicorn
 
-    from service.logs import LOG_FORMAT, quiet_libraries
+    from service.serve.logs import LOG_FORMAT, quiet_libraries
 
     logging.basicConfig(level=config.root_log_level, format=LOG_FORMAT)
     quiet_libraries()

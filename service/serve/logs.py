@@ -1,6 +1,6 @@
 """Log format and library log levels shared by the CLI and the worker processes.
 
-Its own module so that ``service.cli`` and ``service.workers`` both read it without importing
+Its own module so that ``service.serve.cli`` and ``service.serve.workers`` both read it without importing
 each other.
 """
 
