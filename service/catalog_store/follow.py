@@ -84,6 +84,12 @@ class ChangeFollower:
             self._behind_since = time.monotonic()
 
     @property
+    def lost(self) -> bool:
+        """True once a round trip of the follower's own connection failed, until it reconnects
+        (False while it is still making its first connection at start)."""
+        return not self.up and self.last_error is not None
+
+    @property
     def lag_changes(self) -> int:
         return max(0, self.database_seq - self._applied())
 

@@ -137,10 +137,18 @@ def _verify_index(folder: Path, rows: dict[str, tuple[int, str, str, int | None]
                                f"{last}: the database lost changes")
         return
     live = {pid for pid, _, _, deleted in rows.values() if deleted is None}
-    extra = set(found.row_ids.tolist()) - live
+    indexed = set(found.row_ids.tolist())
+    extra = indexed - live
     if extra:
         report.problems.append(f"{path}: holds {len(extra)} part(s) that are not live in the database "
                                f"(ids {sorted(extra)[:5]})")
+    elif found.seq == last and live - indexed:
+        # An index written at the database's last change holds every live part: one missing means
+        # the file was damaged or replaced. The next start rebuilds it; until then it is wrong.
+        missing = sorted(live - indexed)
+        report.problems.append(f"{path}: reflects change {found.seq}, the database's last, but lacks "
+                               f"{len(missing)} live part(s) (ids {missing[:5]}); the next start "
+                               "rebuilds it from the database")
     elif found.seq < last:
         report.notes.append(f"{path}: reflects change {found.seq}, the database is at {last} (brought up to "
                             "date at the next start)")

@@ -280,10 +280,25 @@ class CatalogWriter:
             raise StorageFullError("catalog_full", f"the catalog holds {self.settings.max_added_parts} "
                                    "added parts, the most COMPLEMENTME_MAX_ADDED_PARTS allows")
 
+    def database_up(self) -> bool:
+        """Whether the shared database answered this replica's last round trips: the follower's
+        own connection (it reconnects every second while the database is away) and the store's
+        last operation. The one answer to "is the database reachable" for writes, /readyz and
+        /metrics. Always True for the SQLite backend."""
+        f = self.follower
+        return f is None or (f.up and getattr(self.store, "available", True))
+
     @contextmanager
     def _reachable(self) -> Iterator[None]:
-        """An unreachable database as 503 ``database_unavailable`` with Retry-After."""
+        """An unreachable database as 503 ``database_unavailable`` with Retry-After.
+
+        While the follower knows the database is away the write is refused at once: trying it
+        would hold the client for the pool's whole timeout (COMPLEMENTME_DATABASE_TIMEOUT, 5 s)
+        only to fail the same way. The follower's reconnection marks it back up."""
         try:
+            if self.follower is not None and self.follower.lost:
+                raise StoreUnavailableError(f"known to be unreachable since the follower lost it: "
+                                            f"{self.follower.last_error}")
             yield
         except StoreUnavailableError as exc:
             raise UnavailableError("database_unavailable", f"the catalog database cannot be reached "
@@ -450,7 +465,7 @@ class CatalogWriter:
         deleted: int | None
         last: int | None
         try:
-            if self.follower is not None and not self.follower.up:
+            if not self.database_up():
                 raise StoreUnavailableError("known to be unreachable")  # answer at once, not after a timeout
             deleted, last = self.store.counts()[1], self.store.last_seq()
         except StoreUnavailableError:  # the database is down: what this replica knows
@@ -469,7 +484,7 @@ class CatalogWriter:
         f = self.follower
         if f is None:
             return None
-        up = f.up and getattr(self.store, "available", True)
+        up = self.database_up()
         return {"database": "up" if up else "unreachable", "applied_change": self.seq,
                 "database_change": f.database_seq, "lag_changes": f.lag_changes,
                 "lag_seconds": round(f.lag_seconds, 3), "last_error": None if up else f.last_error}

@@ -552,8 +552,9 @@ class SuggestionEngine:
                       for j, i in enumerate(idx)]
         return PlaceResult(placements, frame, len(points), timings)
 
-    def warmup(self) -> None:
-        """Run one suggestion and one placement on a query made from the first catalog shape."""
+    def warmup(self) -> SuggestResult:
+        """Run one suggestion and one placement on a query made from the first catalog shape;
+        the suggestion's result (a test checks it is not empty)."""
         cat = self.catalog
         parts = np.flatnonzero(cat.shape_of == cat.shape_of[0])
         points = np.concatenate([cat.part_points(int(i)) + cat.translations[i] for i in parts])
@@ -562,6 +563,7 @@ class SuggestionEngine:
             self.place(points, [result.suggestions[0].part_id])
         log.info("warm-up passed: %d suggestions in %.1f ms", len(result.suggestions),
                  1000 * result.timings.get("total", 0.0))
+        return result
 
     def contact_offsets(self, full: np.ndarray, rows: np.ndarray, translations: np.ndarray) -> np.ndarray:
         """Contact refinement offsets (canonical) of parts placed next to canonical points.

@@ -85,6 +85,19 @@ def postgres() -> Iterator[PostgresCluster]:
 
 
 @pytest.fixture
+def own_postgres() -> Iterator[PostgresCluster]:
+    """A PostgreSQL server for one test (outage tests stop and start it)."""
+    bindir, why = find_postgres()
+    if bindir is None:
+        pytest.skip(why)
+    cluster = PostgresCluster(bindir).init().start()
+    try:
+        yield cluster
+    finally:
+        cluster.remove()
+
+
+@pytest.fixture
 def database_url(postgres: PostgresCluster) -> str:
     """A new, empty database of the session's server."""
     return postgres.new_database()

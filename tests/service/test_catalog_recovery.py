@@ -17,6 +17,7 @@ import time
 from contextlib import closing
 from pathlib import Path
 
+import faiss
 import httpx
 import pytest
 from catalog_testkit import LiveServer, add_part, writable_settings
@@ -26,7 +27,14 @@ from typer.testing import CliRunner
 from service.api.app import create_app
 from service.api.routes import catalog_write
 from service.catalog_store.recovery import verify
-from service.catalog_store.store import GEOMETRY_DIR, QUARANTINE_DIR, CatalogDamagedError, StoreError
+from service.catalog_store.snapshot import read_index_file, write_index_file
+from service.catalog_store.store import (
+    GEOMETRY_DIR,
+    INDEX_FILE,
+    QUARANTINE_DIR,
+    CatalogDamagedError,
+    StoreError,
+)
 from training.catalog_cli import catalog_app
 
 LOST = 20  # acknowledged adds that live only in the WAL when it is deleted
@@ -136,6 +144,26 @@ def test_verify_reports_mismatches_naming_files(tmp_path: Path, artifacts: Path)
     assert any("00000003.npz: missing" in p for p in report.problems), report.problems
     code, out = _run_cli("verify", str(data))
     assert code == 1 and "2 problem(s)" in out
+
+
+def test_verify_reports_an_index_that_lacks_a_live_part(tmp_path: Path, artifacts: Path) -> None:
+    data = tmp_path / "data"
+    with TestClient(create_app(writable_settings(artifacts, data))) as c:
+        for s in range(3):
+            add_part(c, s)
+    assert verify(data).ok
+    found = read_index_file(data / INDEX_FILE)
+    assert found is not None and len(found.row_ids) == 3
+    # The same change number, one part fewer: what a damaged or swapped index file looks like.
+    write_index_file(data / INDEX_FILE, found.seq, found.model_version, found.row_ids[:2].tolist(),
+                     found.embeddings[:2], faiss.METRIC_L2)
+    report = verify(data)
+    assert any(str(data / INDEX_FILE) in p and "lacks 1 live part" in p for p in report.problems), report
+    code, out = _run_cli("verify", str(data))
+    assert code == 1 and "1 problem(s)" in out
+    with TestClient(create_app(writable_settings(artifacts, data))) as c:  # a start rebuilds it
+        assert c.get("/catalog").json()["index_rebuilt_at_start"] is True
+    assert verify(data).ok
 
 
 def test_malformed_database_is_an_error_naming_the_file(artifacts: Path, tmp_path: Path) -> None:

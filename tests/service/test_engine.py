@@ -136,8 +136,10 @@ def test_place_agrees_with_suggest(engine: SuggestionEngine, query: AssemblyQuer
         engine.place(query.points, ["no-such/0"])
 
 
-def test_warmup(engine: SuggestionEngine) -> None:
-    engine.warmup()
+def test_warmup_suggests_and_places(engine: SuggestionEngine) -> None:
+    result = engine.warmup()
+    assert result.suggestions, "warm-up made no suggestion from a whole catalog shape"
+    assert all(np.isfinite(s.translation).all() for s in result.suggestions)
 
 
 def test_chunked_runs_equal_one_run(engine: SuggestionEngine, query: AssemblyQuery) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -92,19 +93,34 @@ def test_catalog_writes_do_not_take_query_slots() -> None:
 
 
 def test_a_request_past_its_deadline_gets_504_and_its_slot_waits_for_the_thread() -> None:
-    mw = OverloadMiddleware(_slow_app(1.0, in_thread=True), max_inflight=1, max_queue=4, timeout=0.2)
+    # The work blocks in its thread until released: the answers below come while it still runs.
+    release, started = threading.Event(), threading.Event()
+
+    def work() -> None:
+        started.set()
+        assert release.wait(60), "the test never released the work"
+
+    async def app(scope: Scope, receive: Receive, send: Send) -> None:
+        await anyio.to_thread.run_sync(work)
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"done"})
+
+    mw = OverloadMiddleware(app, max_inflight=1, max_queue=4, timeout=0.2)
 
     async def main() -> None:
         transport = httpx.ASGITransport(app=mw)
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-            t = time.monotonic()
             first, second = await asyncio.gather(client.post("/work"), client.post("/work"))
-            assert time.monotonic() - t < 0.9, "the 504 must not wait for the work to finish"
+            assert not release.is_set() and started.is_set(), "the 504 must not wait for the work"
             assert first.status_code == 504 and first.json()["error"]["code"] == "deadline_exceeded"
             # The second waited for the slot, which the still-running thread holds: 503 at its deadline.
             assert second.status_code == 503 and "retry-after" in second.headers
             assert mw.gate.inflight == 1, "the thread still computes: its slot is still taken"
-            await asyncio.sleep(1.2)
+            release.set()
+            for _ in range(6000):  # the slot comes back when the thread ends
+                if mw.gate.inflight == 0:
+                    break
+                await asyncio.sleep(0.01)
             assert mw.gate.inflight == 0
 
     asyncio.run(main())

@@ -18,7 +18,7 @@ import psycopg
 import pytest
 from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
-from pg_testkit import PG_PASSWORD, PG_USER
+from pg_testkit import PG_PASSWORD, PG_USER, PostgresCluster
 
 from service.api.app import create_app
 from service.catalog_store.pg_store import SCHEMA_VERSION, PgCatalogStore
@@ -199,6 +199,34 @@ def test_an_idempotency_key_makes_a_retried_add_safe(artifacts: Path, database_u
         assert bad.status_code == 422
         assert bad.json()["error"]["code"] == "invalid_idempotency_key"
         assert a.get("/catalog").json()["added_parts"] == 1
+
+
+def test_an_outage_is_reported_writes_refused_at_once_and_recovered(artifacts: Path,
+                                                                  own_postgres: PostgresCluster) -> None:
+    # Once the replica knows the database is away, /readyz says degraded and a write is refused
+    # at once ("known to be unreachable") rather than after the pool's whole timeout; when the
+    # database is back the replica says so and takes writes again, without a restart.
+    settings = pg_settings(artifacts, own_postgres.new_database())
+    with TestClient(create_app(settings)) as client:
+        wait_for(lambda: client.get("/readyz").json()["status"] == "ready", "ready")
+        assert add_part(client, 1, category="before").status_code == 201
+        own_postgres.stop()
+        wait_for(lambda: client.get("/readyz").json()["status"] == "degraded", "degraded")
+        ready = client.get("/readyz")
+        assert ready.status_code == 200  # still serving from the last snapshot
+        assert ready.json()["catalog"]["database"] == "unreachable"
+        assert ready.json()["catalog"]["last_error"]
+        assert "complementme_catalog_database_up 0.0" in client.get("/metrics").text
+        refused = add_part(client, 2, category="during")
+        assert refused.status_code == 503, refused.text
+        assert refused.json()["error"]["code"] == "database_unavailable"
+        assert "known to be unreachable" in refused.json()["error"]["message"]
+        assert int(refused.headers["Retry-After"]) >= 1
+        assert client.get("/catalog").json()["added_parts"] == 1  # reads go on
+        own_postgres.start()
+        wait_for(lambda: client.get("/readyz").json()["status"] == "ready", "ready again", timeout=60)
+        assert add_part(client, 3, category="after").status_code == 201
+        assert client.get("/catalog").json()["added_parts"] == 2
 
 
 def test_sqlite_backend_refuses_idempotency_keys(artifacts: Path, tmp_path: Path) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import orjson
 import pytest
 from catalog_testkit import LiveServer
-from load_testkit import LoadResult, closed_loop, http_request, probe, slow_clients
+from load_testkit import LoadResult, closed_loop, http_request, probe_elsewhere, slow_clients
 from service_testkit import AssemblyQuery
 
 from service.geometry.inputs import points_to_base64
@@ -50,7 +50,7 @@ def _post(path: str, body: dict[str, Any]) -> bytes:
 
 async def _with_health(port: int, load: Any) -> tuple[Any, list[float]]:
     health = http_request("GET", "/healthz")
-    return tuple(await asyncio.gather(load, probe(port, health, every=0.05, seconds=SECONDS)))  # type: ignore[return-value]
+    return tuple(await asyncio.gather(load, probe_elsewhere(port, health, every=0.05, seconds=SECONDS)))  # type: ignore[return-value]
 
 
 def test_soak_under_mixed_hostile_load(artifacts: Path, tmp_path: Path, engine: SuggestionEngine,

@@ -6,7 +6,7 @@
 #   training/recipes/shipped.sh                 # defaults below
 #   OUT=exported training/recipes/shipped.sh
 #
-# The preset fixes the number of steps (6,000): the same seed gives the same model on any host.
+# The preset fixes the number of steps (4,000): the same seed gives the same model on any host.
 # Its time guard (max_minutes, 95) only stops a run that is far slower than planned, with a
 # warning in the log. The two runs train side by side, one thread each (on 2 cores that is
 # faster than one after the other on both: a step is not twice as fast on two threads, measured
