@@ -336,7 +336,12 @@ def _interactive(data: dict[str, Any]) -> list[str]:
     workers = (cfg.get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
     fmt_load = ", ".join(str(x) for x in load.get("start") or []) or "-"
     fmt_end = ", ".join(str(x) for x in load.get("end") or []) or "-"
+    m = data["machine"]
     lines = [
+        f"Host of this run: {m['cpu_model']} ({', '.join(m['cpu_flags']) or 'no AVX flags'}), {m['cores']} "
+        f"cores ({m['usable_cores']} usable); it may differ from the machine above, which is the first "
+        "result file's.",
+        "",
         f"One request at a time against `complementme serve` ({workers} worker processes) on loopback, "
         f"{cfg['requests']} timed requests per path after {cfg['warmup']} untimed; client wall time. "
         f"Query mesh: the parts of `{mesh['shape_id']}` but its last, refined to {mesh['faces']:,} "
