@@ -129,6 +129,17 @@ def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load:
     _save(results_dir, "peer", cfg.as_dict(), run_peer_bench(_query(query), cfg, cache))
 
 
+def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, requests: int | None,
+                   warmup: int | None, target_faces: int, server_env: list[str] | None) -> None:
+    from bench.interactive_bench import InteractiveBenchConfig, run_interactive_bench
+
+    cfg = InteractiveBenchConfig(requests=requests or (3 if quick else 20),
+                                 warmup=warmup if warmup is not None else (1 if quick else 2),
+                                 parse_reps=2 if quick else 5, target_faces=target_faces,
+                                 server_env=_env_pairs(server_env))
+    _save(results_dir, "interactive", cfg.as_dict(), run_interactive_bench(_query(query), cfg, cache))
+
+
 def do_report(results_dir: Path, doc: Path) -> None:
     from bench.report import render_results, write_report
     from bench.results import load_results
@@ -197,6 +208,19 @@ def peer(
 
 
 @app.command()
+def interactive(
+    results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
+    cache_dir: Path = CacheOpt,
+    requests: int | None = typer.Option(None, min=1, help="Timed requests per path (default 20)."),
+    warmup: int | None = typer.Option(None, min=0, help="Untimed requests per path first (default 2)."),
+    target_faces: int = typer.Option(100_000, min=1, help="Triangles of the uploaded query mesh."),
+    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for the server (repeatable)."),
+) -> None:
+    """e. Interactive paths at concurrency 1: mesh upload (GLB, OBJ), /place, contact, /assemble."""
+    do_interactive(results_dir, query, quick, cache_dir, requests, warmup, target_faces, server_env)
+
+
+@app.command()
 def report(results_dir: Path = ResultsOpt,
            doc: Path = typer.Option(DOC, help="Markdown file with the generated section's markers.")) -> None:
     """Render the results into docs/performance.md (between its markers)."""
@@ -211,10 +235,11 @@ def run_all(
     duration: float | None = typer.Option(None, min=1, help="Measured seconds per load level (default 10)."),
     sizes: str | None = typer.Option(None, help="Catalog sizes (default 10000,100000,1000000)."),
 ) -> None:
-    """engine, http, catalog and peer with their defaults, then the report."""
+    """engine, http, catalog, peer and interactive with their defaults, then the report."""
     load = _load(quick, duration, None, 1, 30.0)
     do_engine(results_dir, query, quick, None, None)
     do_http(results_dir, query, quick, cache_dir, "1,8,32,64", load, None)
     do_catalog(results_dir, query, quick, cache_dir, sizes, 0.05, "auto", None, None, None, None)
     do_peer(results_dir, query, cache_dir, "1,32", load, None)
+    do_interactive(results_dir, query, quick, cache_dir, None, None, 100_000, None)
     do_report(results_dir, doc)

@@ -283,6 +283,121 @@ def _peer(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+INTERACTIVE_LABELS = {"suggest_mesh_glb": "/suggest/mesh, GLB", "suggest_mesh_obj": "/suggest/mesh, OBJ",
+                      "place_5": "/place, 5 parts", "suggest_contact_off": "/suggest, refine_contact false",
+                      "suggest_contact_on": "/suggest, refine_contact true", "assemble": "/assemble (greedy)"}
+
+
+def _server_stages(metrics: dict[str, dict[str, float]]) -> str:
+    """The engine's stages from a path's /metrics histograms, as "name mean" text (ms)."""
+    names = {"inference{graph=g}": "g", "inference{graph=h_query}": "h_query",
+             "inference{graph=h_head}": "h_head", "search": "search", "scoring": "score",
+             "batch_queue_wait": "queue wait"}
+    return ", ".join(f"{short} {_ms(metrics[key]['mean_ms'])}"
+                     for key, short in names.items() if key in metrics)
+
+
+def _route_mean(metrics: dict[str, dict[str, float]]) -> float | None:
+    """Mean server-side duration of the path's route (the /metrics request histogram), ms."""
+    for key, m in metrics.items():
+        if key.startswith("http_request{") and "status=200" in key and "route=/metrics" not in key:
+            return m["mean_ms"]
+    return None
+
+
+def _p50s(stats: dict[str, dict[str, Any]], keys: list[str] | None = None) -> str:
+    return ", ".join(f"{k} {_ms(stats[k]['p50_ms'])}" for k in (keys or list(stats)) if k in stats)
+
+
+def interactive_targets(data: dict[str, Any]) -> list[tuple[str, str, bool | None]]:
+    """(target, measured, met) for the interactive targets of issue 20 (AVX-512 figures)."""
+    r = data["results"]
+    paths, eng = r["paths"], r["engine_stages_in_process"]
+    rows: list[tuple[str, str, bool | None]] = []
+    glb, obj = (paths[k]["latency"]["p50_ms"] for k in ("suggest_mesh_glb", "suggest_mesh_obj"))
+    rows.append(("/suggest/mesh of a 100k-triangle mesh: p50 <= 25 ms",
+                 f"GLB {_ms(glb)} ms, OBJ {_ms(obj)} ms", max(glb, obj) <= 25))
+    on, off = eng["suggest_contact_on"]["total"]["p50_ms"], eng["suggest_contact_off"]["total"]["p50_ms"]
+    contact = eng["suggest_contact_on"].get("contact", {}).get("p50_ms")
+    http_on, http_off = (paths[k]["latency"]["p50_ms"] for k in ("suggest_contact_on", "suggest_contact_off"))
+    rows.append(("Contact refinement (k = 10): at most 3 ms added to the engine call",
+                 f"engine total p50 {_ms(on)} vs {_ms(off)} ms (+{_ms(on - off)} ms; contact stage "
+                 f"{_ms(contact)} ms); over HTTP p50 {_ms(http_on)} vs {_ms(http_off)} ms", on - off <= 3))
+    a = paths["assemble"]["latency"]["p50_ms"]
+    rows.append(("/assemble of a whole object: p50 <= 150 ms", f"{_ms(a)} ms", a <= 150))
+    return rows
+
+
+def _interactive(data: dict[str, Any]) -> list[str]:
+    r = data["results"]
+    cfg = data["config"]
+    mesh = r["mesh"]
+    load = r.get("load_average") or {}
+    workers = (cfg.get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
+    fmt_load = ", ".join(str(x) for x in load.get("start") or []) or "-"
+    fmt_end = ", ".join(str(x) for x in load.get("end") or []) or "-"
+    m = data["machine"]
+    lines = [
+        f"Host of this run: {m['cpu_model']} ({', '.join(m['cpu_flags']) or 'no AVX flags'}), {m['cores']} "
+        f"cores ({m['usable_cores']} usable); it may differ from the machine above, which is the first "
+        "result file's.",
+        "",
+        f"One request at a time against `complementme serve` ({workers} worker processes) on loopback, "
+        f"{cfg['requests']} timed requests per path after {cfg['warmup']} untimed; client wall time. "
+        f"Query mesh: the parts of `{mesh['shape_id']}` but its last, refined to {mesh['faces']:,} "
+        f"triangles ({mesh['vertices']:,} vertices; GLB {mesh['bytes']['glb']:,} bytes, OBJ "
+        f"{mesh['bytes']['obj']:,} bytes); points: the benchmark query ({r['query']['points']} points, "
+        f"k = {r['query']['k']}); /place: its first {len(r['place_parts'])} suggestions; /assemble from "
+        f"`{r['assemble_start']}`. Host load average (1, 5, 15 min) at the start: {fmt_load}; at the end: "
+        f"{fmt_end}.",
+        "",
+        "| Path | Answers (200 / all) | p50 ms | p99 ms | max ms | Server route mean ms |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, label in INTERACTIVE_LABELS.items():
+        row = r["paths"].get(name)
+        if row is None:
+            continue
+        lat = row["latency"]
+        ok = row["statuses"].get("200", 0)
+        lines.append(f"| {label} | {ok} / {lat['n']} | {_ms(lat['p50_ms'])} | {_ms(lat['p99_ms'])} | "
+                     f"{_ms(lat['max_ms'])} | {_ms(_route_mean(row['server_metrics']))} |")
+    mesh_stages = r["mesh_stages_in_process"]
+    eng = r["engine_stages_in_process"]
+    engine_keys = ["prepare", "g", "search", "score", "h_query", "h_head", "complement", "contact", "total"]
+    lines += ["", "What each stage costs (ms): in process = p50 of the service's own functions in the "
+              "bench's process; /metrics = mean over the path's timed requests of the service's histograms; "
+              "answer = p50 of the `timings` in the answers.", "",
+              "| Path | Stages | Source |", "|---|---|---|"]
+    for fmt in ("glb", "obj"):
+        name = f"suggest_mesh_{fmt}"
+        if fmt in mesh_stages:
+            lines.append(f"| {INTERACTIVE_LABELS[name]} | {_p50s(mesh_stages[fmt])} | in process "
+                         "(`load_mesh_bytes`; `triangle_areas` + `sample_surface`; `gc.collect`; the "
+                         "whole `MeshUploads.sample`) |")
+        if name in r["paths"]:
+            stages = _server_stages(r["paths"][name]["server_metrics"])
+            lines.append(f"| {INTERACTIVE_LABELS[name]} | {stages} | /metrics |")
+    if "place_5" in r["paths"]:
+        lines.append(f"| {INTERACTIVE_LABELS['place_5']} | "
+                     f"{_server_stages(r['paths']['place_5']['server_metrics'])} | /metrics |")
+    for name in ("suggest_contact_off", "suggest_contact_on"):
+        if name in eng:
+            lines.append(f"| {INTERACTIVE_LABELS[name]} | {_p50s(eng[name], engine_keys)} | in process "
+                         "(engine `timings`) |")
+        if name in r["paths"]:
+            stages = _server_stages(r["paths"][name]["server_metrics"])
+            lines.append(f"| {INTERACTIVE_LABELS[name]} | {stages} | /metrics |")
+    if "assemble" in r["paths"]:
+        a = r["paths"]["assemble"]
+        lines.append(f"| {INTERACTIVE_LABELS['assemble']} | {_p50s(a['answer_timings'])} "
+                     f"({a['answer'].get('nodes')} parts, stop: {a['answer'].get('stop_reason')}) | answer |")
+    lines += ["", "Targets of issue 20 (set for an AVX-512 host; see the machine above):", "",
+              "| Target | Measured | |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | {_met(ok)} |" for t, m, ok in interactive_targets(data)]
+    return lines
+
+
 def render_results(res: dict[str, dict[str, Any]]) -> str:
     """The generated section (between the markers) for whatever results are present."""
     out = [BEGIN, ""]
@@ -293,7 +408,8 @@ def render_results(res: dict[str, dict[str, Any]]) -> str:
             "| Target | Measured | |", "|---|---|---|"]
     out += [f"| {t} | {m} | {_met(ok)} |" for t, m, ok in targets(res)]
     sections = (("engine", "a. Engine latency per stage", _engine), ("http", "b. HTTP load", _http),
-                ("catalog", "c. Catalog scaling", _catalog), ("peer", "d. Peer baseline", _peer))
+                ("catalog", "c. Catalog scaling", _catalog), ("peer", "d. Peer baseline", _peer),
+                ("interactive", "e. Interactive paths at concurrency 1 (issue 20)", _interactive))
     for name, title, fn in sections:
         out += ["", f"### {title}", ""]
         out += fn(res[name]) if name in res else ["Not run (`python -m bench " + name + "`)."]
