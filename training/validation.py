@@ -9,7 +9,6 @@ never by training.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from service.suggest.mixture import mixture_log_likelihood
 from training.data.processed import ProcessedDataset
 from training.data.sampling import TripletSampler, sample_assembly, sample_part
 from training.losses import mixture_nll
@@ -92,23 +92,15 @@ def _batched(fn: Callable[..., Any], arrays: tuple[np.ndarray, ...], chunk: int 
 
 def mixture_nll_matrix(parts: np.ndarray, log_weights: np.ndarray, means: np.ndarray,
                        log_sigmas: np.ndarray) -> np.ndarray:
-    """E(X_b, part_c) for every query b and part c at once, in float64.
-
-    Expands ``sum_d (y_d - mu_d)^2 / sigma_d^2`` into three matrix products, so ranking a whole
-    catalog costs a few GEMMs instead of a (B, C, K, D) tensor.
+    """E(X_b, part_c) for every query b and part c, in float64: the service's exact mixture
+    log-likelihood (``service.suggest.mixture``, the one owner of the formula), negated.
 
     Shapes:
         parts (C, D); log_weights (B, K); means, log_sigmas (B, K, D) -> (B, C).
     """
-    y = parts.astype(np.float64)
-    b, k, d = means.shape
-    inv_var = np.exp(-2.0 * log_sigmas.astype(np.float64)).reshape(b * k, d)       # (BK, D)
-    mu = means.astype(np.float64).reshape(b * k, d)
-    quad = (y * y) @ inv_var.T - 2.0 * y @ (mu * inv_var).T + (mu * mu * inv_var).sum(1)  # (C, BK)
-    log_norm = -log_sigmas.astype(np.float64).sum(-1).reshape(b * k) - 0.5 * d * math.log(2 * math.pi)
-    comp = (-0.5 * quad + log_norm).T.reshape(b, k, -1) + log_weights.astype(np.float64)[:, :, None]
-    top = comp.max(axis=1, keepdims=True)
-    return -(top[:, 0] + np.log(np.exp(comp - top).sum(axis=1)))
+    weights, sigmas = np.exp(log_weights.astype(np.float64)), np.exp(log_sigmas.astype(np.float64))
+    return -np.stack([mixture_log_likelihood(parts, weights[b], means[b], sigmas[b])[0]
+                      for b in range(means.shape[0])])
 
 
 def label_precision(nll: np.ndarray, vset: ValidationSet, k: int) -> tuple[float, float, int]:
