@@ -71,9 +71,8 @@ def query(catalog: Catalog, engine: SuggestionEngine) -> AssemblyQuery:
     return assembly_query(catalog, shape, last, engine.artifacts.n_points)
 
 
-@pytest.fixture(scope="session")
-def postgres() -> Iterator[PostgresCluster]:
-    """A real PostgreSQL server for the session (skips, saying why, only when it cannot run here)."""
+def _postgres() -> Iterator[PostgresCluster]:
+    """A real PostgreSQL server, removed afterwards (skips, saying why, only when it cannot run here)."""
     bindir, why = find_postgres()
     if bindir is None:
         pytest.skip(why)
@@ -82,19 +81,18 @@ def postgres() -> Iterator[PostgresCluster]:
         yield cluster
     finally:
         cluster.remove()
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[PostgresCluster]:
+    """A PostgreSQL server for the session."""
+    yield from _postgres()
 
 
 @pytest.fixture
 def own_postgres() -> Iterator[PostgresCluster]:
     """A PostgreSQL server for one test (outage tests stop and start it)."""
-    bindir, why = find_postgres()
-    if bindir is None:
-        pytest.skip(why)
-    cluster = PostgresCluster(bindir).init().start()
-    try:
-        yield cluster
-    finally:
-        cluster.remove()
+    yield from _postgres()
 
 
 @pytest.fixture
