@@ -8,6 +8,7 @@ every count and duration for development (its numbers are not for publishing).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -65,12 +66,14 @@ def _query(path: Path) -> BenchQuery:
     return load_query(path, n_points=1000, k=10)
 
 
-def _save(results_dir: Path, name: str, config: dict[str, Any], results: dict[str, Any]) -> None:
+def _save(results_dir: Path, name: str, config: dict[str, Any], run: Callable[[], dict[str, Any]]) -> None:
+    """Describe the machine (its load average before the run), run the bench, save both."""
     from bench.machine import describe_machine
     from bench.results import save_result
     from service.settings import get_settings
 
-    path = save_result(results_dir, name, describe_machine(get_settings().artifacts), config, results)
+    machine = describe_machine(get_settings().artifacts)
+    path = save_result(results_dir, name, machine, config, run())
     log.info("wrote %s", path)
 
 
@@ -90,7 +93,7 @@ def do_engine(results_dir: Path, query: Path, quick: bool, reps: int | None, war
     cfg = EngineBenchConfig(reps=reps or (30 if quick else 1000),
                             warmup=warmup if warmup is not None else (5 if quick else 50))
     engine = load_engine(get_settings())
-    _save(results_dir, "engine", config_dict(cfg), run_engine_bench(engine, _query(query), cfg))
+    _save(results_dir, "engine", config_dict(cfg), lambda: run_engine_bench(engine, _query(query), cfg))
 
 
 def do_http(results_dir: Path, query: Path, quick: bool, cache: Path, concurrency: str, load: Any,
@@ -99,7 +102,7 @@ def do_http(results_dir: Path, query: Path, quick: bool, cache: Path, concurrenc
 
     cfg = HttpBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load,
                           server_env=_env_pairs(server_env))
-    _save(results_dir, "http", cfg.as_dict(), run_http_bench(_query(query), cfg, cache))
+    _save(results_dir, "http", cfg.as_dict(), lambda: run_http_bench(_query(query), cfg, cache))
 
 
 def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: str | None, noise: float,
@@ -116,7 +119,7 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
         recall_queries=recall_queries if recall_queries is not None else (15 if quick else 63),
         warmup=3 if quick else 20)
     engine = load_engine(get_settings())
-    _save(results_dir, "catalog", cfg.as_dict(), run_catalog_bench(engine, _query(query), cfg, cache))
+    _save(results_dir, "catalog", cfg.as_dict(), lambda: run_catalog_bench(engine, _query(query), cfg, cache))
 
 
 def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any,
@@ -126,7 +129,7 @@ def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load:
 
     cfg = PeerBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load,
                           artifacts=get_settings().artifacts, server_env=_env_pairs(server_env))
-    _save(results_dir, "peer", cfg.as_dict(), run_peer_bench(_query(query), cfg, cache))
+    _save(results_dir, "peer", cfg.as_dict(), lambda: run_peer_bench(_query(query), cfg, cache))
 
 
 def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, requests: int | None,
@@ -137,7 +140,7 @@ def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, req
                                  warmup=warmup if warmup is not None else (1 if quick else 2),
                                  parse_reps=2 if quick else 5, target_faces=target_faces,
                                  server_env=_env_pairs(server_env))
-    _save(results_dir, "interactive", cfg.as_dict(), run_interactive_bench(_query(query), cfg, cache))
+    _save(results_dir, "interactive", cfg.as_dict(), lambda: run_interactive_bench(_query(query), cfg, cache))
 
 
 def do_report(results_dir: Path, doc: Path) -> None:
