@@ -8,14 +8,15 @@ networks from the config stored next to the weights.
 
 from __future__ import annotations
 
+import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from service.artifacts.files import write_file_atomic
 from training.config import TrainConfig, config_from_dict, config_to_dict
 from training.models import PlacementNet, RetrievalPair, build_models
 
@@ -30,10 +31,9 @@ def checkpoint_path(run_dir: Path) -> Path:
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     """Write a checkpoint through a temporary file and a rename (a crash never leaves half a file)."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save({"format": CHECKPOINT_FORMAT, **state}, tmp)
-    os.replace(tmp, path)
+    buf = io.BytesIO()
+    torch.save({"format": CHECKPOINT_FORMAT, **state}, buf)
+    write_file_atomic(Path(path), buf.getvalue())
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from service.artifacts.catalog import load_catalog, partial_assemblies
+from service.artifacts.files import write_file_atomic
 from service.artifacts.indexing import IndexKind, build_index, index_entry
 from service.artifacts.layout import (
     CATALOG_ARRAYS,
@@ -195,14 +196,8 @@ def _round_floats(obj: Any, digits: int = 6) -> Any:
 
 def write_catalog_json(path: Path, records: list[dict[str, Any]]) -> None:
     """catalog.json, compact: one record per line, floats to 6 significant digits (about half the size)."""
-    tmp = Path(str(path) + ".tmp")
-    with open(tmp, "w") as fh:
-        fh.write("[\n")
-        for i, rec in enumerate(records):
-            fh.write(json.dumps(_round_floats(rec), separators=(",", ":"), sort_keys=True))
-            fh.write(",\n" if i + 1 < len(records) else "\n")
-        fh.write("]\n")
-    os.replace(tmp, path)
+    lines = [json.dumps(_round_floats(rec), separators=(",", ":"), sort_keys=True) for rec in records]
+    write_file_atomic(Path(path), ("[\n" + ",\n".join(lines) + ("\n" if lines else "") + "]\n").encode())
 
 
 def folder_megabytes(folder: Path) -> dict[str, float]:

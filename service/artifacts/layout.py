@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import Any
+
+from service.artifacts.files import write_file_atomic
 
 FORMAT_VERSION = 1
 
@@ -103,14 +104,8 @@ def sha256_file(path: Path) -> str:
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
-    """Write JSON through a temporary file and a rename, so readers never see half a file."""
-    tmp = Path(str(path) + ".tmp")
-    with open(tmp, "w") as fh:
-        json.dump(obj, fh, indent=1, sort_keys=True)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    """Write JSON so that readers never see half a file (``files.write_file_atomic``)."""
+    write_file_atomic(Path(path), (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode())
 
 
 def write_manifest(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:

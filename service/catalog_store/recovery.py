@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.artifacts.files import fsync_dir
 from service.catalog_store.snapshot import read_index_file
 from service.catalog_store.store import (
     DB_FILE,
@@ -37,7 +38,6 @@ from service.catalog_store.store import (
     PENDING,
     CatalogStore,
     StoreError,
-    fsync_dir,
     geometry_name,
     raise_sequence,
     read_index_seq,

@@ -30,7 +30,8 @@ import faiss
 import numpy as np
 
 from service.artifacts.catalog import Catalog
-from service.catalog_store.store import PartGeometry, write_file_atomic
+from service.artifacts.files import write_file_atomic
+from service.catalog_store.store import PartGeometry
 
 log = logging.getLogger(__name__)
 

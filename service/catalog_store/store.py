@@ -49,6 +49,8 @@ from typing import Any
 
 import numpy as np
 
+from service.artifacts.files import fsync_dir, remove_stale_temporaries, write_file_atomic
+
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
@@ -215,62 +217,6 @@ def _row_part(row: tuple[Any, ...]) -> StoredPart:
         part_feature=np.frombuffer(feat, dtype="<f4").astype(np.float32), model_version=version,
         geometry=geometry, geometry_sha256=sha, n_vertices=nv, n_faces=nf, added_seq=added,
         deleted_seq=deleted, created_at=created)
-
-
-# --------------------------------------------------------------------------------------------
-# Durable files.
-
-
-def fsync_dir(folder: Path) -> None:
-    """Make a rename or a new file in ``folder`` durable (POSIX needs the directory synced)."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-_TMP = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.(?P<tid>\d+)\.tmp$")
-
-
-def write_file_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` so that readers see the old file or the whole new one, never a part.
-
-    Temporary file in the same folder, fsync, rename over ``path``, fsync of the folder.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view):]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
-
-
-def remove_stale_temporaries(folder: Path) -> int:
-    """Remove temporary files of ``write_file_atomic`` left by processes that no longer run."""
-    removed = 0
-    for p in Path(folder).glob(".*.tmp"):
-        m = _TMP.match(p.name)
-        if m is None:
-            continue
-        pid = int(m.group("pid"))
-        alive = True
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            alive = False
-        except PermissionError:
-            alive = True
-        if not alive or pid == os.getpid():
-            p.unlink(missing_ok=True)
-            removed += 1
-    return removed
 
 
 def encode_geometry(geometry: PartGeometry, record: dict[str, Any] | None = None,

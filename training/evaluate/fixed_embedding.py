@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from service.artifacts.files import write_file_atomic
 from service.suggest.mixture import mixture_log_likelihood
 from training.config import ModelConfig, config_to_dict
 from training.data.processed import ProcessedDataset
@@ -193,9 +195,9 @@ def save_fixed(path: Path, model: FixedEmbedding, key: str) -> None:
                 "centre": torch.from_numpy(p.centre), "components": torch.from_numpy(p.components),
                 "scale": p.scale, "explained": p.explained_variance_ratio},
     }
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    write_file_atomic(Path(path), buf.getvalue())
 
 
 def load_fixed(path: Path, key: str, model_cfg: ModelConfig, dim: int) -> FixedEmbedding | None:
