@@ -130,12 +130,17 @@ def test_uncommitted_file_is_quarantined_not_deleted_and_its_id_never_reissued(a
     assert code == 0 and "in quarantine" in out, out
 
 
-def test_verify_reports_mismatches_naming_files(tmp_path: Path, artifacts: Path) -> None:
-    data = tmp_path / "data"
+def _folder_with_three_parts(artifacts: Path, data: Path) -> Path:
+    """A data folder holding three added parts, which ``verify`` finds sound."""
     with TestClient(create_app(writable_settings(artifacts, data))) as c:
         for s in range(3):
             add_part(c, s)
     assert verify(data).ok
+    return data
+
+
+def test_verify_reports_mismatches_naming_files(tmp_path: Path, artifacts: Path) -> None:
+    data = _folder_with_three_parts(artifacts, tmp_path / "data")
     victim = data / GEOMETRY_DIR / "00000002.npz"
     victim.write_bytes(victim.read_bytes()[:-7])
     (data / GEOMETRY_DIR / "00000003.npz").unlink()
@@ -147,11 +152,7 @@ def test_verify_reports_mismatches_naming_files(tmp_path: Path, artifacts: Path)
 
 
 def test_verify_reports_an_index_that_lacks_a_live_part(tmp_path: Path, artifacts: Path) -> None:
-    data = tmp_path / "data"
-    with TestClient(create_app(writable_settings(artifacts, data))) as c:
-        for s in range(3):
-            add_part(c, s)
-    assert verify(data).ok
+    data = _folder_with_three_parts(artifacts, tmp_path / "data")
     found = read_index_file(data / INDEX_FILE)
     assert found is not None and len(found.row_ids) == 3
     # The same change number, one part fewer: what a damaged or swapped index file looks like.
