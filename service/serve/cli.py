@@ -1,19 +1,24 @@
-"""Service commands of the `complementme` CLI: serve, suggest, batch.
+"""The `complementme` command line, owned by the service: serve, suggest, batch.
 
 Each command is a thin wrapper: parse options, call the app factory or the client. Nothing here
-imports torch, so `complementme serve` runs with the service's dependencies alone.
+imports torch, so `complementme serve` runs with the service's dependencies alone. Other parts
+of the distribution add their commands through the ``complementme.commands`` entry-point group
+(``training.cli:register``: data, catalog, train, export, evaluate); a training command run
+without the train extra answers in one line which extra it needs.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import sys
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
 import typer
 
-from service.serve.logs import quiet_libraries
+from service.serve.logs import LOG_FORMAT, quiet_libraries
 
 log = logging.getLogger(__name__)
 
@@ -211,3 +216,47 @@ def register_service_commands(app: typer.Typer) -> None:
         typer.echo(f"{ok} answered, {failed} failed, {len(skipped)} skipped; wrote {out}")
         if failed:
             raise typer.Exit(1)
+
+
+# ------------------------------------------------------------------ the root command
+
+app = typer.Typer(help="ComplementMe: component suggestions for 3D modeling.", no_args_is_help=True,
+                  rich_markup_mode=None)
+
+
+@app.callback()
+def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format=LOG_FORMAT)
+    quiet_libraries()
+
+
+register_service_commands(app)
+
+# Where other packages of the distribution register their commands: each entry point is a
+# function taking the root Typer app.
+COMMANDS_GROUP = "complementme.commands"
+
+# Modules of pyproject's `train` extra (tests/training/test_cli_extras.py keeps the two equal):
+# a serve-only install (`pip install -e .`, the Docker image) lacks them.
+TRAIN_EXTRA_MODULES = frozenset({"torch", "onnx", "onnxscript", "matplotlib"})
+
+
+def load_commands(root: typer.Typer) -> None:
+    """Add the commands registered under ``COMMANDS_GROUP`` (training's, when it is installed)."""
+    for entry in entry_points(group=COMMANDS_GROUP):
+        entry.load()(root)
+
+
+def run() -> None:
+    """The `complementme` entry point: the CLI, with a one-line answer when the train extra is missing."""
+    try:
+        load_commands(app)
+        app()
+    except ModuleNotFoundError as exc:
+        missing = (exc.name or "").split(".")[0]
+        if missing not in TRAIN_EXTRA_MODULES:
+            raise
+        command = " ".join(a for a in sys.argv[1:3] if not a.startswith("-")) or "this command"
+        typer.echo(f"error: `complementme {command}` needs {missing}, from the train extra: "
+                   "pip install -e \".[train]\" (see the README for torch's CPU build)", err=True)
+        sys.exit(2)
