@@ -148,13 +148,16 @@ def _machine(res: dict[str, dict[str, Any]]) -> list[str]:
         f"- Artifacts: `{art.get('model_version')}` (created {art.get('created')}, "
         f"{art.get('part_count')} parts, {art.get('n_points')} network points)",
         "",
-        "| Benchmark | Date (UTC) | Load average at start | Command |",
-        "|---|---|---|---|",
+        "| Benchmark | Date (UTC) | Host (CPU, AVX flags) | Load average at start | Command |",
+        "|---|---|---|---|---|",
     ]
     for name, data in res.items():
+        # Each result names its own host: the runs of one report may come from different machines
+        # (the lines above describe the first result's).
         m = data["machine"]
         load = ", ".join(str(x) for x in m.get("load_average_at_start") or []) or "-"
-        lines.append(f"| {name} | {m['date']} | {load} | `{m['command']}` |")
+        host = f"{m['cpu_model']} ({', '.join(m['cpu_flags']) or 'no AVX flags'})"
+        lines.append(f"| {name} | {m['date']} | {host} | {load} | `{m['command']}` |")
     return lines
 
 
