@@ -15,7 +15,9 @@ import pwd
 import shutil
 import subprocess
 import tempfile
+import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import psycopg
@@ -103,3 +105,12 @@ class PostgresCluster:
         with contextlib.suppress(RuntimeError):  # already stopped
             self.stop()
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def wait_until(check: Callable[[], bool], what: str, timeout: float = 120.0, every: float = 0.01) -> None:
+    """Poll ``check`` until it holds (replicas apply changes in the background); fail after
+    ``timeout`` seconds saying ``what`` did not happen."""
+    deadline = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < deadline, f"timed out waiting until {what}"
+        time.sleep(every)

@@ -31,7 +31,7 @@ import numpy as np
 import psycopg
 import trimesh
 from catalog_testkit import AUTH, LiveServer, part_mesh
-from pg_testkit import PostgresCluster
+from pg_testkit import PostgresCluster, wait_until
 
 from service.geometry.inputs import points_to_base64
 
@@ -47,6 +47,11 @@ def replica(artifacts: Path, folder: Path, url: str, poll_seconds: float = 1) ->
                       database_migrate="true", catalog_poll_seconds=poll_seconds, max_queue=64,
                       database_timeout=5,
                       database_retry_after=1)
+
+
+def two_replicas(artifacts: Path, tmp_path: Path, url: str) -> dict[str, LiveServer]:
+    """Replicas "a" and "b" of one database (not started), each in a folder of its own."""
+    return {n: replica(artifacts, tmp_path / n, url) for n in ("a", "b")}
 
 
 def start_all(servers: list[LiveServer]) -> None:
@@ -181,10 +186,8 @@ def reader(url: str, name: str, stop: threading.Event, log: Log, shipped_query: 
 
 
 def wait_for(url: str, status: int, timeout: float = 60) -> None:
-    deadline = time.monotonic() + timeout
-    while httpx.get(url, timeout=30).status_code != status:
-        assert time.monotonic() < deadline, f"{url} did not answer {status}"
-        time.sleep(0.02)
+    wait_until(lambda: httpx.get(url, timeout=30).status_code == status, f"{url} answered {status}",
+               timeout, every=0.02)
 
 
 def shipped_query() -> str:
@@ -377,18 +380,16 @@ def acked_on(log: Log, round_: int, name: str) -> int:
 def test_replica_killed_mid_writes_loses_no_acknowledged_part(artifacts: Path, tmp_path: Path,
                                                               postgres: PostgresCluster) -> None:
     url = postgres.new_database()
-    a, b = replica(artifacts, tmp_path / "a", url), replica(artifacts, tmp_path / "b", url)
-    servers = {"a": a, "b": b}
+    servers = two_replicas(artifacts, tmp_path, url)
+    a, b = servers["a"], servers["b"]
     log = Log()
     try:
         start_all([a, b])
         for round_, kill_after in enumerate(KILL_AFTER):
             before = acked_on(log, round_, "b")
             stop, threads = run_writers(servers, 3, log, round_)
-            deadline = time.monotonic() + 120
-            while acked_on(log, round_, "b") - before < kill_after:
-                assert time.monotonic() < deadline, f"adds on b were not acknowledged: {log.errors[:5]}"
-                time.sleep(0.002)
+            wait_until(lambda r=round_, n=before + kill_after: acked_on(log, r, "b") >= n,
+                       f"{kill_after} adds on b were acknowledged ({log.errors[:5]})", every=0.002)
             b.kill()  # SIGKILL with adds in flight on b, and a writing on
             killed_at = acked_on(log, round_, "b")
             time.sleep(0.3)
@@ -416,8 +417,8 @@ def test_replica_killed_mid_writes_loses_no_acknowledged_part(artifacts: Path, t
 def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts: Path, tmp_path: Path,
                                                                        own_postgres: PostgresCluster) -> None:
     url = own_postgres.new_database()
-    a, b = replica(artifacts, tmp_path / "a", url), replica(artifacts, tmp_path / "b", url)
-    servers = {"a": a, "b": b}
+    servers = two_replicas(artifacts, tmp_path, url)
+    a, b = servers["a"], servers["b"]
     log = Log()
     query = shipped_query()
     try:
@@ -428,10 +429,7 @@ def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts
         for t in readers:
             t.start()
         stop, threads = run_writers(servers, 2, log, 0, retry_unavailable=True)
-        deadline = time.monotonic() + 120
-        while len(log.acks) < 10:
-            assert time.monotonic() < deadline, f"no adds acknowledged: {log.errors[:5]}"
-            time.sleep(0.01)
+        wait_until(lambda: len(log.acks) >= 10, f"10 adds were acknowledged ({log.errors[:5]})")
         # From here on readers ask for parts both replicas serve: an add that commits just as the
         # database goes away is acknowledged (it is stored) but served only once it is back.
         with log.lock:
@@ -462,10 +460,8 @@ def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts
         reads_during = dict(log.statuses.get("read", {}))
         own_postgres.start()
         assert degraded == {"a": True, "b": True}, degraded
-        deadline = time.monotonic() + 120
-        while len(log.acks) < acked_before_outage + 10:
-            assert time.monotonic() < deadline, f"no adds acknowledged after the restart: {log.errors[:5]}"
-            time.sleep(0.05)
+        wait_until(lambda: len(log.acks) >= acked_before_outage + 10,
+                   f"adds were acknowledged after the restart ({log.errors[:5]})", every=0.05)
         stop.set()
         for t in threads:
             t.join(timeout=120)

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +16,7 @@ import psycopg
 import pytest
 from catalog_testkit import AUTH, add_part, part_mesh, writable_settings
 from fastapi.testclient import TestClient
-from pg_testkit import PG_PASSWORD, PG_USER, PostgresCluster
+from pg_testkit import PG_PASSWORD, PG_USER, PostgresCluster, wait_until
 
 from service.api.app import create_app
 from service.catalog_store.pg_store import SCHEMA_VERSION, PgCatalogStore
@@ -41,14 +39,6 @@ def new_part(seed: int, category: str = "widget") -> NewPart:
                    bbox_min=-np.ones(3), bbox_max=np.ones(3), area=1.0,
                    embedding=rng.normal(size=8).astype(np.float32),
                    part_feature=rng.normal(size=4).astype(np.float32), model_version="m1", geometry=geometry)
-
-
-def wait_for(check: Callable[[], bool], what: str, timeout: float = 30.0) -> None:
-    """Poll ``check`` until it holds (the follower applies changes in the background)."""
-    deadline = time.monotonic() + timeout
-    while not check():
-        assert time.monotonic() < deadline, f"timed out waiting until {what}"
-        time.sleep(0.02)
 
 
 def test_schema_is_applied_by_migrate_once(database_url: str) -> None:
@@ -151,10 +141,10 @@ def test_two_replicas_in_one_process_follow_each_other(artifacts: Path, database
         assert r.status_code == 201, r.text
         pid = r.json()["part_id"]
         assert a.get(f"/parts/{pid}").status_code == 200  # at once on the replica that added it
-        wait_for(lambda: b.get(f"/parts/{pid}").status_code == 200, f"replica b serves {pid}")
+        wait_until(lambda: b.get(f"/parts/{pid}").status_code == 200, f"replica b serves {pid}")
         assert _suggested(b, 1, "pg-one") == [pid]
         assert b.delete(f"/parts/{pid}", headers=AUTH).status_code == 204
-        wait_for(lambda: a.get(f"/parts/{pid}").status_code == 404, f"replica a drops {pid}")
+        wait_until(lambda: a.get(f"/parts/{pid}").status_code == 404, f"replica a drops {pid}")
         for client in (a, b):
             status = client.get("/catalog").json()
             assert status["backend"] == "postgres"
@@ -163,7 +153,7 @@ def test_two_replicas_in_one_process_follow_each_other(artifacts: Path, database
             ready = client.get("/readyz").json()
             assert ready["status"] == "ready"
             assert ready["catalog"]["database"] == "up"
-            wait_for(lambda c=client: c.get("/readyz").json()["catalog"]["lag_changes"] == 0, "no lag")
+            wait_until(lambda c=client: c.get("/readyz").json()["catalog"]["lag_changes"] == 0, "no lag")
             metrics = client.get("/metrics").text
             assert "complementme_catalog_applied_change 2.0" in metrics
             assert "complementme_catalog_database_up 1.0" in metrics
@@ -176,7 +166,7 @@ def test_two_replicas_in_one_process_follow_each_other(artifacts: Path, database
         finally:
             other.close()
         for client in (a, b):
-            wait_for(lambda c=client: c.get(f"/parts/{foreign.part_id}").status_code == 200, "foreign part")
+            wait_until(lambda c=client: c.get(f"/parts/{foreign.part_id}").status_code == 200, "foreign part")
             status = client.get("/catalog").json()
             assert status["left_out"] == [] and status["added_parts"] == 1, status
 
@@ -214,10 +204,10 @@ def test_an_outage_is_reported_writes_refused_at_once_and_recovered(artifacts: P
     # database is back the replica says so and takes writes again, without a restart.
     settings = pg_settings(artifacts, own_postgres.new_database())
     with TestClient(create_app(settings)) as client:
-        wait_for(lambda: client.get("/readyz").json()["status"] == "ready", "ready")
+        wait_until(lambda: client.get("/readyz").json()["status"] == "ready", "ready")
         assert add_part(client, 1, category="before").status_code == 201
         own_postgres.stop()
-        wait_for(lambda: client.get("/readyz").json()["status"] == "degraded", "degraded")
+        wait_until(lambda: client.get("/readyz").json()["status"] == "degraded", "degraded")
         ready = client.get("/readyz")
         assert ready.status_code == 200  # still serving from the last snapshot
         assert ready.json()["catalog"]["database"] == "unreachable"
@@ -230,7 +220,7 @@ def test_an_outage_is_reported_writes_refused_at_once_and_recovered(artifacts: P
         assert int(refused.headers["Retry-After"]) >= 1
         assert client.get("/catalog").json()["added_parts"] == 1  # reads go on
         own_postgres.start()
-        wait_for(lambda: client.get("/readyz").json()["status"] == "ready", "ready again", timeout=60)
+        wait_until(lambda: client.get("/readyz").json()["status"] == "ready", "ready again", timeout=60)
         assert add_part(client, 3, category="after").status_code == 201
         assert client.get("/catalog").json()["added_parts"] == 2
 
