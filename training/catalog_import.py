@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from service.geometry.frames import Frame
 from training.data.ingest import IngestConfig, ShapeFileError, find_shape_files, load_shape_file
-from training.data.preprocess import PreprocessConfig, preprocess_shape
+from training.data.preprocess import PreprocessConfig, Rejected, preprocess_shape
 
 log = logging.getLogger(__name__)
 
@@ -101,9 +101,9 @@ def shape_components(path: Path, category: str | None, up_axis: str = "y",
                                  "no_surface")
     config = preprocess or PreprocessConfig(min_components=1, max_components=64)
     result = preprocess_shape(shape, config)
-    if "reason" in result:
-        raise ShapeFileError(path, result["reason"], result.get("code", "invalid"))
-    parts = zip(result["meshes"], result["translation"], result["labels"], strict=True)
+    if isinstance(result, Rejected):
+        raise ShapeFileError(path, result.reason, result.code)
+    parts = zip(result.meshes, result.translation, result.labels, strict=True)
     comps = [Component((v + t).astype(np.float32), f.astype(np.int32), label) for (v, f), t, label in parts]
     return shape.shape_id, shape.category, shape.style, comps
 

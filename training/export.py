@@ -43,7 +43,7 @@ from service.artifacts.layout import (
     graph_outputs,
     write_manifest,
 )
-from service.artifacts.loading import session_options
+from service.artifacts.loading import build_session
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained, load_trained_config
 from training.config import config_to_dict
@@ -148,12 +148,6 @@ def export_graphs(pair: RetrievalPair, placement: PlacementNet, folder: Path, op
                          opset)
 
 
-def open_session(path: Path) -> ort.InferenceSession:
-    """A graph opened with the service's session options (one owner: ``service.artifacts.loading``)."""
-    return ort.InferenceSession(str(path), sess_options=session_options(max(1, torch.get_num_threads())),
-                                providers=["CPUExecutionProvider"])
-
-
 def run_chunked(session: ort.InferenceSession, points: np.ndarray, chunk: int) -> np.ndarray:
     """Run a single-input graph over ``points`` in chunks; returns the first output, concatenated.
 
@@ -179,7 +173,7 @@ def tuning_means(folder: Path, part_count: int, dim: int, n_points: int, opts: E
     clouds = partial_assemblies(catalog, opts.index_tuning_shapes, n_points, opts.seed, split="train")
     if not clouds:
         return None
-    session = open_session(folder / GRAPH_FILES["g"])
+    session = build_session(folder / GRAPH_FILES["g"], torch.get_num_threads())
     means = session.run(["means"], {GRAPH_INPUTS["g"][0]: np.stack(clouds)})[0]
     return np.ascontiguousarray(means.reshape(-1, means.shape[-1]), dtype=np.float32)
 
@@ -266,8 +260,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
                      ) -> dict[str, Any]:
     cfg = trained.config
     export_graphs(trained.pair, trained.placement, folder, opts.opset)
-    f_sess = open_session(folder / GRAPH_FILES["f"])
-    part_sess = open_session(folder / GRAPH_FILES["h_part"])
+    f_sess = build_session(folder / GRAPH_FILES["f"], torch.get_num_threads())
+    part_sess = build_session(folder / GRAPH_FILES["h_part"], torch.get_num_threads())
 
     # Embeddings and placement features from the shipped graphs, on n_points samples per part.
     parts = sample_parts(ds, n_points, opts.seed)

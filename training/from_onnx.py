@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 from onnx import numpy_helper
 from torch import nn
 
 from service.artifacts.layout import GRAPH_FILES, GRAPH_INPUTS, GRAPH_OUTPUTS, MANIFEST
+from service.artifacts.loading import build_session
 from training.checkpoint import Trained
 from training.config import ModelConfig, TrainConfig, model_config_from_dict
 from training.export import example_inputs, graph_modules
@@ -146,7 +146,7 @@ def _tensor(value: np.ndarray, like: torch.Tensor, what: str) -> torch.Tensor:
 def check_parity(module: nn.Module, graph: str, path: Path, placement: PlacementNet) -> None:
     """Run the graph in onnxruntime and ``module`` in torch on one input; ``ValueError`` if they differ."""
     inputs = example_inputs(graph, placement, batch=3, n=128)
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    session = build_session(path, torch.get_num_threads())
     expected = session.run(GRAPH_OUTPUTS[graph], {name: x.numpy() for name, x in
                                                   zip(GRAPH_INPUTS[graph], inputs, strict=True)})
     with torch.no_grad():

@@ -83,17 +83,23 @@ def session_options(threads: int) -> ort.SessionOptions:
     return opts
 
 
+def build_session(path: Path, threads: int) -> ort.InferenceSession:
+    """One ONNX graph as a CPU session with ``session_options(threads)``: the one way a session is
+    built, by the server, the exporter (``training.export``) and the weight read-back
+    (``training.from_onnx``) alike. onnxruntime's own errors pass through untouched."""
+    # onnxruntime's telemetry is off (ORT_DISABLE_TELEMETRY, set in service/__init__.py); this
+    # also stops the events of a build that honours only the API.
+    ort.disable_telemetry_events()
+    return ort.InferenceSession(str(path), sess_options=session_options(threads),
+                                providers=["CPUExecutionProvider"])
+
+
 def open_session(path: Path, graph: str, threads: int) -> ort.InferenceSession:
     """Open one graph and check its input and output names against the artifact contract."""
-    # onnxruntime's telemetry is off (ORT_DISABLE_TELEMETRY, set in service/__init__.py); this
-    # also stops the events of a build that honours only the API. (training/export.py builds its
-    # own sessions; it imports service first, so the variable covers it too.)
-    ort.disable_telemetry_events()
     if not path.is_file():
         raise ArtifactError(f"artifact file missing: {path}")
     try:
-        sess = ort.InferenceSession(str(path), sess_options=session_options(threads),
-                                    providers=["CPUExecutionProvider"])
+        sess = build_session(path, threads)
     except Exception as exc:  # onnxruntime raises its own untyped errors on bad files
         raise ArtifactError(f"{path}: cannot be opened as an ONNX graph ({exc})") from exc
     outputs = [o.name for o in sess.get_outputs()]

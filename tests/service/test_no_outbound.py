@@ -9,7 +9,7 @@ loopback resolvers count as outbound too.
 
 The window: start-up plus ``COMPLEMENTME_TEST_OUTBOUND_SECONDS`` (default 20) of mixed requests.
 The lookups the issue saw came about every 2 minutes; with onnxruntime's telemetry switched off
-where the sessions are built (``service.artifacts.loading.open_session``) and FastAPI's OTLP exporters off
+where the sessions are built (``service.artifacts.loading.build_session``) and FastAPI's OTLP exporters off
 (``create_app``), no code path in the service is left that sends. A manual run with 150 s found
 nothing either (see docs/deploy.md); set the variable to 150 to repeat it.
 """

@@ -251,12 +251,12 @@ def test_triangulate_covers_a_non_convex_polygon_exactly():
 def test_every_style_survives_preprocessing_with_3_to_8_connected_components():
     """The contract with Section 4's preprocessing: bolts and overlays merge away, repeated parts
     group, and what is left is a connected contact graph of 3..8 components."""
-    from training.data.preprocess import PreprocessConfig, preprocess_shape
+    from training.data.preprocess import Kept, PreprocessConfig, preprocess_shape
 
     config = PreprocessConfig(points_per_component=32)
     for category, style in ALL_STYLES:
         shape = generate_shape(category, _index_of(category, style, 0), seed=0)
         result = preprocess_shape(shape, config)
-        assert "reason" not in result, (shape.shape_id, style, result.get("reason"))
-        assert 3 <= result["n_components"] <= 8, (shape.shape_id, style, result["n_components"])
-        assert None not in result["labels"]
+        assert isinstance(result, Kept), (shape.shape_id, style, result)
+        assert 3 <= result.n_components <= 8, (shape.shape_id, style, result.n_components)
+        assert None not in result.labels

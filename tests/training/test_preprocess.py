@@ -9,7 +9,14 @@ import pytest
 import trimesh
 
 from service.geometry.mesh import points_to_mesh_distance, sample_surface
-from training.data.preprocess import PreprocessConfig, preprocess_folder, preprocess_shape
+from training.data.preprocess import (
+    Kept,
+    Merges,
+    PreprocessConfig,
+    Rejected,
+    preprocess_folder,
+    preprocess_shape,
+)
 from training.data.processed import ProcessedDataset
 from training.data.shapes import RawPiece, RawShape
 from training.data.stats import HISTOGRAM_PNG, TABLE_TXT, write_stats
@@ -39,20 +46,29 @@ def legs(keys: bool = True) -> list[RawPiece]:
             for i, (x, z) in enumerate([(-0.45, -0.45), (0.45, -0.45), (-0.45, 0.45), (0.45, 0.45)])]
 
 
-def vertices_by_label(result: dict) -> dict[str, int]:
-    return {label: len(v) for label, (v, _) in zip(result["labels"], result["meshes"], strict=True)}
+def as_kept(result: Kept | Rejected) -> Kept:
+    assert isinstance(result, Kept), result
+    return result
 
 
-def edges_by_label(result: dict) -> set[tuple[str, ...]]:
-    return {tuple(sorted((result["labels"][i], result["labels"][j]))) for i, j in result["edges"].tolist()}
+def as_rejected(result: Kept | Rejected) -> Rejected:
+    assert isinstance(result, Rejected), result
+    return result
+
+
+def vertices_by_label(result: Kept) -> dict[str, int]:
+    return {str(label): len(v) for label, (v, _) in zip(result.labels, result.meshes, strict=True)}
+
+
+def edges_by_label(result: Kept) -> set[tuple[str, ...]]:
+    return {tuple(sorted((str(result.labels[i]), str(result.labels[j])))) for i, j in result.edges.tolist()}
 
 
 def test_small_piece_merges_into_its_largest_neighbour() -> None:
     # A bolt at the seat/back joint touches both; the seat has the larger area.
     bolt = box((0.04, 0.04, 0.04), (0, 0.57, -0.42), "bolt", label="bolt")
-    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), bolt]), CONFIG)
-    assert "reason" not in result
-    assert result["merges"] == {"size": 1, "overlap": 0, "identical": 0}
+    result = as_kept(preprocess_shape(RawShape("s", "chair", [seat(), back(), bolt]), CONFIG))
+    assert result.merges == Merges(size=1, overlap=0, identical=0)
     assert vertices_by_label(result) == {"seat": 16, "back": 8}  # the bolt went to the seat
     assert edges_by_label(result) == {("back", "seat")}
 
@@ -60,9 +76,8 @@ def test_small_piece_merges_into_its_largest_neighbour() -> None:
 @pytest.mark.parametrize("keys", [True, False])
 def test_identical_legs_become_one_component(keys: bool) -> None:
     # Legs do not touch each other; with or without shared geometry keys they are one component.
-    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs(keys)]), CONFIG)
-    assert "reason" not in result
-    assert result["merges"]["identical"] == 3
+    result = as_kept(preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs(keys)]), CONFIG))
+    assert result.merges.identical == 3
     assert vertices_by_label(result) == {"seat": 8, "back": 8, "leg": 32}
     # The legs' component touches the seat only, through the union of its members' edges.
     assert edges_by_label(result) == {("back", "seat"), ("leg", "seat")}
@@ -70,16 +85,16 @@ def test_identical_legs_become_one_component(keys: bool) -> None:
 
 def test_different_pieces_are_not_grouped_as_identical() -> None:
     short_leg = box((0.1, 0.3, 0.1), (0.45, 0.3, 0.45), "short")
-    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), legs()[0], short_leg]), CONFIG)
-    assert result["merges"]["identical"] == 0
-    assert result["n_components"] == 4
+    result = as_kept(preprocess_shape(RawShape("s", "chair", [seat(), back(), legs()[0], short_leg]), CONFIG))
+    assert result.merges.identical == 0
+    assert result.n_components == 4
 
 
 def test_overlapping_pieces_are_grouped() -> None:
     # A thin cushion lying on the seat: every cushion point is within tau_hausdorff of the seat.
     cushion = box((0.9, 0.03, 0.9), (0, 0.565, 0.02), "cushion", label="cushion")
-    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), cushion]), CONFIG)
-    assert result["merges"] == {"size": 0, "overlap": 1, "identical": 0}
+    result = as_kept(preprocess_shape(RawShape("s", "chair", [seat(), back(), cushion]), CONFIG))
+    assert result.merges == Merges(size=0, overlap=1, identical=0)
     # The majority label by area: the seat has more area than the cushion.
     assert vertices_by_label(result) == {"seat": 16, "back": 8}
 
@@ -95,45 +110,45 @@ def test_contact_edges_follow_tau_proximity() -> None:
     centre = (whole.min(axis=0) + whole.max(axis=0)) / 2
     radius = np.linalg.norm(whole - centre, axis=1).max()
     tau = CONFIG.tau_proximity
-    near = preprocess_shape(_pair_with_gap(0.7 * tau * radius), CONFIG)
-    assert near["edges"].tolist() == [[0, 1]]
-    far = preprocess_shape(_pair_with_gap(1.5 * tau * radius), CONFIG)
-    assert far["code"] == "disconnected" and far["n_components"] == 2
+    near = as_kept(preprocess_shape(_pair_with_gap(0.7 * tau * radius), CONFIG))
+    assert near.edges.tolist() == [[0, 1]]
+    far = as_rejected(preprocess_shape(_pair_with_gap(1.5 * tau * radius), CONFIG))
+    assert far.code == "disconnected" and far.n_components == 2
 
 
 def test_distant_pieces_are_not_connected() -> None:
     shape = RawShape("s", "chair", [seat(), box((0.5, 0.5, 0.5), (3, 3, 3), "floating")])
-    result = preprocess_shape(shape, CONFIG)
-    assert result["code"] == "disconnected"
-    assert "not connected" in result["reason"]
+    result = as_rejected(preprocess_shape(shape, CONFIG))
+    assert result.code == "disconnected"
+    assert "not connected" in result.reason
 
 
 def test_component_count_limits() -> None:
-    one = preprocess_shape(RawShape("s", "x", [seat()]), CONFIG)
-    assert one["code"] == "too_few_components"
+    one = as_rejected(preprocess_shape(RawShape("s", "x", [seat()]), CONFIG))
+    assert one.code == "too_few_components"
     # A row of touching boxes of distinct sizes: none is small, none identical, none overlapping.
     row = [box((0.5, 0.5 + 0.05 * i, 0.5), (0.5 * i, 0, 0), f"b{i}") for i in range(10)]
-    many = preprocess_shape(RawShape("s", "x", row), CONFIG)
-    assert many["code"] == "too_many_components" and many["n_components"] == 10
+    many = as_rejected(preprocess_shape(RawShape("s", "x", row), CONFIG))
+    assert many.code == "too_many_components" and many.n_components == 10
 
 
 def test_piece_order_does_not_matter() -> None:
     pieces = [seat(), back(), *legs()]
-    a = preprocess_shape(RawShape("s", "chair", pieces), CONFIG)
-    b = preprocess_shape(RawShape("s", "chair", pieces[::-1]), CONFIG)
-    assert np.array_equal(a["points"], b["points"]) and np.array_equal(a["edges"], b["edges"])
+    a = as_kept(preprocess_shape(RawShape("s", "chair", pieces), CONFIG))
+    b = as_kept(preprocess_shape(RawShape("s", "chair", pieces[::-1]), CONFIG))
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.edges, b.edges)
 
 
 def test_outputs_are_centred_meshes_with_surface_samples() -> None:
-    result = preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs()]), CONFIG)
-    assert result["points"].shape == (3, 256, 3) and result["points"].dtype == np.float16
-    for k, (v, f) in enumerate(result["meshes"]):
+    result = as_kept(preprocess_shape(RawShape("s", "chair", [seat(), back(), *legs()]), CONFIG))
+    assert result.points.shape == (3, 256, 3) and result.points.dtype == np.float16
+    for k, (v, f) in enumerate(result.meshes):
         assert np.allclose((v.min(axis=0) + v.max(axis=0)) / 2, 0, atol=1e-6)
-        dist = points_to_mesh_distance(result["points"][k].astype(np.float64), v, f)
+        dist = points_to_mesh_distance(result.points[k].astype(np.float64), v, f)
         assert dist.max() < FLOAT16_TOL
-        assert result["area"][k] == pytest.approx(trimesh.Trimesh(v, f, process=False).area, rel=1e-5)
+        assert result.area[k] == pytest.approx(trimesh.Trimesh(v, f, process=False).area, rel=1e-5)
     # Translations put the components back where they were in the unit-radius frame.
-    meshes, translation = result["meshes"], result["translation"]
+    meshes, translation = result.meshes, result.translation
     placed = np.concatenate([v + t for (v, _), t in zip(meshes, translation, strict=True)])
     assert np.linalg.norm(placed - (placed.min(axis=0) + placed.max(axis=0)) / 2, axis=1).max() == \
         pytest.approx(1.0, abs=1e-5)
@@ -144,15 +159,14 @@ def test_point_only_components_use_their_points() -> None:
     s, b = seat(), back()
     pieces = [RawPiece(p.name, sample_surface(p.vertices, p.faces, 600, seed=i).astype(np.float64),
                        np.zeros((0, 3), np.int64), p.name, p.name) for i, p in enumerate((s, b))]
-    result = preprocess_shape(RawShape("pc", "chair", pieces), CONFIG)
-    assert "reason" not in result, result.get("reason")
-    assert result["edges"].tolist() == [[0, 1]]
-    assert result["points"].shape == (2, 256, 3)
-    assert result["area"].tolist() == pytest.approx([0.5, 0.5])
+    result = as_kept(preprocess_shape(RawShape("pc", "chair", pieces), CONFIG))
+    assert result.edges.tolist() == [[0, 1]]
+    assert result.points.shape == (2, 256, 3)
+    assert result.area.tolist() == pytest.approx([0.5, 0.5])
     # The cached points are input points (in the normalised, centred frame).
-    v, f = result["meshes"][0]
+    v, f = result.meshes[0]
     assert len(f) == 0 and len(v) == 600
-    cached = result["points"][0].astype(np.float64)
+    cached = result.points[0].astype(np.float64)
     assert np.linalg.norm(cached[:, None] - v[None], axis=-1).min(axis=1).max() < FLOAT16_TOL
 
 

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from service.geometry.mesh import points_to_mesh_distance
-from training.data.preprocess import PreprocessConfig, assemble, preprocess_shape
+from training.data.preprocess import Kept, PreprocessConfig, ShapeRecord, assemble, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.sampling import (
     TripletSampler,
@@ -56,9 +56,8 @@ def dataset() -> ProcessedDataset:
     results = []
     for shape in [chair(rng, i) for i in range(4)] + [lamp(rng, i) for i in range(3)]:
         r = preprocess_shape(shape, config)
-        assert "reason" not in r, r.get("reason")
-        r.update(shape_id=shape.shape_id, category=shape.category, style=None, source="test")
-        results.append(r)
+        assert isinstance(r, Kept), r
+        results.append(ShapeRecord(shape.shape_id, shape.category, None, "test", r))
     return assemble(results, config)
 
 

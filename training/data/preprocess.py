@@ -29,9 +29,12 @@ import multiprocessing
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+from scipy.cluster.hierarchy import DisjointSet
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -77,6 +80,66 @@ class PreprocessConfig:
     # Two components are identical up to translation when their centred vertex sets match
     # within this distance (unit-radius frame).
     identical_tolerance: float = 1e-3
+
+
+# Why a shape is left out: its file, its geometry, or its components after merging.
+RejectCode = Literal["unreadable", "invalid", "too_few_components", "too_many_components", "disconnected"]
+
+
+@dataclass(frozen=True)
+class Merges:
+    """Unions done by each merge rule of Section 4 (size, overlap, identical)."""
+
+    size: int = 0
+    overlap: int = 0
+    identical: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Kept:
+    """A shape that passed: its components, in the order of their first piece's name.
+
+    Shapes:
+        points (C, P, 3) float16 cached surface samples, centred at each component's box centre;
+        translation (C, 3) float32 those centres; area (C,) float32; edges (E, 2) int32 local
+        indices (i < j); meshes C x ((V, 3) float32, (F, 3) int32) centred meshes; labels C
+        majority labels (or None).
+    """
+
+    pieces: int
+    merges: Merges
+    points: np.ndarray
+    translation: np.ndarray
+    area: np.ndarray
+    edges: np.ndarray
+    meshes: list[tuple[np.ndarray, np.ndarray]]
+    labels: list[str | None]
+
+    @property
+    def n_components(self) -> int:
+        return len(self.translation)
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A shape that is left out, and why (``n_components`` is 0 when merging never ran)."""
+
+    pieces: int
+    merges: Merges
+    n_components: int
+    code: RejectCode
+    reason: str
+
+
+@dataclass(frozen=True)
+class ShapeRecord:
+    """One shape file's outcome, and where it came from (``source``: path under the raw folder)."""
+
+    shape_id: str
+    category: str
+    style: str | None
+    source: str
+    outcome: Kept | Rejected
 
 
 # --------------------------------------------------------------------------------------------
@@ -223,29 +286,30 @@ def _contact_edges(pieces: list[_Piece], measure: _Measure, trees: list[cKDTree]
 
 
 class _Groups:
-    """Union-find over pieces, with per-group caches for the merge rules."""
+    """Groups of pieces (scipy's disjoint sets), with per-group caches for the merge rules.
+
+    A group is named by its smallest piece index: the name does not depend on the order of the
+    merges, and sorted names put the components in the order of their first piece.
+    """
 
     def __init__(self, pieces: list[_Piece]):
         self.pieces = pieces
-        self.parent = list(range(len(pieces)))
+        self._sets = DisjointSet(range(len(pieces)))
+        self._least = list(range(len(pieces)))   # by scipy's root: the smallest member
         self._tree: dict[int, cKDTree] = {}
         self._diagonal: dict[int, float] = {}
 
     def find(self, i: int) -> int:
-        while self.parent[i] != i:
-            self.parent[i] = self.parent[self.parent[i]]
-            i = self.parent[i]
-        return i
+        return self._least[self._sets[i]]
 
     def union(self, i: int, j: int) -> bool:
         ri, rj = self.find(i), self.find(j)
-        if ri == rj:
+        if not self._sets.merge(i, j):
             return False
-        keep, drop = min(ri, rj), max(ri, rj)
-        self.parent[drop] = keep
+        self._least[self._sets[i]] = min(ri, rj)
         for cache in (self._tree, self._diagonal):
-            cache.pop(keep, None)
-            cache.pop(drop, None)
+            cache.pop(ri, None)
+            cache.pop(rj, None)
         return True
 
     def members(self) -> dict[int, list[int]]:
@@ -364,28 +428,17 @@ def _merge_identical(groups: _Groups, tol: float) -> int:
 
 def _connected(n: int, edges: list[tuple[int, int]]) -> int:
     """Number of connected parts of a graph over nodes 0..n-1."""
-    parent = list(range(n))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i, j in edges:
-        parent[find(i)] = find(j)
-    return len({find(i) for i in range(n)})
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return int(connected_components(graph, directed=False)[0])
 
 
-def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> dict[str, Any]:
+def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> Kept | Rejected:
     """Merge one shape's pieces into components and build its contact graph.
 
     Returns:
-        a dict with ``merges`` ({"size", "overlap", "identical"}: unions done), ``pieces`` and
-        ``n_components``; ``reason`` (why the shape is rejected) or the kept shape's arrays:
-        ``points`` (C, P, 3) float16, ``translation`` (C, 3) float32, ``area`` (C,) float32,
-        ``edges`` (E, 2) int32 local indices (i < j), ``meshes`` list of ((V, 3) float32,
-        (F, 3) int32) centred meshes, and ``labels`` (majority label per component or None).
+        ``Kept`` (the components' arrays) or ``Rejected`` (why not); both count the pieces and
+        the unions each merge rule did.
     """
     # Loaders list scene nodes in their own order: sort by name so the result depends on the
     # shape alone (components come out in the order of their first piece's name).
@@ -394,48 +447,58 @@ def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> dict[str, Any
                      shape.source)
     ss = shape_seed(config, shape.category, shape.shape_id)
     prep_ss, out_ss = ss.spawn(2)
-    result: dict[str, Any] = {"pieces": len(shape.pieces),
-                              "merges": {"size": 0, "overlap": 0, "identical": 0}}
     try:
         pieces = _prepare_pieces(shape, config, prep_ss)
     except (MeshError, ValueError) as err:
-        result.update(n_components=0, reason=f"invalid geometry: {err}", code="invalid")
-        return result
-    measure = _Measure(config)
-    trees = [cKDTree(p.points) for p in pieces]
-    edges = _contact_edges(pieces, measure, trees)
-    groups = _Groups(pieces)
-    result["merges"]["size"] = _merge_small(groups, edges, config.tau_size)
-    result["merges"]["overlap"] = _merge_overlapping(groups, edges, measure)
-    result["merges"]["identical"] = _merge_identical(groups, config.identical_tolerance)
-
+        return Rejected(len(shape.pieces), Merges(), 0, "invalid", f"invalid geometry: {err}")
+    groups, edges, merges = _merge(pieces, config)
     members = groups.members()
     roots = sorted(members)  # a group's root is its smallest piece index: a stable order
     index = {r: k for k, r in enumerate(roots)}
     comp_edges = sorted({(min(index[a], index[b]), max(index[a], index[b]))
                          for a, nbrs in groups.adjacency(edges).items() for b in nbrs})
-    n = len(roots)
-    result["n_components"] = n
+    rejected = _rejection(len(roots), comp_edges, config)
+    if rejected is not None:
+        code, reason = rejected
+        return Rejected(len(shape.pieces), merges, len(roots), code, reason)
+    return _kept(groups, [members[r] for r in roots], comp_edges, config, out_ss, merges)
+
+
+def _merge(pieces: list[_Piece], config: PreprocessConfig
+           ) -> tuple[_Groups, set[tuple[int, int]], Merges]:
+    """The contact edges between pieces, and the groups the three merge rules make, in order."""
+    measure = _Measure(config)
+    trees = [cKDTree(p.points) for p in pieces]
+    edges = _contact_edges(pieces, measure, trees)
+    groups = _Groups(pieces)
+    size = _merge_small(groups, edges, config.tau_size)
+    overlap = _merge_overlapping(groups, edges, measure)
+    identical = _merge_identical(groups, config.identical_tolerance)
+    return groups, edges, Merges(size, overlap, identical)
+
+
+def _rejection(n: int, comp_edges: list[tuple[int, int]], config: PreprocessConfig
+               ) -> tuple[RejectCode, str] | None:
+    """Why a shape with ``n`` components and these contact edges is left out (None: it is kept)."""
     if n < config.min_components:
-        result.update(reason=f"{n} component(s) after merging, fewer than {config.min_components}",
-                      code="too_few_components")
-        return result
+        return "too_few_components", f"{n} component(s) after merging, fewer than {config.min_components}"
     if n > config.max_components:
-        result.update(reason=f"{n} components after merging, more than {config.max_components}",
-                      code="too_many_components")
-        return result
+        return "too_many_components", f"{n} components after merging, more than {config.max_components}"
     parts = _connected(n, comp_edges)
     if parts > 1:
-        result.update(reason=f"contact graph is not connected ({parts} separate parts)", code="disconnected")
-        return result
+        return "disconnected", f"contact graph is not connected ({parts} separate parts)"
+    return None
 
-    P = config.points_per_component
+
+def _kept(groups: _Groups, components: list[list[int]], comp_edges: list[tuple[int, int]],
+          config: PreprocessConfig, out_ss: np.random.SeedSequence, merges: Merges) -> Kept:
+    """Each component's centred mesh, cached samples, translation, area and majority label."""
+    pieces, n, P = groups.pieces, len(components), config.points_per_component
     points = np.empty((n, P, 3), np.float16)
     translation = np.empty((n, 3), np.float32)
     area = np.empty(n, np.float32)
     meshes, labels = [], []
-    for k, (r, comp_ss) in enumerate(zip(roots, out_ss.spawn(n), strict=True)):
-        m = members[r]
+    for k, (m, comp_ss) in enumerate(zip(components, out_ss.spawn(n), strict=True)):
         v, f = groups.mesh(m)
         if len(f):
             centre = (v.min(axis=0) + v.max(axis=0)) / 2
@@ -448,38 +511,37 @@ def preprocess_shape(shape: RawShape, config: PreprocessConfig) -> dict[str, Any
         translation[k] = centre
         area[k] = groups.area(m)
         meshes.append(((v - centre).astype(np.float32), f.astype(np.int32)))
-        votes: dict[str, float] = {}
-        for i in m:
-            label = pieces[i].label
-            if label is not None:
-                votes[label] = votes.get(label, 0.0) + pieces[i].area
-        # Majority by area; ties broken by name so the result does not depend on piece order.
-        labels.append(max(sorted(votes), key=lambda lab: votes[lab]) if votes else None)
-    result.update(points=points, translation=translation, area=area,
-                  edges=np.asarray(comp_edges, np.int32).reshape(-1, 2), meshes=meshes, labels=labels)
-    return result
+        labels.append(_majority_label([pieces[i] for i in m]))
+    return Kept(len(pieces), merges, points, translation, area,
+                np.asarray(comp_edges, np.int32).reshape(-1, 2), meshes, labels)
+
+
+def _majority_label(pieces: list[_Piece]) -> str | None:
+    """The label with the most area; ties broken by name so the result does not depend on piece order."""
+    votes: dict[str, float] = {}
+    for p in pieces:
+        if p.label is not None:
+            votes[p.label] = votes.get(p.label, 0.0) + p.area
+    return max(sorted(votes), key=lambda lab: votes[lab]) if votes else None
 
 
 # --------------------------------------------------------------------------------------------
 # Folder.
 
 
-def _process_file(job: tuple[str, str, dict[str, Any]]) -> dict[str, Any]:
+def _process_file(job: tuple[str, str, dict[str, Any]]) -> ShapeRecord:
     path_s, raw_s, config_d = job
     path, config = Path(path_s), PreprocessConfig(**config_d)
     source = path.relative_to(raw_s).as_posix()
     try:
         shape = load_shape_file(path)
     except (ShapeFileError, MeshError) as err:
-        return {"shape_id": path.stem, "category": path.parent.name, "style": None, "source": source,
-                "pieces": 0, "n_components": 0, "merges": {"size": 0, "overlap": 0, "identical": 0},
-                "reason": f"unreadable: {err}", "code": "unreadable"}
-    result = preprocess_shape(shape, config)
-    result.update(shape_id=shape.shape_id, category=shape.category, style=shape.style, source=source)
-    return result
+        return ShapeRecord(path.stem, path.parent.name, None, source,
+                           Rejected(0, Merges(), 0, "unreadable", f"unreadable: {err}"))
+    return ShapeRecord(shape.shape_id, shape.category, shape.style, source, preprocess_shape(shape, config))
 
 
-def _run(jobs: list[tuple[str, str, dict[str, Any]]], workers: int) -> Iterator[dict[str, Any]]:
+def _run(jobs: list[tuple[str, str, dict[str, Any]]], workers: int) -> Iterator[ShapeRecord]:
     if workers <= 1:
         yield from map(_process_file, jobs)
         return
@@ -488,63 +550,71 @@ def _run(jobs: list[tuple[str, str, dict[str, Any]]], workers: int) -> Iterator[
         yield from pool.imap(_process_file, jobs, chunksize=4)
 
 
-def assemble(results: list[dict[str, Any]], config: PreprocessConfig) -> ProcessedDataset:
-    """Concatenate per-shape results (in the given order) into a ProcessedDataset."""
-    kept = [r for r in results if "reason" not in r]
+def assemble(records: list[ShapeRecord], config: PreprocessConfig) -> ProcessedDataset:
+    """Concatenate per-shape records (in the given order) into a ProcessedDataset."""
+    kept_records = [(r, r.outcome) for r in records if isinstance(r.outcome, Kept)]
+    kept = [k for _, k in kept_records]
     P = config.points_per_component
     first = np.zeros(len(kept) + 1, np.int64)
-    first[1:] = np.cumsum([len(r["translation"]) for r in kept])
-    meshes = [m for r in kept for m in r["meshes"]]
+    first[1:] = np.cumsum([k.n_components for k in kept])
+    meshes = [m for k in kept for m in k.meshes]
     vfirst = np.zeros(len(meshes) + 1, np.int64)
     vfirst[1:] = np.cumsum([len(v) for v, _ in meshes])
     ffirst = np.zeros(len(meshes) + 1, np.int64)
     ffirst[1:] = np.cumsum([len(f) for _, f in meshes])
-    edges = [r["edges"] + first[s] for s, r in enumerate(kept)]
+    edges = [k.edges + first[s] for s, k in enumerate(kept)]
+    shapes = [{"shape_id": r.shape_id, "category": r.category, "style": r.style, "source": r.source,
+               "labels": k.labels, "pieces": k.pieces} for r, k in kept_records]
+    return ProcessedDataset(
+        points=_concat([k.points for k in kept], np.zeros((0, P, 3), np.float16)),
+        translation=_concat([k.translation for k in kept], np.zeros((0, 3), np.float32)),
+        area=_concat([k.area for k in kept], np.zeros(0, np.float32)),
+        shape_of=np.repeat(np.arange(len(kept), dtype=np.int32), np.diff(first)),
+        first_comp=first,
+        edges=np.concatenate(edges).astype(np.int32) if edges else np.zeros((0, 2), np.int32),
+        mesh_vertices=_concat([v for v, _ in meshes], np.zeros((0, 3), np.float32)),
+        mesh_faces=_concat([f for _, f in meshes], np.zeros((0, 3), np.int32)),
+        vertex_first=vfirst, face_first=ffirst, shapes=shapes,
+        info=_dataset_info(records, config, int(first[-1])),
+    )
 
-    merges = {k: int(sum(r["merges"][k] for r in results)) for k in ("size", "overlap", "identical")}
+
+def _concat(arrays: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
+    return np.concatenate(arrays) if arrays else empty
+
+
+def _dataset_info(records: list[ShapeRecord], config: PreprocessConfig, components: int) -> dict[str, Any]:
+    """The dataset's ``info``: config, counts, merges, per-category outcomes and every rejection."""
+    rejected = [(r, r.outcome) for r in records if isinstance(r.outcome, Rejected)]
+    merges = {k: int(sum(getattr(r.outcome.merges, k) for r in records)) for k in ("size", "overlap", "identical")}
     # Components per shape, over every shape that reached merging, and over the kept ones.
     histogram: dict[str, dict[str, int]] = {}
     histogram_kept: dict[str, dict[str, int]] = {}
     per_category: dict[str, dict[str, Any]] = {}
-    for r in results:
-        if r.get("code") not in ("unreadable", "invalid"):
-            for hist, counted in ((histogram, True), (histogram_kept, "reason" not in r)):
-                h = hist.setdefault(r["category"], {})
+    for r in records:
+        o = r.outcome
+        if not (isinstance(o, Rejected) and o.code in ("unreadable", "invalid")):
+            for hist, counted in ((histogram, True), (histogram_kept, isinstance(o, Kept))):
+                h = hist.setdefault(r.category, {})
                 if counted:
-                    h[str(r["n_components"])] = h.get(str(r["n_components"]), 0) + 1
-        c = per_category.setdefault(r["category"], {"kept": 0, "rejected": {}})
-        if "reason" in r:
-            c["rejected"][r["code"]] = c["rejected"].get(r["code"], 0) + 1
+                    h[str(o.n_components)] = h.get(str(o.n_components), 0) + 1
+        c = per_category.setdefault(r.category, {"kept": 0, "rejected": {}})
+        if isinstance(o, Rejected):
+            c["rejected"][o.code] = c["rejected"].get(o.code, 0) + 1
         else:
             c["kept"] += 1
-    info = {
+    return {
         "config": asdict(config),
         "seed": config.seed,
-        "counts": {"shapes_in": len(results), "kept": len(kept), "rejected": len(results) - len(kept),
-                   "pieces_in": int(sum(r["pieces"] for r in results)), "components": int(first[-1])},
+        "counts": {"shapes_in": len(records), "kept": len(records) - len(rejected), "rejected": len(rejected),
+                   "pieces_in": int(sum(r.outcome.pieces for r in records)), "components": components},
         "merge_counts": merges,
         "per_category": per_category,
         "components_histogram": histogram,
         "components_histogram_kept": histogram_kept,
-        "rejected": [{"shape_id": r["shape_id"], "category": r["category"], "source": r["source"],
-                      "code": r["code"], "reason": r["reason"]} for r in results if "reason" in r],
+        "rejected": [{"shape_id": r.shape_id, "category": r.category, "source": r.source,
+                      "code": o.code, "reason": o.reason} for r, o in rejected],
     }
-    shapes = [{"shape_id": r["shape_id"], "category": r["category"], "style": r["style"],
-               "source": r["source"], "labels": r["labels"], "pieces": r["pieces"]} for r in kept]
-    def cat(name: str, empty: np.ndarray) -> np.ndarray:
-        return np.concatenate([r[name] for r in kept]) if kept else empty
-
-    return ProcessedDataset(
-        points=cat("points", np.zeros((0, P, 3), np.float16)),
-        translation=cat("translation", np.zeros((0, 3), np.float32)),
-        area=cat("area", np.zeros(0, np.float32)),
-        shape_of=np.repeat(np.arange(len(kept), dtype=np.int32), np.diff(first)),
-        first_comp=first,
-        edges=np.concatenate(edges).astype(np.int32) if edges else np.zeros((0, 2), np.int32),
-        mesh_vertices=np.concatenate([v for v, _ in meshes]) if meshes else np.zeros((0, 3), np.float32),
-        mesh_faces=np.concatenate([f for _, f in meshes]) if meshes else np.zeros((0, 3), np.int32),
-        vertex_first=vfirst, face_first=ffirst, shapes=shapes, info=info,
-    )
 
 
 def preprocess_folder(raw: Path, out: Path, config: PreprocessConfig | None = None,
@@ -563,21 +633,21 @@ def preprocess_folder(raw: Path, out: Path, config: PreprocessConfig | None = No
     if not files:
         raise FileNotFoundError(f"no shape files ({', '.join(('.glb', '.obj', '.pts', '...'))}) under {raw}")
     jobs = [(str(p), str(raw), asdict(config)) for p in files]
-    results = []
+    records = []
     with tqdm(total=len(jobs), desc="preprocess", unit="shape") as bar:
         for r in _run(jobs, workers):
-            results.append(r)
+            records.append(r)
             bar.update()
-    results.sort(key=lambda r: (r["category"], r["shape_id"], r["source"]))
+    records.sort(key=lambda r: (r.category, r.shape_id, r.source))
     seen: dict[tuple[str, str], str] = {}
-    for r in results:
-        key = (r["category"], r["shape_id"])
+    for r in records:
+        key = (r.category, r.shape_id)
         if key in seen:
-            raise ValueError(f"duplicate shape id {r['shape_id']!r} in category {r['category']!r}: "
-                             f"{seen[key]} and {r['source']} under {raw}")
-        seen[key] = r["source"]
-    ds = assemble(results, config)
+            raise ValueError(f"duplicate shape id {r.shape_id!r} in category {r.category!r}: "
+                             f"{seen[key]} and {r.source} under {raw}")
+        seen[key] = r.source
+    ds = assemble(records, config)
     ds.save(out)
-    log.info("preprocessed %d shapes: %d kept, %d rejected", len(results), ds.n_shapes,
-             len(results) - ds.n_shapes)
+    log.info("preprocessed %d shapes: %d kept, %d rejected", len(records), ds.n_shapes,
+             len(records) - ds.n_shapes)
     return ds

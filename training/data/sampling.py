@@ -26,14 +26,28 @@ def sample_assembly(ds: ProcessedDataset, comps: np.ndarray | list[int], n: int,
     """
     comps = np.asarray(comps, dtype=np.int64)
     assert comps.size > 0, "an assembly needs at least one component"
-    area = ds.area[comps].astype(np.float64)
-    even = np.full(len(comps), 1.0 / len(comps))
+    return draw_area_weighted(ds.points, ds.translation, ds.area, comps, n, rng, by_area)
+
+
+def draw_area_weighted(samples: np.ndarray, translations: np.ndarray, areas: np.ndarray, rows: np.ndarray,
+                       n: int, rng: np.random.Generator, by_area: bool = True) -> np.ndarray:
+    """``n`` points over the parts ``rows``: each point's part drawn with probability proportional
+    to its area (evenly without ``by_area``, or when no part has area), then one of that part's
+    cached (uniform, centred) surface samples, moved by the part's translation.
+
+    One sampler for training batches (``sample_assembly``) and the benchmark's queries
+    (``training.evaluate.protocol.sample_rows``), so both see assemblies drawn the same way.
+
+    Shapes:
+        samples (P, S, 3); translations (P, 3) float32; areas (P,); rows (r,) int64, r >= 1;
+        returns (n, 3) float32.
+    """
+    area = areas[rows].astype(np.float64)
+    even = np.full(len(rows), 1.0 / len(rows))
     probs = area / area.sum() if by_area and area.sum() > 0 else even
-    which = rng.choice(len(comps), size=n, p=probs)
-    cached = ds.points.shape[1]
-    rows = rng.integers(0, cached, size=n)
-    pts = ds.points[comps[which], rows].astype(np.float32)
-    return pts + ds.translation[comps[which]]
+    which = rows[rng.choice(len(rows), size=n, p=probs)]
+    cached = rng.integers(0, samples.shape[1], size=n)
+    return samples[which, cached].astype(np.float32) + translations[which]
 
 
 def sample_part(ds: ProcessedDataset, comp: int, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -32,6 +32,7 @@ import numpy as np
 
 from service.artifacts.catalog import Catalog
 from service.geometry.mesh import MeshError, resample_points, sample_surface
+from training.data.sampling import draw_area_weighted
 from training.evaluate.descriptors import descriptors
 
 SETTINGS = ("all_but_one", "single")
@@ -158,8 +159,8 @@ class ShapeIndex:
 def sample_rows(index: ShapeIndex, rows: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points area-weighted over catalog parts, each moved to its place in the shape frame.
 
-    Like the training sampler: a part is drawn with probability proportional to its area, then
-    one of its (uniform) surface samples.
+    The training sampler (``training.data.sampling.draw_area_weighted``) over the dense samples:
+    a part is drawn with probability proportional to its area, then one of its surface samples.
 
     Shapes:
         rows (r,) -> (n, 3) float32.
@@ -167,12 +168,7 @@ def sample_rows(index: ShapeIndex, rows: np.ndarray, n: int, rng: np.random.Gene
     rows = np.asarray(rows, dtype=np.int64)
     if rows.size == 0:
         raise ValueError("cannot sample points from an empty set of parts")
-    a = index.areas[rows]
-    probs = a / a.sum() if a.sum() > 0 else np.full(len(rows), 1.0 / len(rows))
-    which = rng.choice(len(rows), size=n, p=probs)
-    cached = rng.integers(0, index.samples.shape[1], size=n)
-    pts = index.samples[rows[which], cached]
-    return (pts + index.catalog.translations[rows[which]]).astype(np.float32)
+    return draw_area_weighted(index.samples, index.catalog.translations, index.areas, rows, n, rng)
 
 
 def setting_rng(seed: int, category: str, setting: str, *extra: int) -> np.random.Generator:

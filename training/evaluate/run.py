@@ -45,6 +45,8 @@ import json
 import logging
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -206,161 +208,217 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
 
 def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
     """Run the whole benchmark; write results.json, the report and the charts; return the results."""
-    from training.evaluate.report import write_report
-
     s.validate()
-    t_all = time.monotonic()
-    timing: dict[str, float] = {}
+    return _Benchmark(s).run()
 
-    def lap(name: str, t0: float) -> None:
-        timing[name] = round(time.monotonic() - t0, 2)
 
-    t = time.monotonic()
-    artifacts = load_artifacts(Path(s.artifacts))
-    # The service's defaults, as shipped (only the artifact folder differs).
-    engine = SuggestionEngine(artifacts, Settings().model_copy(update={"artifacts": Path(s.artifacts)}))
-    catalog = artifacts.catalog
-    index = ShapeIndex(catalog, dense_points=s.dense_points, seed=s.seed)
-    n_points = s.n_points or artifacts.n_points
-    lap("load", t)
+# The all-but-one tables of every method: (table key, per-query metric, median rather than mean).
+_RETRIEVAL_METRICS = (("functional_map", "functional_ap", False),
+                      ("hausdorff", "hausdorff", False),
+                      ("style_map_all_but_one", "style_ap", False),
+                      ("median_percentile_rank", "percentile", True),
+                      ("in_category_top5", "in_category", False))
 
-    _check_split(s.run, index)
-    t = time.monotonic()
-    cats = index.categories()
-    queries = {setting: make_queries(index, setting, s.queries_per_category, n_points, s.seed)
-               for setting in ("all_but_one", "single")}
-    placement_queries = {split: make_placement_queries(index, split, s.placement_queries_per_category,
-                                                       n_points, s.seed) for split in ("train", "test")}
-    lap("queries", t)
-    if not queries["all_but_one"]:
-        raise ValueError(f"{s.artifacts}: no held-out shape with two or more labelled parts: "
-                         "nothing to evaluate")
 
-    methods: dict[str, Method] = {}
-    descriptions: dict[str, str] = {}
-    fixed_info: dict[str, Any] | None = None
-    ours = EngineMethod(engine)
-    for key in s.methods:
+class _Benchmark:
+    """One benchmark run: each method is one named step of ``run``, in the order they run.
+
+    Every step that costs time records it in ``timing`` under the step's name.
+    """
+
+    def __init__(self, s: BenchmarkSettings) -> None:
+        self.s = s
+        self.t_all = time.monotonic()
+        self.timing: dict[str, float] = {}
+        self.tables: dict[str, Any] = {}
+        self.per_query: dict[str, dict[str, list[dict[str, Any]]]] = {}
+        self.placement: list[dict[str, Any]] = []
+        self.plaus: dict[str, list[dict[str, Any]]] = {}
+
+    @contextmanager
+    def _timed(self, name: str) -> Iterator[None]:
         t = time.monotonic()
-        m: Method
+        yield
+        self.timing[name] = round(time.monotonic() - t, 2)
+
+    def run(self) -> dict[str, Any]:
+        self.load()
+        _check_split(self.s.run, self.index)
+        self.draw_queries()
+        self.build_methods()
+        self.retrieval_tables()
+        self.coverage_tables()
+        if "ours" in self.s.methods:
+            self.placement_tables()
+            self.size_fit_table()
+            self.plausibility_tables()
+        return self.write(self.results())
+
+    def load(self) -> None:
+        """The artifact folder through the service's loader, and the service's engine on it."""
+        s = self.s
+        with self._timed("load"):
+            self.artifacts = load_artifacts(Path(s.artifacts))
+            # The service's defaults, as shipped (only the artifact folder differs).
+            self.engine = SuggestionEngine(self.artifacts,
+                                           Settings().model_copy(update={"artifacts": Path(s.artifacts)}))
+            self.index = ShapeIndex(self.artifacts.catalog, dense_points=s.dense_points, seed=s.seed)
+            self.n_points = s.n_points or self.artifacts.n_points
+
+    def draw_queries(self) -> None:
+        """The seeded retrieval and placement queries of every category."""
+        s, index, n = self.s, self.index, self.n_points
+        with self._timed("queries"):
+            self.cats = index.categories()
+            self.queries = {setting: make_queries(index, setting, s.queries_per_category, n, s.seed)
+                            for setting in ("all_but_one", "single")}
+            self.placement_queries = {
+                split: make_placement_queries(index, split, s.placement_queries_per_category, n, s.seed)
+                for split in ("train", "test")}
+        if not self.queries["all_but_one"]:
+            raise ValueError(f"{s.artifacts}: no held-out shape with two or more labelled parts: "
+                             "nothing to evaluate")
+
+    def build_methods(self) -> None:
+        """Every method asked for, under its table name, with its description."""
+        self.ours = EngineMethod(self.engine)
+        self.methods: dict[str, Method] = {}
+        self.descriptions: dict[str, str] = {}
+        self.fixed_info: dict[str, Any] | None = None
+        for key in self.s.methods:
+            with self._timed(f"build {key}"):
+                m = self._build_method(key)
+                self.methods[METHOD_NAMES[key]] = m
+                self.descriptions[METHOD_NAMES[key]] = str(getattr(m, "description", ""))
+
+    def _build_method(self, key: str) -> Method:
+        s = self.s
         if key == "random":
-            m = RandomMethod(len(catalog), s.seed)
-        elif key == "ck10":
-            m = CK10Method(index, n_shapes=s.ck10_shapes, n_points=n_points, seed=s.seed,
-                           n_pairs=s.descriptor_pairs)
-        elif key == "fixed":
-            m, fixed_info = _build_fixed(s, artifacts, index)
-        elif key == "likelihood":
-            m = EngineMethod(SuggestionEngine(artifacts, engine.settings.model_copy(
+            return RandomMethod(len(self.artifacts.catalog), s.seed)
+        if key == "ck10":
+            return CK10Method(self.index, n_shapes=s.ck10_shapes, n_points=self.n_points, seed=s.seed,
+                              n_pairs=s.descriptor_pairs)
+        if key == "fixed":
+            m, self.fixed_info = _build_fixed(s, self.artifacts, self.index)
+            return m
+        if key == "likelihood":
+            return EngineMethod(SuggestionEngine(self.artifacts, self.engine.settings.model_copy(
                 update={"suggest_complement_check": False})), name=METHOD_NAMES[key])
-        else:
-            m = ours
-        methods[METHOD_NAMES[key]] = m
-        descriptions[METHOD_NAMES[key]] = str(getattr(m, "description", ""))
-        lap(f"build {key}", t)
+        return self.ours
 
-    per_query: dict[str, dict[str, list[dict[str, Any]]]] = {}
-    for name, m in methods.items():
-        t = time.monotonic()
-        per_query[name] = {setting: evaluate_retrieval(m, qs, index, s.retrieval, s.progress)
-                           for setting, qs in queries.items()}
-        lap(f"retrieval {name}", t)
+    def retrieval_tables(self) -> None:
+        """Tables 1-3, exact-component recall and percentile rank, for every method."""
+        s, cats = self.s, self.cats
+        for name, m in self.methods.items():
+            with self._timed(f"retrieval {name}"):
+                self.per_query[name] = {
+                    setting: evaluate_retrieval(m, qs, self.index, s.retrieval, s.progress)
+                    for setting, qs in self.queries.items()}
+        recall = [f"recall@{k}" for k in s.retrieval.recall_ks]
+        for key in ("functional_map", "hausdorff", "style_map_all_but_one", "style_map_single",
+                    "median_percentile_rank", *recall, "in_category_top5"):
+            self.tables[key] = {}
+        for name in self.methods:
+            abo, single = self.per_query[name]["all_but_one"], self.per_query[name]["single"]
+            for key, metric, median in _RETRIEVAL_METRICS:
+                self.tables[key][name] = (median_table if median else table)(abo, metric, cats)
+            self.tables["style_map_single"][name] = table(single, "style_ap", cats)
+            for key in recall:
+                self.tables[key][name] = table(abo, key, cats)
 
-    tables: dict[str, Any] = {"functional_map": {}, "hausdorff": {}, "style_map_all_but_one": {},
-                              "style_map_single": {}, "median_percentile_rank": {}}
-    for k in s.retrieval.recall_ks:
-        tables[f"recall@{k}"] = {}
-    for name in methods:
-        abo, single = per_query[name]["all_but_one"], per_query[name]["single"]
-        tables["functional_map"][name] = table(abo, "functional_ap", cats)
-        tables["hausdorff"][name] = table(abo, "hausdorff", cats)
-        tables["style_map_all_but_one"][name] = table(abo, "style_ap", cats)
-        tables["style_map_single"][name] = table(single, "style_ap", cats)
-        for k in s.retrieval.recall_ks:
-            tables[f"recall@{k}"][name] = table(abo, f"recall@{k}", cats)
-        tables["median_percentile_rank"][name] = median_table(abo, "percentile", cats)
-        tables.setdefault("in_category_top5", {})[name] = table(abo, "in_category", cats)
+    def coverage_tables(self) -> None:
+        """One part present, at least two labels missing: what the top 10 offer (model v3's aim)."""
+        cats, tables = self.cats, self.tables
+        for name, m in self.methods.items():
+            with self._timed(f"coverage {name}"):
+                coverage = evaluate_coverage(m, self.queries["single"], self.index, self.s.retrieval,
+                                             progress=self.s.progress)
+            tables.setdefault("missing_label_coverage_top10", {})[name] = table(coverage, "coverage", cats)
+            tables.setdefault("distinct_labels_top10", {})[name] = table(coverage, "distinct_labels", cats)
+            if any("live_modes" in r for r in coverage):
+                tables.setdefault("live_modes", {})[name] = table(coverage, "live_modes", cats)
 
-    # One part present, at least two labels missing: what the top 10 offer (model v3's aim).
-    coverage: dict[str, list[dict[str, Any]]] = {}
-    for name, m in methods.items():
-        t = time.monotonic()
-        coverage[name] = evaluate_coverage(m, queries["single"], index, s.retrieval, progress=s.progress)
-        lap(f"coverage {name}", t)
-        tables.setdefault("missing_label_coverage_top10", {})[name] = table(coverage[name], "coverage", cats)
-        tables.setdefault("distinct_labels_top10", {})[name] = table(coverage[name], "distinct_labels", cats)
-        if any("live_modes" in r for r in coverage[name]):
-            tables.setdefault("live_modes", {})[name] = table(coverage[name], "live_modes", cats)
+    def placement_tables(self) -> None:
+        """Table 4: h's placement error on train and test shapes, before and after contact refinement."""
+        with self._timed("placement"):
+            for split in ("train", "test"):
+                self.placement += evaluate_placement(self.ours, self.placement_queries[split],
+                                                     self.s.progress)
+            for key, metric in (("placement_error", "error"), ("placement_error_refined", "error_refined")):
+                self.tables[key] = {
+                    sp: table([r for r in self.placement if r["split"] == sp], metric, self.cats)
+                    for sp in ("train", "test")}
 
-    placement: list[dict[str, Any]] = []
-    plaus: dict[str, list[dict[str, Any]]] = {}
-    if "ours" in s.methods:
-        t = time.monotonic()
-        for split in ("train", "test"):
-            placement += evaluate_placement(ours, placement_queries[split], s.progress)
-        tables["placement_error"] = {sp: table([r for r in placement if r["split"] == sp], "error", cats)
-                                     for sp in ("train", "test")}
-        tables["placement_error_refined"] = {
-            sp: table([r for r in placement if r["split"] == sp], "error_refined", cats)
-            for sp in ("train", "test")}
-        lap("placement", t)
-        t = time.monotonic()
-        fits = evaluate_size_fit(ours, queries["all_but_one"], per_query["Ours"]["all_but_one"], index,
-                                 s.progress)
-        tables["size_fit"] = {"placed-box IoU, fitting on": table(fits, "iou_on", cats),
-                              "placed-box IoU, fitting off": table(fits, "iou_off", cats),
-                              "scale error, fitting on": table(fits, "scale_error_on", cats),
-                              "scale error, fitting off": table(fits, "scale_error_off", cats)}
-        lap("size fit", t)
-        t = time.monotonic()
-        chosen = _first_per_category(queries["all_but_one"], s.plausibility_queries_per_category)
-        chosen_ids = {q.qid for q in chosen}
-        test_pq = _first_per_category(placement_queries["test"], s.plausibility_queries_per_category)
-        plaus = evaluate_plausibility(ours, index, chosen, per_query["Ours"]["all_but_one"],
-                                      [r for r in placement if r["qid"] in {q.qid for q in test_pq}], test_pq,
-                                      s.contact, s.progress)
-        tables["plausibility"] = {case: plausibility_table(recs, cats) for case, recs in plaus.items()}
-        log.debug("plausibility on %d queries", len(chosen_ids))
-        lap("plausibility", t)
+    def size_fit_table(self) -> None:
+        """The top suggestion of each all-but-one query, placed, against the removed part's box."""
+        with self._timed("size fit"):
+            fits = evaluate_size_fit(self.ours, self.queries["all_but_one"],
+                                     self.per_query["Ours"]["all_but_one"], self.index, self.s.progress)
+            self.tables["size_fit"] = {"placed-box IoU, fitting on": table(fits, "iou_on", self.cats),
+                                       "placed-box IoU, fitting off": table(fits, "iou_off", self.cats),
+                                       "scale error, fitting on": table(fits, "scale_error_on", self.cats),
+                                       "scale error, fitting off": table(fits, "scale_error_off", self.cats)}
 
-    manifest = artifacts.manifest
-    results: dict[str, Any] = {
-        "benchmark_version": BENCHMARK_VERSION,
-        "command": s.command,
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-        "artifact": {"folder": str(s.artifacts), "model_version": manifest["model_version"],
-                     "format_version": manifest["format_version"], "created": manifest.get("created"),
-                     "part_count": manifest["part_count"], "n_points": manifest["n_points"],
-                     "dataset_hash": manifest.get("dataset", {}).get("hash"),
-                     "training": manifest.get("training", {})},
-        "settings": settings_to_dict(s),
-        "categories": cats,
-        "methods": descriptions,
-        "method_order": list(methods),
-        "queries": {
-            **{setting: _count(qs, cats) for setting, qs in queries.items()},
-            **{f"placement_{split}": _count(qs, cats) for split, qs in placement_queries.items()},
-        },
-        "pool": {c: int(np.sum(catalog.category_of == catalog.categories.index(c))) for c in cats},
-        "tables": tables,
-        "fixed_embedding": fixed_info,
-        "notes": s.notes,
-        # The service's contact refinement, as the "contact-refined" rows ran it.
-        "service_contact": {"contact_max_offset": engine.settings.contact_max_offset,
-                            "contact_tolerance": engine.settings.contact_tolerance},
-    }
-    timing["total"] = round(time.monotonic() - t_all, 2)
-    results["timing_seconds"] = timing
-    results = json_clean(results)
-    out = Path(s.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / RESULTS_FILE, results)
-    if s.details:
-        write_json_atomic(out / QUERIES_FILE, json_clean({"retrieval": per_query, "placement": placement,
-                                                          "plausibility": plaus}))
-    write_report(results, Path(s.report), out)
-    log.info("benchmark done in %.1f s: %s, %s", timing["total"], out / RESULTS_FILE, s.report)
-    return results
+    def plausibility_tables(self) -> None:
+        """The contact test of the first all-but-one and test placement queries of each category."""
+        s, n = self.s, self.s.plausibility_queries_per_category
+        with self._timed("plausibility"):
+            chosen = _first_per_category(self.queries["all_but_one"], n)
+            test_pq = _first_per_category(self.placement_queries["test"], n)
+            test_ids = {q.qid for q in test_pq}
+            self.plaus = evaluate_plausibility(
+                self.ours, self.index, chosen, self.per_query["Ours"]["all_but_one"],
+                [r for r in self.placement if r["qid"] in test_ids], test_pq, s.contact, s.progress)
+            self.tables["plausibility"] = {case: plausibility_table(recs, self.cats)
+                                           for case, recs in self.plaus.items()}
+            log.debug("plausibility on %d queries", len(chosen))
+
+    def results(self) -> dict[str, Any]:
+        """The results dict of ``results.json`` (layout in the module docstring)."""
+        s, cats, catalog, manifest = self.s, self.cats, self.artifacts.catalog, self.artifacts.manifest
+        results: dict[str, Any] = {
+            "benchmark_version": BENCHMARK_VERSION,
+            "command": s.command,
+            "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+            "artifact": {"folder": str(s.artifacts), "model_version": manifest["model_version"],
+                         "format_version": manifest["format_version"], "created": manifest.get("created"),
+                         "part_count": manifest["part_count"], "n_points": manifest["n_points"],
+                         "dataset_hash": manifest.get("dataset", {}).get("hash"),
+                         "training": manifest.get("training", {})},
+            "settings": settings_to_dict(s),
+            "categories": cats,
+            "methods": self.descriptions,
+            "method_order": list(self.methods),
+            "queries": {
+                **{setting: _count(qs, cats) for setting, qs in self.queries.items()},
+                **{f"placement_{split}": _count(qs, cats) for split, qs in self.placement_queries.items()},
+            },
+            "pool": {c: int(np.sum(catalog.category_of == catalog.categories.index(c))) for c in cats},
+            "tables": self.tables,
+            "fixed_embedding": self.fixed_info,
+            "notes": s.notes,
+            # The service's contact refinement, as the "contact-refined" rows ran it.
+            "service_contact": {"contact_max_offset": self.engine.settings.contact_max_offset,
+                                "contact_tolerance": self.engine.settings.contact_tolerance},
+        }
+        self.timing["total"] = round(time.monotonic() - self.t_all, 2)
+        results["timing_seconds"] = self.timing
+        return json_clean(results)
+
+    def write(self, results: dict[str, Any]) -> dict[str, Any]:
+        """results.json (and queries.json with ``details``), the report and the charts."""
+        from training.evaluate.report import write_report
+
+        s, out = self.s, Path(self.s.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / RESULTS_FILE, results)
+        if s.details:
+            write_json_atomic(out / QUERIES_FILE, json_clean({"retrieval": self.per_query,
+                                                              "placement": self.placement,
+                                                              "plausibility": self.plaus}))
+        write_report(results, Path(s.report), out)
+        log.info("benchmark done in %.1f s: %s, %s", self.timing["total"], out / RESULTS_FILE, s.report)
+        return results
 
 
 def rerender(out: Path, report: Path, notes: str | None = None, notes_file: Path | None = None) -> None:
