@@ -9,12 +9,15 @@ tests clear its cache to change them.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.errors import InputError
 
 ENV_PREFIX = "COMPLEMENTME_"
 
@@ -442,6 +445,63 @@ class Settings(BaseSettings):
     def catalog_enabled(self) -> bool:
         """Whether this server stores added parts at all (a data folder, or the database)."""
         return self.catalog_backend == "postgres" or self.data_dir is not None
+
+    @property
+    def limits(self) -> Limits:
+        """The request limits among these settings, with their checks."""
+        return Limits(min_points=self.min_points, max_points=self.max_points, default_k=self.default_k,
+                      max_k=self.max_k, max_exclude=self.max_exclude, max_batch_items=self.max_batch_items)
+
+
+def check_point_count(n: int, min_points: int, max_points: int) -> None:
+    """``too_few_points`` below ``min_points``, ``too_many_points`` over ``max_points`` points."""
+    if n < min_points:
+        raise InputError("too_few_points", f"{n} points given, at least {min_points} are needed")
+    if n > max_points:
+        raise InputError("too_many_points", f"{n} points given, at most {max_points} are accepted")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one suggestion request may ask, and the one check of each limit.
+
+    Each check raises the ``InputError`` a client sees (code and message). The request schemas
+    (``service.api.schemas``) apply them to what arrives over HTTP; the engine applies the same
+    ones to the points and options of in-process callers (the CLI, the benchmark, training's
+    evaluation), which reach it without a schema.
+    """
+
+    min_points: int
+    max_points: int
+    default_k: int
+    max_k: int
+    max_exclude: int
+    max_batch_items: int
+
+    def check_point_count(self, n: int) -> None:
+        """``too_few_points`` or ``too_many_points`` outside ``[min_points, max_points]``."""
+        check_point_count(n, self.min_points, self.max_points)
+
+    def k(self, k: int | None) -> int:
+        """The query's k (``default_k`` when not given); ``k_out_of_range`` outside ``[1, max_k]``."""
+        k = self.default_k if k is None else k
+        if not 1 <= k <= self.max_k:
+            raise InputError("k_out_of_range", f"k must be between 1 and {self.max_k}, found {k}")
+        return k
+
+    def check_exclusions(self, n: int) -> None:
+        """``too_many_exclusions`` over ``max_exclude`` excluded part and shape ids."""
+        if n > self.max_exclude:
+            raise InputError("too_many_exclusions", f"at most {self.max_exclude} part and shape ids may be "
+                             "excluded per request")
+
+    def check_batch_items(self, n: int) -> None:
+        """``empty_batch`` or ``too_many_items`` outside ``[1, max_batch_items]``."""
+        if n == 0:
+            raise InputError("empty_batch", "items is empty; send at least one query")
+        if n > self.max_batch_items:
+            raise InputError("too_many_items", f"{n} items given, at most {self.max_batch_items} are "
+                             "accepted")
 
 
 @lru_cache

@@ -16,7 +16,7 @@ import faiss
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.artifacts.layout import CATALOG_FIELDS
+from service.artifacts.layout import CATALOG_FIELDS, format_part_id
 from training.data.processed import ProcessedDataset
 from training.data.sampling import sample_part
 
@@ -31,7 +31,7 @@ def part_records(ds: ProcessedDataset, split_of_shape: list[str]) -> list[dict[s
         verts, _ = ds.component_mesh(c)
         box_src = verts if len(verts) else ds.points[c].astype(np.float32)
         records.append({
-            "part_id": f"{meta['shape_id']}/{local}",
+            "part_id": format_part_id(str(meta["shape_id"]), local),
             "shape_id": str(meta["shape_id"]),
             "category": str(meta.get("category")),
             "style": meta.get("style"),

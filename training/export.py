@@ -40,6 +40,7 @@ from service.artifacts.layout import (
     GRAPH_INPUTS,
     INDEX_FILE,
     MANIFEST,
+    catalog_arrays,
     graph_outputs,
     write_manifest,
 )
@@ -282,9 +283,9 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
     block_sizes = np.diff(meshes["vertex_first"])
     if len(block_sizes) and block_sizes.max() <= np.iinfo(np.uint16).max + 1:
         meshes["mesh_faces"] = meshes["mesh_faces"].astype(np.uint16)
-    save_npz_deterministic(folder / CATALOG_ARRAYS, {
-        "embeddings": embeddings, "part_features": part_features.astype(opts.feature_dtype),
-        "points": preview, **meshes})
+    save_npz_deterministic(folder / CATALOG_ARRAYS, catalog_arrays(
+        embeddings=embeddings, part_features=part_features.astype(opts.feature_dtype), points=preview,
+        **meshes))
 
     # Exact (flat) up to index_flat_max parts; above, IVF tuned to the recall target on g's means
     # of training queries, its parameters recorded in the manifest (service.artifacts.indexing).

@@ -6,13 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from service.api.render import part_links, render_frame
+from service.api.render import part_links, render_frame, render_placed
 from service.modeling.assembly import STOP_REASONS, AssembleResult, Node
 from service.suggest.engine import SuggestionEngine
-
-
-def _vec(a: np.ndarray) -> list[float]:
-    return [float(x) for x in a]
 
 
 def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> dict[str, Any]:
@@ -26,12 +22,10 @@ def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> di
     return {
         "node": n.node, "parent": n.parent, "depth": n.depth, "part_id": s.part_id, "shape_id": s.shape_id,
         "category": s.category, "label": s.label, "score": s.score, "mode": s.mode,
-        "mode_weight": s.mode_weight, "distance": n.distance,
-        "translation": _vec(frame.from_canonical(t)[0]),
-        "contact_offset": _vec(n.contact_offset @ frame.rotation * frame.radius),
-        "bbox_min": _vec(lo[0]), "bbox_max": _vec(hi[0]), "scale": _vec(sc @ np.abs(frame.rotation)),
-        "stop_reason": n.stop_reason,
-        "links": part_links(s.part_id),
+        "mode_weight": s.mode_weight, "distance": n.distance, "stop_reason": n.stop_reason,
+        **render_placed(s.part_id, frame.from_canonical(t)[0],
+                        n.contact_offset @ frame.rotation * frame.radius, lo[0], hi[0],
+                        sc @ np.abs(frame.rotation)),
     }
 
 
@@ -42,7 +36,7 @@ def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: 
     if start.part_index is not None:
         pid = engine.catalog.part_ids[start.part_index]
         placed = frame.from_canonical(result.start_translation[None])[0]
-        start_out.update(part_id=pid, translation=_vec(placed), links=part_links(pid))
+        start_out.update(part_id=pid, translation=[float(x) for x in placed], links=part_links(pid))
     else:
         start_out["points"] = len(start.points)
         start_out["parts"] = len(start.parts)

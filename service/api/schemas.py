@@ -1,8 +1,10 @@
 """Request and response schemas of the HTTP API, with the examples shown at ``/docs``.
 
-Requests validate types and static bounds here; limits that are settings (point counts, ``k``,
-batch size) are checked by the engine so that one settings class stays the source of truth.
-Request schemas convert themselves into engine types (``to_points``, ``to_options``).
+Requests validate types and static bounds here. Limits that are settings are checked by
+``service.settings.Limits``, one check per limit: the conversions below apply the ones that can
+fail before decoding (the point count of a body, the batch size), and the engine, which in-process
+callers reach without a schema, the rest (``k``, exclusions, the decoded point count). Request
+schemas convert themselves into engine types (``to_points``, ``to_options``, ``checked_items``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, PlainValidator, model_validat
 from service.errors import InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import points_from_base64, points_from_json, points_from_list, points_to_base64
+from service.settings import Limits, check_point_count
 from service.suggest.engine import SuggestOptions
 from service.suggest.preferences import Preferences
 from service.suggest.region import Region
@@ -173,14 +176,12 @@ class PointsIn(_Strict):
         return self
 
     def to_points(self, max_points: int) -> np.ndarray:
-        """The points as ``(M, 3) float32``; ``InputError`` when missing or malformed."""
+        """The points as ``(M, 3) float32``; ``InputError`` when missing, malformed or too many."""
         if self.points_base64 is not None:
             return points_from_base64(self.points_base64, max_points)
         if self.points is None:
             raise InputError("missing_points", "give the partial assembly as points or points_base64")
-        if len(self.points) > max_points:
-            raise InputError("too_many_points", f"{len(self.points)} points given, at most {max_points} "
-                             "are accepted")
+        check_point_count(len(self.points), 0, max_points)
         if isinstance(self.points, np.ndarray):
             return self.points
         return points_from_list(self.points)
@@ -222,6 +223,11 @@ class BatchRequest(_Strict):
     items: list[Any] = Field(..., description=(
         "Suggestion requests (each a SuggestRequest); at most COMPLEMENTME_MAX_BATCH_ITEMS."),
         json_schema_extra={"items": {"$ref": "#/components/schemas/SuggestRequest"}})
+
+    def checked_items(self, limits: Limits) -> list[Any]:
+        """The items, raw; ``InputError`` for none or more than ``max_batch_items``."""
+        limits.check_batch_items(len(self.items))
+        return self.items
 
 
 # --------------------------------------------------------------------------------------------

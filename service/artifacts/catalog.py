@@ -17,14 +17,11 @@ from urllib.parse import quote
 
 import numpy as np
 
-from service.artifacts.layout import CATALOG_FIELDS, ArtifactError
+from service.artifacts.layout import CATALOG_ARRAY_NAMES, CATALOG_FIELDS, ArtifactError
 from service.errors import InputError, NotFoundError
 from service.geometry.mesh import resample_points
 
 log = logging.getLogger(__name__)
-
-ARRAY_NAMES = ("embeddings", "part_features", "points", "mesh_vertices", "mesh_faces",
-               "vertex_first", "face_first")
 
 
 @dataclass
@@ -172,10 +169,10 @@ def _read_records(path: Path) -> list[dict[str, Any]]:
 def _read_arrays(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as data:
-            missing = [n for n in ARRAY_NAMES if n not in data.files]
+            missing = [n for n in CATALOG_ARRAY_NAMES if n not in data.files]
             if missing:
                 raise ArtifactError(f"{path}: missing array(s) {', '.join(missing)}")
-            return {n: data[n] for n in ARRAY_NAMES}
+            return {n: data[n] for n in CATALOG_ARRAY_NAMES}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise ArtifactError(f"{path}: cannot read arrays ({exc})") from exc
 

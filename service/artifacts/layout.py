@@ -32,6 +32,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from service.artifacts.files import write_file_atomic
 
 FORMAT_VERSION = 1
@@ -74,6 +76,25 @@ def graph_outputs(graph: str, category_head: bool = False, scale_head: bool = Fa
     if (graph == "g" and category_head) or (graph == "h_head" and scale_head):
         names += OPTIONAL_OUTPUTS[graph]
     return names
+
+# The arrays of catalog.npz (shapes and dtypes in the docstring above); ``catalog_arrays`` names
+# them for a writer, readers look for exactly these.
+CATALOG_ARRAY_NAMES = ("embeddings", "part_features", "points", "mesh_vertices", "mesh_faces",
+                       "vertex_first", "face_first")
+
+
+def catalog_arrays(*, embeddings: np.ndarray, part_features: np.ndarray, points: np.ndarray,
+                   mesh_vertices: np.ndarray, mesh_faces: np.ndarray, vertex_first: np.ndarray,
+                   face_first: np.ndarray) -> dict[str, np.ndarray]:
+    """The arrays of catalog.npz by their names (``CATALOG_ARRAY_NAMES``), as written and loaded."""
+    return dict(zip(CATALOG_ARRAY_NAMES, (embeddings, part_features, points, mesh_vertices, mesh_faces,
+                                          vertex_first, face_first), strict=True))
+
+
+def format_part_id(shape_id: str, n: int) -> str:
+    """A part's id: its source shape's id and the part's number in that shape ("chair-0007/2")."""
+    return f"{shape_id}/{n}"
+
 
 # Fields of one record in catalog.json.
 CATALOG_FIELDS = (

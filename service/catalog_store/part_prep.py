@@ -14,14 +14,10 @@ import numpy as np
 
 from service.artifacts.models import Networks
 from service.catalog_store.store import NewPart, PartGeometry
-from service.errors import InputError, PayloadTooLargeError, ServiceError, UnsupportedMediaError
+from service.errors import InputError
 from service.geometry.frames import Frame
+from service.geometry.inputs import upload_error
 from service.geometry.mesh import MeshError, load_mesh_bytes, mesh_area, sample_surface
-
-_MESH_ERRORS: dict[str, type[ServiceError]] = {
-    "unsupported_format": UnsupportedMediaError,
-    "too_large": PayloadTooLargeError,
-}
 
 
 def embed_geometry(networks: Networks, vertices: np.ndarray, faces: np.ndarray, n_points: int,
@@ -58,7 +54,7 @@ def prepare_part(data: bytes, file_type: str, *, name: str, frame: Frame, networ
         mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
                                max_nodes=max_nodes, max_nesting=max_nesting)
     except MeshError as exc:
-        raise _MESH_ERRORS.get(exc.code, InputError)(exc.code, exc.message) from None
+        raise upload_error(exc) from None
     vertices = frame.to_canonical(np.asarray(mesh.vertices, dtype=np.float64)).astype(np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if not np.isfinite(vertices).all():

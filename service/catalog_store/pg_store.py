@@ -52,6 +52,7 @@ import psycopg
 from psycopg.conninfo import conninfo_to_dict, make_conninfo
 from psycopg_pool import ConnectionPool, PoolTimeout
 
+from service.artifacts.layout import format_part_id
 from service.catalog_store.store import (
     Change,
     CommitRefusedError,
@@ -60,6 +61,7 @@ from service.catalog_store.store import (
     StoredPart,
     StoreError,
     StoreUnavailableError,
+    added_shape_id,
     decode_geometry,
     encode_geometry,
     vec6,
@@ -392,16 +394,16 @@ class PgCatalogStore:
             row = conn.execute("SELECT nextval('part_ids')").fetchone()
             assert row is not None
             pid = int(row[0])
-            shape = shape_id or f"added-{pid}"
+            shape = added_shape_id(shape_id, pid)
             counted = conn.execute("SELECT COUNT(*) FROM parts WHERE shape_id = %s", (shape,)).fetchone()
-            local = int(counted[0]) if counted else 0
+            new_id = format_part_id(shape, int(counted[0]) if counted else 0)
             seq = self._next_seq(conn, "add", pid)
             created = conn.execute(
                 "INSERT INTO parts (id, part_id, shape_id, category, name, style, label, translation, "
                 "bbox_min, bbox_max, area, n_vertices, n_faces, mesh_sha256, added_seq, created_at, "
                 "idempotency_key, request_sha256) VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, "
                 "%s, %s, %s, now(), %s, %s) RETURNING created_at",
-                (pid, f"{shape}/{local}", shape, part.category, part.name, part.style, part.label,
+                (pid, new_id, shape, part.category, part.name, part.style, part.label,
                  vec6(part.translation), vec6(part.bbox_min), vec6(part.bbox_max), float(part.area),
                  len(g.vertices), len(g.faces), sha, seq, idempotency_key, request_sha256)).fetchone()
             assert created is not None
@@ -410,10 +412,10 @@ class PgCatalogStore:
                          (pid, part.model_version, _blob(part.embedding), _blob(part.part_feature)))
             conn.execute("INSERT INTO part_meshes (part, data) VALUES (%s, %s)", (pid, data))
             if may_commit is not None and not may_commit():
-                raise CommitRefusedError(f"the add of {shape}/{local} was rolled back: its request's "
+                raise CommitRefusedError(f"the add of {new_id} was rolled back: its request's "
                                          "deadline passed")
         return StoredPart(
-            id=pid, part_id=f"{shape}/{local}", shape_id=shape, category=part.category, name=part.name,
+            id=pid, part_id=new_id, shape_id=shape, category=part.category, name=part.name,
             style=part.style, label=part.label, translation=vec6(part.translation),
             bbox_min=vec6(part.bbox_min), bbox_max=vec6(part.bbox_max), area=float(part.area),
             embedding=np.asarray(part.embedding, np.float32),

@@ -31,6 +31,7 @@ import numpy as np
 
 from service.artifacts.catalog import Catalog
 from service.artifacts.files import write_file_atomic
+from service.artifacts.layout import CATALOG_ARRAY_NAMES, catalog_arrays
 from service.catalog_store.store import PartGeometry
 
 log = logging.getLogger(__name__)
@@ -79,8 +80,6 @@ class _Growable:
 class CatalogBuilder:
     """Builds catalog snapshots of the shipped catalog plus added parts (appended in order)."""
 
-    _ROW_ARRAYS = ("embeddings", "part_features", "points")
-
     def __init__(self, base: Catalog):
         self.base = base
         self.set_parts([])
@@ -95,7 +94,9 @@ class CatalogBuilder:
         b = self.base
         self._last: Catalog | None = None  # the previous snapshot, extended by the next one
         self.records: list[dict[str, Any]] = list(b.records)
-        self._rows = {name: _Growable(getattr(b, name)) for name in self._ROW_ARRAYS}
+        self._embeddings = _Growable(b.embeddings)
+        self._part_features = _Growable(b.part_features)
+        self._points = _Growable(b.points)
         self._vertices = _Growable(b.mesh_vertices)
         self._faces = _Growable(b.mesh_faces)
         self._vertex_first = _Growable(b.vertex_first)
@@ -112,9 +113,9 @@ class CatalogBuilder:
             assert p.geometry.points.shape == (S, 3), (
                 f"part {p.record['part_id']}: preview points of shape {p.geometry.points.shape}, "
                 f"expected ({S}, 3)")
-        self._rows["embeddings"].extend(np.stack([p.embedding for p in parts]).astype(np.float32))
-        self._rows["part_features"].extend(np.stack([p.part_feature for p in parts]).astype(np.float32))
-        self._rows["points"].extend(np.stack([p.geometry.points for p in parts]).astype(np.float16))
+        self._embeddings.extend(np.stack([p.embedding for p in parts]).astype(np.float32))
+        self._part_features.extend(np.stack([p.part_feature for p in parts]).astype(np.float32))
+        self._points.extend(np.stack([p.geometry.points for p in parts]).astype(np.float16))
         v0, f0 = self._vertices.n, self._faces.n
         nv = np.cumsum([len(p.geometry.vertices) for p in parts])
         nf = np.cumsum([len(p.geometry.faces) for p in parts])
@@ -133,9 +134,10 @@ class CatalogBuilder:
         extension is checked once against a full build, and not used if ``Catalog`` has grown
         fields it does not know.
         """
-        arrays = {name: g.view() for name, g in self._rows.items()}
-        arrays.update(mesh_vertices=self._vertices.view(), mesh_faces=self._faces.view(),
-                      vertex_first=self._vertex_first.view(), face_first=self._face_first.view())
+        arrays = catalog_arrays(embeddings=self._embeddings.view(), part_features=self._part_features.view(),
+                                points=self._points.view(), mesh_vertices=self._vertices.view(),
+                                mesh_faces=self._faces.view(), vertex_first=self._vertex_first.view(),
+                                face_first=self._face_first.view())
         prev = self._last
         if prev is not None and _extension_ok(prev) and len(prev) < len(self.records):
             cat = extend_catalog(prev, self.records[len(prev):], arrays)
@@ -147,9 +149,8 @@ class CatalogBuilder:
 
 # Attributes ``extend_catalog`` sets; a Catalog with others is always built in full.
 _EXTENDED = frozenset({
-    "records", "embeddings", "part_features", "points", "mesh_vertices", "mesh_faces", "vertex_first",
-    "face_first", "part_ids", "index_of", "categories", "category_of", "shape_ids", "shape_of",
-    "translations", "bbox_min", "bbox_max", "group", "group_size"})
+    "records", *CATALOG_ARRAY_NAMES, "part_ids", "index_of", "categories", "category_of", "shape_ids",
+    "shape_of", "translations", "bbox_min", "bbox_max", "group", "group_size"})
 
 
 def _extension_ok(cat: Catalog) -> bool:

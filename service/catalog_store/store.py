@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from service.artifacts.files import fsync_dir, remove_stale_temporaries, write_file_atomic
+from service.artifacts.layout import format_part_id
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,14 @@ QUARANTINE_DIR = "quarantine"
 INDEX_FILE = "added-index.npz"
 PENDING = ".pending"       # suffix of a geometry file whose row is not known to be committed
 RECORD_FORMAT = 1          # version of the row copy kept inside each geometry file
+# A part added without a shape id gets a shape of its own named after its row; a client may not
+# choose such a name (``service.catalog_store.writer``).
+ADDED_SHAPE_PREFIX = "added-"
+
+
+def added_shape_id(shape_id: str | None, row_id: int) -> str:
+    """The shape an added part belongs to: the one the client named, else a shape of its own."""
+    return shape_id or f"{ADDED_SHAPE_PREFIX}{row_id}"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -475,7 +484,7 @@ class CatalogStore:
             pid = conn.execute("SELECT COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'parts'), 0) "
                                "+ 1").fetchone()[0]
             pid = max(pid, conn.execute("SELECT COALESCE(MAX(id), 0) + 1 FROM parts").fetchone()[0])
-            shape = shape_id or f"added-{pid}"
+            shape = added_shape_id(shape_id, pid)
             local = conn.execute("SELECT COUNT(*) FROM parts WHERE shape_id = ?", (shape,)).fetchone()[0]
             now = _now()
             seq = conn.execute("INSERT INTO changes (kind, part, at) VALUES ('add', ?, ?)",
@@ -484,7 +493,7 @@ class CatalogStore:
             geometry = geometry_name(pid)
             g = part.geometry
             fields: dict[str, Any] = {
-                "part_id": f"{shape}/{local}", "shape_id": shape, "category": part.category,
+                "part_id": format_part_id(shape, local), "shape_id": shape, "category": part.category,
                 "name": part.name, "style": part.style, "label": part.label,
                 "translation": _vec_json(part.translation), "bbox_min": _vec_json(part.bbox_min),
                 "bbox_max": _vec_json(part.bbox_max), "area": float(part.area),

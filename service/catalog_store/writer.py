@@ -39,7 +39,6 @@ from typing import Any
 
 import numpy as np
 
-from service.artifacts.catalog import part_links
 from service.catalog_store.follow import ChangeFollower
 from service.catalog_store.part_prep import embed_geometry
 from service.catalog_store.pg_store import KeyTakenError, PgCatalogStore
@@ -51,6 +50,7 @@ from service.catalog_store.snapshot import (
     write_index_file,
 )
 from service.catalog_store.store import (
+    ADDED_SHAPE_PREFIX,
     CatalogStore,
     NewPart,
     PartGeometry,
@@ -77,12 +77,6 @@ def added_record(p: StoredPart) -> dict[str, Any]:
     return {"part_id": p.part_id, "shape_id": p.shape_id, "category": p.category, "style": p.style,
             "label": p.label, "translation": p.translation, "bbox_min": p.bbox_min, "bbox_max": p.bbox_max,
             "area": p.area, "split": "added", "duplicate_of": None, "name": p.name, "origin": "added"}
-
-
-def stored_part_out(p: StoredPart, n_points: int) -> dict[str, Any]:
-    """A stored part as the API's ``PartOut`` (what ``POST /parts`` answers)."""
-    return {**{k: v for k, v in added_record(p).items()}, "duplicates": 1, "n_points": n_points,
-            "n_vertices": p.n_vertices, "n_faces": p.n_faces, "links": part_links(p.part_id)}
 
 
 class CatalogWriter:
@@ -331,10 +325,10 @@ class CatalogWriter:
                              "spaces, '.', '_' or '-', starting with a letter or digit")
         if shape_id is None:
             return
-        if not SHAPE_ID.match(shape_id) or shape_id.startswith("added-"):
+        if not SHAPE_ID.match(shape_id) or shape_id.startswith(ADDED_SHAPE_PREFIX):
             raise InputError("invalid_shape_id", f"shape_id {shape_id!r} must be 1-100 letters, digits, '.', "
-                             "'_' or '-', starting with a letter or digit (and not 'added-', kept for "
-                             "parts sent without one)")
+                             f"'_' or '-', starting with a letter or digit (and not '{ADDED_SHAPE_PREFIX}', "
+                             "kept for parts sent without one)")
         if shape_id in self.base.catalog.shape_ids:
             raise ConflictError("shipped_shape", f"shape {shape_id!r} belongs to the shipped catalog; add "
                                 "parts of new shapes only")

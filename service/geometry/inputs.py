@@ -20,15 +20,28 @@ from typing import Any
 
 import numpy as np
 
-from service.errors import DeadlineError, InputError, PayloadTooLargeError, UnsupportedMediaError
+from service.errors import (
+    DeadlineError,
+    InputError,
+    PayloadTooLargeError,
+    ServiceError,
+    UnsupportedMediaError,
+)
 from service.geometry.mesh import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface, triangle_areas
-from service.settings import Settings
+from service.settings import Settings, check_point_count
 
 # Mesh error codes that are the caller's format or size choice rather than a broken file.
-_MESH_CODE_ERRORS: dict[str, type[InputError] | type[UnsupportedMediaError] | type[PayloadTooLargeError]] = {
+_MESH_CODE_ERRORS: dict[str, type[ServiceError]] = {
     "unsupported_format": UnsupportedMediaError,
     "too_large": PayloadTooLargeError,
 }
+
+
+def upload_error(exc: MeshError) -> ServiceError:
+    """The error a caller gets for a mesh it sent that cannot be used (``/suggest/mesh``,
+    ``/assemble/mesh``, ``POST /parts``): 415 for its format, 413 over a size limit, else 422;
+    the mesh error's code and message are kept."""
+    return _MESH_CODE_ERRORS.get(exc.code, InputError)(exc.code, exc.message)
 
 
 def points_from_json(value: Any) -> np.ndarray | list[Any]:
@@ -99,7 +112,11 @@ def points_from_list(values: Sequence[Sequence[float]]) -> np.ndarray:
 
 
 def points_from_base64(text: str, max_points: int) -> np.ndarray:
-    """Base64 of little-endian float32 x, y, z triples (12 bytes per point) as ``(N, 3) float32``."""
+    """Base64 of little-endian float32 x, y, z triples (12 bytes per point) as ``(N, 3) float32``.
+
+    ``max_points``: the limit (``Limits.max_points``), applied to the text's length before
+    decoding; the decoded points are counted by ``check_points``.
+    """
     if not text:
         raise InputError("empty_points", "points_base64 is empty")
     # Refuse oversized payloads before decoding them (4 base64 characters carry 3 bytes).
@@ -130,16 +147,12 @@ def points_to_base64(points: np.ndarray) -> str:
 
 
 def check_points(points: np.ndarray, min_points: int, max_points: int) -> np.ndarray:
-    """Enforce the point-count limits and finite values; returns the points unchanged."""
+    """Enforce the point-count limits (``Limits``) and finite values; returns the points unchanged."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError("bad_shape", f"points must have shape (N, 3), found {points.shape}")
-    n = len(points)
-    if n == 0:
+    if len(points) == 0:
         raise InputError("empty_points", "no points given")
-    if n < min_points:
-        raise InputError("too_few_points", f"{n} points given, at least {min_points} are needed")
-    if n > max_points:
-        raise InputError("too_many_points", f"{n} points given, at most {max_points} are accepted")
+    check_point_count(len(points), min_points, max_points)
     finite = np.isfinite(points).all(axis=1)
     if not finite.all():
         bad = int(np.flatnonzero(~finite)[0])
@@ -180,8 +193,7 @@ def _sample_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str, m
         areas = triangle_areas(mesh.vertices, mesh.faces)
         return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=areas), float(areas.sum())
     except MeshError as exc:
-        cls = _MESH_CODE_ERRORS.get(exc.code, InputError)
-        raise cls(exc.code, exc.message) from None
+        raise upload_error(exc) from None
 
 
 class MeshUploads:

@@ -690,8 +690,11 @@ def connected_components(vertices: np.ndarray, faces: np.ndarray,
     return out
 
 
-def check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
-    """Validate a point set: ``(N, 3)``, N >= 1, all finite; returns it as float64.
+def valid_point_set(points: np.ndarray, name: str = "points") -> np.ndarray:
+    """A point set read from a file, checked: ``(N, 3)``, N >= 1, all finite; as float64.
+
+    A caller's query points go through ``service.geometry.inputs.check_points`` instead, which
+    also applies the request limits and answers with the API's error codes.
 
     Raises:
         MeshError: ``empty_mesh`` or ``non_finite``; ``corrupt_mesh`` for a wrong shape.
@@ -710,10 +713,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int,
                    areas: np.ndarray | None = None) -> np.ndarray:
     """Sample ``n`` points uniformly on a triangle mesh's surface (area-weighted, seeded).
 
-    Triangles are drawn with probability proportional to their area, then a point uniformly
-    inside each drawn triangle (square-root barycentric trick). ``areas``: the triangles' areas
-    (``triangle_areas``) when the caller has them already (a 100k-triangle upload spends about
-    as long on them as on the sampling).
+    The points of ``sample_surface_faces``, as float32.
 
     Shapes:
         vertices (V, 3), faces (F, 3), areas (F,) -> (n, 3) float32.
@@ -721,10 +721,30 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int,
     Raises:
         MeshError: ``empty_mesh`` (no faces), ``non_finite``, ``zero_area``.
     """
+    return sample_surface_faces(vertices, faces, n, seed, areas)[0].astype(np.float32)
+
+
+def sample_surface_faces(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int,
+                         areas: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` area-weighted surface samples of a triangle mesh (seeded) and the face of each.
+
+    The one surface sampler: uploads, catalog parts, training data and contact refinement (which
+    takes each sample's face normal) all sample through it, so the same mesh and seed give the
+    same points everywhere. Triangles are drawn with probability proportional to their area,
+    then a point uniformly inside each drawn triangle (square-root barycentric trick).
+    ``areas``: the triangles' areas (``triangle_areas``) when the caller has them already (a
+    100k-triangle upload spends about as long on them as on the sampling).
+
+    Shapes:
+        vertices (V, 3), faces (F, 3), areas (F,) -> points (n, 3) float64, face ids (n,) int64.
+
+    Raises:
+        MeshError: ``empty_mesh`` (no faces), ``non_finite``, ``zero_area``.
+    """
     assert n >= 0, f"n must be >= 0, found {n}"
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if len(faces) == 0:
-        raise MeshError("empty_mesh", "cannot sample a surface without faces")
+        raise MeshError("empty_mesh", "cannot sample a surface without faces of positive area (no faces)")
     vertices = np.asarray(vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise MeshError("non_finite", "cannot sample a surface with NaN or infinite vertices")
@@ -740,7 +760,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int,
     r2 = rng.random(n)[:, None]
     corners = vertices[faces[tri]]  # (n, 3, 3)
     pts = (1 - r1) * corners[:, 0] + r1 * (1 - r2) * corners[:, 1] + r1 * r2 * corners[:, 2]
-    return pts.astype(np.float32)
+    return pts, tri.astype(np.int64)
 
 
 def normalize_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -755,7 +775,7 @@ def normalize_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     Raises:
         MeshError: ``empty_mesh``, ``non_finite``, or ``degenerate`` when all points coincide.
     """
-    pts = check_points(points)
+    pts = valid_point_set(points)
     center = (pts.min(axis=0) + pts.max(axis=0)) / 2
     radius = float(np.linalg.norm(pts - center, axis=1).max())
     if not radius > 0:

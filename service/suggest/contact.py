@@ -49,7 +49,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.artifacts.catalog import Catalog
-from service.geometry.mesh import triangle_areas
+from service.geometry.mesh import sample_surface_faces
 
 # cos(45 deg): a sample counts as inside only if it lies roughly behind the nearest sample.
 _BEHIND = float(np.sqrt(0.5))
@@ -122,19 +122,18 @@ class Refinement:
 def sample_oriented(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int) -> Surface:
     """``n`` area-weighted surface samples of a mesh with their faces' outward normals (seeded).
 
+    The samples of ``sample_surface_faces`` (the same points for the same mesh and seed).
+
     Shapes:
         vertices (V, 3), faces (F, 3) -> Surface of n points with normals.
+
+    Raises:
+        MeshError (a ValueError): a mesh without faces of positive area.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    areas = triangle_areas(v, f) if len(f) else np.zeros(0)
-    if not areas.sum() > 0:
-        raise ValueError("a mesh without faces of positive area has no surface to sample")
-    rng = np.random.default_rng(seed)
-    tri = rng.choice(len(f), size=n, p=areas / areas.sum())
-    r1, r2 = np.sqrt(rng.random(n))[:, None], rng.random(n)[:, None]
+    pts, tri = sample_surface_faces(v, f, n, seed)
     a, b, c = v[f[tri, 0]], v[f[tri, 1]], v[f[tri, 2]]
-    pts = (1 - r1) * a + r1 * (1 - r2) * b + r1 * r2 * c
     normals = np.cross(b - a, c - a)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     return Surface(pts, normals)

@@ -379,13 +379,9 @@ class SuggestionEngine:
 
     def _checked_k(self, options: SuggestOptions) -> int:
         """The query's k, after the checks that need neither points nor the catalog."""
-        s = self.settings
-        k = s.default_k if options.k is None else options.k
-        if not 1 <= k <= s.max_k:
-            raise InputError("k_out_of_range", f"k must be between 1 and {s.max_k}, found {k}")
-        if len(options.exclude_parts) + len(options.exclude_shapes) > s.max_exclude:
-            raise InputError("too_many_exclusions", f"at most {s.max_exclude} part and shape ids may be "
-                             "excluded per request")
+        limits = self.settings.limits
+        k = limits.k(options.k)
+        limits.check_exclusions(len(options.exclude_parts) + len(options.exclude_shapes))
         options.preferences.check(self.artifacts.n_modes)
         return k
 

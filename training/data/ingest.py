@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from service.geometry.mesh import MeshError, check_points, load_scene_leaves
+from service.geometry.mesh import MeshError, load_scene_leaves, valid_point_set
 from training.data.shapes import SIDECAR_SUFFIX, RawPiece, RawShape
 
 log = logging.getLogger(__name__)
@@ -162,7 +162,7 @@ def _parse_numbers(path: Path, data: bytes, columns: int, dtype: type, limit: in
 def _point_pieces(path: Path, config: IngestConfig) -> list[RawPiece]:
     points = _parse_numbers(path, _read_bytes(path, config), 3, float, config.max_points)
     try:
-        check_points(points, str(path))
+        valid_point_set(points, str(path))
     except MeshError as err:
         raise ShapeFileError(path, err.message.removeprefix(f"{path}: "), err.code) from err
     seg_path = _segment_file(path)

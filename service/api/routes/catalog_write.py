@@ -33,13 +33,14 @@ from starlette.responses import Response
 
 from service.api.auth import WriterDep
 from service.api.deps import SettingsDep
+from service.api.render import render_stored_part
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
 from service.api.schemas import ErrorResponse, FrameIn, PartOut, Replication
 from service.artifacts.catalog import part_links
 from service.catalog_store.part_prep import prepare_part
 from service.catalog_store.store import CommitRefusedError, NewPart, StoredPart
-from service.catalog_store.writer import CATEGORY, SHAPE_ID, CatalogWriter, stored_part_out
+from service.catalog_store.writer import CATEGORY, SHAPE_ID, CatalogWriter
 from service.errors import DeadlineError, InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
@@ -208,7 +209,8 @@ async def post_part(request: Request, writer: WriterDep, settings: SettingsDep,
     headers = {"Location": part_links(stored.part_id)["part"]}
     if replayed:
         headers["Idempotent-Replayed"] = "true"
-    return OrjsonResponse(stored_part_out(stored, writer.builder.n_points), status_code=201, headers=headers)
+    return OrjsonResponse(render_stored_part(stored, writer.builder.n_points), status_code=201,
+                          headers=headers)
 
 
 class CommitWindow:

@@ -137,13 +137,9 @@ async def post_suggest_mesh(
 async def post_suggest_batch(body: BatchRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
                              settings: SettingsDep) -> OrjsonResponse:
     """Each item is validated on its own: a bad item gets an error entry, the others are answered."""
-    if not body.items:
-        raise InputError("empty_batch", "items is empty; send at least one query")
-    if len(body.items) > settings.max_batch_items:
-        raise InputError("too_many_items", f"{len(body.items)} items given, at most "
-                         f"{settings.max_batch_items} are accepted")
-    engine.check_budget(sum(_estimated_cost(engine, raw) for raw in body.items), len(body.items))
-    results, valid, queries = await run_in_threadpool(_decode_items, body.items, engine, settings.max_points)
+    items = body.checked_items(settings.limits)
+    engine.check_budget(sum(_estimated_cost(engine, raw) for raw in items), len(items))
+    results, valid, queries = await run_in_threadpool(_decode_items, items, engine, settings.max_points)
     answers = (await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
                if queries else [])
     for i, answer in zip(valid, answers, strict=True):
