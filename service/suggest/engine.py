@@ -5,7 +5,8 @@ One request (or a batch of them) goes through these steps, each one batched:
 1. points to the canonical frame, resampled to the networks' N points (seeded);
 2. g: the mixture {phi_k, mu_k, sigma_k} and h_query: the query's placement feature, one run
    each for the whole batch;
-3. FAISS: the nearest catalog parts of every mean, all K means (of all queries sharing the same
+3. the search (``CatalogSearch`` of the request's ``CatalogSnapshot``: numpy brute force or
+   FAISS): the nearest catalog parts of every mean, all K means (of all queries sharing the same
    filter) in one search;
 4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
    parts collapsed (catalog ``duplicate_of``), the top ones kept (k, or ``complement_candidates``
