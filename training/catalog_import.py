@@ -187,7 +187,7 @@ class LocalSink:
         self.settings = Settings(artifacts=artifacts, data_dir=data_dir, catalog_poll_seconds=0)
         loaded = load_artifacts(artifacts, verify_checksums=self.settings.verify_checksums)
         self.writer = CatalogWriter.open(self.settings, SuggestionEngine(loaded, self.settings),
-                                         publish=lambda engine: None)
+                                         publish=lambda snapshot: None)
 
     def close(self) -> None:
         self.writer.close()

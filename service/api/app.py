@@ -4,7 +4,9 @@
 artifact folder (ONNX sessions, FAISS index, catalog), checks it against the manifest and
 refuses to start with an error naming the bad file; then it runs a warm-up suggestion, after
 which ``/readyz`` answers 200, and starts the micro-batcher that runs suggestions
-(``service.api.batching``; closed, after answering what is queued, at shutdown).
+(``service.api.batching``; closed, after answering what is queued, at shutdown) and the
+catalog writer, all held by one ``Served`` (``service.api.served``) that routes get through
+``service.api.deps.ServedDep``.
 ``uvicorn --factory service.api.app:create_app`` works too.
 """
 
@@ -19,7 +21,6 @@ from pathlib import Path
 
 import anyio
 import fastapi_offline
-import numpy as np
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.staticfiles import StaticFiles
@@ -27,7 +28,7 @@ from starlette.responses import HTMLResponse
 
 from service import __version__
 from service.api.access_log import install_access_log_redaction
-from service.api.batching import BatchStats, MicroBatcher
+from service.api.deps import served_of
 from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
@@ -37,13 +38,13 @@ from service.api.openapi_extras import add_common_responses
 from service.api.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
+from service.api.served import Served
 from service.artifacts.layout import ArtifactError
 from service.artifacts.loading import load_served_artifacts
 from service.catalog_store.store import StoreError
-from service.errors import ServiceError
 from service.geometry.inputs import MeshUploads
 from service.settings import Settings, get_settings
-from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
 
@@ -68,30 +69,14 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.error("refusing to start: %s", exc)
         raise
     engine = SuggestionEngine(artifacts, settings)
-    metrics: Metrics = app.state.metrics
-    metrics.set_model(engine.model_version, len(engine.catalog))
-    app.state.engine = engine
     if settings.warmup:
         engine.warmup()
-    def run_batch(items: list[tuple[np.ndarray, SuggestOptions]],
-                  deadlines: list[float | None]) -> list[SuggestResult | ServiceError]:
-        # The served engine, not the one loaded here: catalog writes publish new snapshots.
-        return app.state.engine.suggest_batch(items, deadlines)
-
-    def cost(item: tuple[np.ndarray, SuggestOptions]) -> float:
-        return engine.query_cost(len(item[0]), item[1])
-
-    batcher = app.state.batcher = MicroBatcher(
-        run_batch, max_size=settings.batch_max_size, max_wait=settings.batch_max_wait_ms / 1000,
-        max_cost=settings.batch_max_cost_ms, cost=cost,
-        workers=settings.batch_workers, name="suggest-batcher",
-        stats=BatchStats(wait=metrics.queue_wait.observe, ran=metrics.observe_batch))
-    metrics.watch(metrics.queued, lambda: batcher.queued)
+    served = Served(engine, settings, app.state.metrics)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
-        app.state.writer = catalog_write.start_catalog_writer(app, engine)
+        served.open_catalog()
     except StoreError as exc:
         log.error("refusing to start: %s", exc)
-        batcher.close()
+        served.close(settings.request_timeout)
         raise
     # Move everything loaded so far (catalog records, sessions, the app) out of the collector's
     # reach: a full collection walked those ~160k objects in 60-90 ms, the p99 of JSON requests.
@@ -101,7 +86,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # default threshold the collector ran more than once per request and walked the lists of
     # every request in flight (see the gc_threshold setting).
     gc.set_threshold(settings.gc_threshold, *gc.get_threshold()[1:])
+    metrics: Metrics = app.state.metrics
     refresher = asyncio.create_task(metrics.refresh_live_forever()) if metrics.multiprocess else None
+    app.state.served = served
     app.state.ready = True
     try:
         yield
@@ -110,12 +97,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if refresher is not None:
             refresher.cancel()
         # Requests still queued for a batch are answered; later ones get 503 shutting_down.
-        await anyio.to_thread.run_sync(batcher.close, settings.request_timeout)
-        app.state.batcher = None
-        if app.state.writer is not None:
-            app.state.writer.close()
-            app.state.writer = None
-        app.state.engine = None
+        await anyio.to_thread.run_sync(served.close, settings.request_timeout)
+        app.state.served = None
 
 
 # /docs and /redoc load Swagger UI and ReDoc from the service itself, not from a CDN, so the API
@@ -161,9 +144,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   lifespan=lifespan, telemetry={"auto_configure": False}, docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = Metrics()
-    app.state.engine = None
-    app.state.batcher = None
-    app.state.writer = None
+    app.state.served = None
     app.state.ready = False
     app.state.uploads = MeshUploads(settings)
     install_access_log_redaction()
@@ -178,8 +159,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_offline_docs(app)
 
     def model_version() -> str | None:
-        engine = app.state.engine
-        return engine.model_version if engine is not None else None
+        served = served_of(app)
+        return served.model_version if served is not None else None
 
     # Added last = outermost: metrics see every response, including a 413 from the body limit.
     app.add_middleware(OverloadMiddleware, max_inflight=settings.max_inflight, max_queue=settings.max_queue,

@@ -18,6 +18,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.api.deps import served_of
 from service.catalog_store.writer import CatalogWriter
 from service.errors import ForbiddenError, NotReadyError, UnauthorizedError
 from service.settings import Settings
@@ -47,10 +48,10 @@ async def require_writer(request: Request,
     if not settings.catalog_enabled:
         raise ForbiddenError("read_only", "this server's catalog is read-only: no data folder is configured "
                              "(COMPLEMENTME_DATA_DIR)")
-    writer: CatalogWriter | None = getattr(request.app.state, "writer", None)
-    if writer is None:
+    served = served_of(request.app)
+    if served is None or served.writer is None:
         raise NotReadyError("not_ready", "the catalog is not loaded yet")
-    return writer
+    return served.writer
 
 
 WriterDep = Annotated[CatalogWriter, Depends(require_writer)]

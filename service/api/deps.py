@@ -1,4 +1,5 @@
-"""Typed dependencies of the routes: the loaded engine, its micro-batcher, the settings, the metrics.
+"""Typed dependencies of the routes: what is served, the settings, the metrics, the uploads, and
+the request's batch announcement and deadline.
 
 They are ``async`` on purpose: sync dependencies would each cost a threadpool hop per request.
 """
@@ -7,32 +8,26 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import numpy as np
-from fastapi import Depends, Request
+from fastapi import Depends, FastAPI, Request
 
-from service.api.batching import MicroBatcher
+from service.api.batching import Ticket
 from service.api.metrics import Metrics
+from service.api.served import Served
 from service.errors import InputError, NotReadyError
 from service.geometry.inputs import MeshUploads
 from service.settings import Settings
-from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
-
-# The micro-batcher of suggestion queries: (points, options) in, SuggestResult out.
-SuggestBatcher = MicroBatcher[tuple[np.ndarray, SuggestOptions], SuggestResult]
 
 
-async def get_engine(request: Request) -> SuggestionEngine:
-    engine = getattr(request.app.state, "engine", None)
-    if engine is None:
+def served_of(app: FastAPI) -> Served | None:
+    """What ``app`` serves: set by its lifespan once the artifacts are loaded and warm, else None."""
+    return getattr(app.state, "served", None)
+
+
+async def get_served(request: Request) -> Served:
+    served = served_of(request.app)
+    if served is None:
         raise NotReadyError("not_ready", "the artifacts are not loaded yet")
-    return engine
-
-
-async def get_batcher(request: Request) -> SuggestBatcher:
-    batcher = getattr(request.app.state, "batcher", None)
-    if batcher is None:
-        raise NotReadyError("not_ready", "the artifacts are not loaded yet")
-    return batcher
+    return served
 
 
 async def get_app_settings(request: Request) -> Settings:
@@ -45,6 +40,16 @@ async def get_metrics(request: Request) -> Metrics:
 
 async def get_uploads(request: Request) -> MeshUploads:
     return request.app.state.uploads
+
+
+async def get_ticket(request: Request) -> Ticket | None:
+    """The announcement ``BatchedRoute`` made for this request to the batcher, if any."""
+    return getattr(request.state, "batch_ticket", None)
+
+
+async def get_deadline(request: Request) -> float | None:
+    """The request's deadline (``time.monotonic()``) set by the overload middleware, if any."""
+    return getattr(request.state, "deadline", None)
 
 
 async def unique_form_fields(request: Request) -> None:
@@ -61,8 +66,9 @@ async def unique_form_fields(request: Request) -> None:
         seen.add(key)
 
 
-BatcherDep = Annotated[SuggestBatcher, Depends(get_batcher)]
-EngineDep = Annotated[SuggestionEngine, Depends(get_engine)]
+ServedDep = Annotated[Served, Depends(get_served)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 UploadsDep = Annotated[MeshUploads, Depends(get_uploads)]
+TicketDep = Annotated[Ticket | None, Depends(get_ticket)]
+DeadlineDep = Annotated[float | None, Depends(get_deadline)]

@@ -7,13 +7,13 @@ from typing import Any
 import numpy as np
 
 from service.api.render import part_links, render_frame, render_placed
+from service.artifacts.catalog import Catalog
 from service.modeling.assembly import STOP_REASONS, AssembleResult, Node
-from service.suggest.engine import SuggestionEngine
 
 
-def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> dict[str, Any]:
+def render_node(n: Node, cat: Catalog, result: AssembleResult) -> dict[str, Any]:
     """One placed part, mapped from the canonical frame to the result's frame."""
-    frame, cat = result.frame, engine.catalog
+    frame = result.frame
     s = n.suggestion
     i = s.part_index
     t = n.translation.reshape(1, 3)
@@ -29,21 +29,22 @@ def render_node(n: Node, engine: SuggestionEngine, result: AssembleResult) -> di
     }
 
 
-def render_assemble(result: AssembleResult, engine: SuggestionEngine, strategy: str,
+def render_assemble(result: AssembleResult, cat: Catalog, model_version: str, strategy: str,
                     frame_fitted: bool = False) -> dict[str, Any]:
+    """An assembly as ``AssembleResponse``; ``cat``: the catalog it was grown on."""
     frame, start = result.frame, result.start
     start_out: dict[str, Any] = {"kind": start.kind}
     if start.part_index is not None:
-        pid = engine.catalog.part_ids[start.part_index]
+        pid = cat.part_ids[start.part_index]
         placed = frame.from_canonical(result.start_translation[None])[0]
         start_out.update(part_id=pid, translation=[float(x) for x in placed], links=part_links(pid))
     else:
         start_out["points"] = len(start.points)
         start_out["parts"] = len(start.parts)
-    nodes = [render_node(n, engine, result) for n in result.nodes]
+    nodes = [render_node(n, cat, result) for n in result.nodes]
     chain = {n.node for n in result.steps}
     return {
-        "model_version": engine.model_version, "frame": render_frame(frame), "start": start_out,
+        "model_version": model_version, "frame": render_frame(frame), "start": start_out,
         "category": result.category, "strategy": strategy, "stop_reason": result.stop_reason,
         "stop_message": STOP_REASONS[result.stop_reason], "frame_fitted": frame_fitted,
         "steps": [d for d in nodes if d["node"] in chain], "nodes": nodes,

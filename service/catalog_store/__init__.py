@@ -2,8 +2,8 @@
 
 Owns the store of added parts, the source of truth (SQLite in a data folder, ``store``, or
 PostgreSQL shared by replicas, ``pg_store``, whose changes a replica follows, ``follow``), the
-immutable snapshots of shipped plus added parts with their index (``snapshot``), the writer that
-applies additions and deletions and swaps the served snapshot (``writer``), the preparation of an
-uploaded part mesh for storing (``part_prep``) and the checking and repair of a data folder
-(``recovery``). It raises the service's plain errors; only ``service.api`` maps them to HTTP.
+catalogs of shipped plus added parts with their index (``snapshot``), the writer that applies
+additions and deletions and publishes the next ``CatalogSnapshot`` to serve (``writer``), the
+preparation of an uploaded part mesh for storing (``part_prep``) and the checking and repair of
+a data folder (``recovery``). It raises the service's plain errors; only ``service.api`` maps them to HTTP.
 """

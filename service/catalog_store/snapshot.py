@@ -1,8 +1,9 @@
 """Immutable catalog snapshots: the shipped parts followed by the added ones, and their index.
 
-A request reads one snapshot from start to end (the engine it got holds one catalog and one
-index); a write builds the next snapshot and swaps the served engine's reference, so reads never
-wait for writes. Building a snapshot must stay cheap as the catalog grows, so the large arrays
+A request reads one snapshot from start to end (``service.suggest.snapshot.CatalogSnapshot``:
+one catalog, its index and search); a write builds the next one and the served object swaps its
+reference (``service.api.served``), so reads never wait for writes. The engine, its networks
+and caches are not rebuilt. Building a snapshot must stay cheap as the catalog grows, so the large arrays
 (meshes, preview points, embeddings, part features) live in growable buffers: the shipped rows
 are copied in once, added rows are appended after the filled prefix, and each snapshot holds
 views of the prefix it was built on. An append writes only past every existing view, so older

@@ -11,7 +11,7 @@
    clashes with a shipped part, is left out and listed in the status);
 4. reconcile the index file with the database: it must reflect the database's last change and
    hold the same parts and vectors; otherwise it is rebuilt from the database rows;
-5. publish the snapshot (shipped + added parts) as the served engine.
+5. publish the snapshot (shipped + added parts, ``CatalogSnapshot``) to serve.
 
 Writes: ``add`` stores a prepared part in one SQLite transaction, then brings the served
 snapshot up to the database's latest change before returning, so the next request sees the
@@ -62,6 +62,7 @@ from service.errors import ConflictError, InputError, NotFoundError, StorageFull
 from service.geometry.mesh import resample_points
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
+from service.suggest.snapshot import CatalogSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -80,22 +81,26 @@ def added_record(p: StoredPart) -> dict[str, Any]:
 
 
 class CatalogWriter:
-    """Owns a data folder for one process and publishes the engine (snapshot) to serve."""
+    """Owns a data folder for one process and publishes the catalog snapshot to serve.
 
-    def __init__(self, store: CatalogStore | PgCatalogStore, base: SuggestionEngine, settings: Settings,
-                 publish: Callable[[SuggestionEngine], None]):
+    ``engine`` is the process's long-lived engine: its networks embed added parts, its shipped
+    snapshot is the base every published snapshot extends.
+    """
+
+    def __init__(self, store: CatalogStore | PgCatalogStore, engine: SuggestionEngine, settings: Settings,
+                 publish: Callable[[CatalogSnapshot], None]):
         self.store = store
-        self.base = base
+        self.engine = engine
         self.settings = settings
         self._publish = publish
-        self.builder = CatalogBuilder(base.catalog)
+        self.builder = CatalogBuilder(engine.catalog)
         self.parts: dict[int, AddedPart] = {}          # by parts.id, in order of addition
         self.seq = 0                                    # the last change the snapshot includes
         self.index_seq = -1                             # the change the index file reflects
         self.index_rebuilt = False
         self.reembedded = 0
         self.skipped: dict[int, dict[str, str]] = {}   # parts.id -> {"part_id", "reason"}
-        self.engine = base
+        self.snapshot = engine.shipped                  # the one published last
         self._sync_lock = threading.Lock()
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
@@ -103,14 +108,14 @@ class CatalogWriter:
 
     # ------------------------------------------------------------------ start
     @classmethod
-    def open(cls, settings: Settings, base: SuggestionEngine,
-             publish: Callable[[SuggestionEngine], None]) -> CatalogWriter:
+    def open(cls, settings: Settings, engine: SuggestionEngine,
+             publish: Callable[[CatalogSnapshot], None]) -> CatalogWriter:
         """Open the data folder, reconcile it and publish the first snapshot (see module doc)."""
         if settings.catalog_backend == "postgres":
-            return cls._open_postgres(settings, base, publish)
+            return cls._open_postgres(settings, engine, publish)
         assert settings.data_dir is not None, "CatalogWriter.open needs settings.data_dir"
         store = CatalogStore(settings.data_dir)
-        writer = cls(store, base, settings, publish)
+        writer = cls(store, engine, settings, publish)
         try:
             store.check_folder()
             writer._reembed_stale()
@@ -127,15 +132,15 @@ class CatalogWriter:
         return writer
 
     @classmethod
-    def _open_postgres(cls, settings: Settings, base: SuggestionEngine,
-                       publish: Callable[[SuggestionEngine], None]) -> CatalogWriter:
+    def _open_postgres(cls, settings: Settings, engine: SuggestionEngine,
+                       publish: Callable[[CatalogSnapshot], None]) -> CatalogWriter:
         """Connect to the shared database, load its parts, publish, then follow its changes."""
         assert settings.database_url is not None, "the postgres backend needs settings.database_url"
-        store = PgCatalogStore(settings.database_url.get_secret_value(), base.model_version,
+        store = PgCatalogStore(settings.database_url.get_secret_value(), engine.model_version,
                                pool_size=settings.database_pool_size, timeout=settings.database_timeout,
                                idle_seconds=settings.request_timeout,
                                migrate_schema=settings.database_migrate)
-        writer = cls(store, base, settings, publish)
+        writer = cls(store, engine, settings, publish)
         try:
             writer._reembed_stale()
             writer._load_all()
@@ -161,7 +166,7 @@ class CatalogWriter:
 
     @property
     def model_version(self) -> str:
-        return self.base.model_version
+        return self.engine.model_version
 
     def _reembed_stale(self) -> None:
         stale = [p for p in self.store.parts() if p.model_version != self.model_version]
@@ -175,7 +180,7 @@ class CatalogWriter:
             except StoreError as exc:
                 log.error("cannot re-embed: %s", exc)
                 continue
-            e, f = embed_geometry(self.base.networks, g.vertices, g.faces, self.base.artifacts.n_points,
+            e, f = embed_geometry(self.engine.networks, g.vertices, g.faces, self.engine.artifacts.n_points,
                                   self.settings.seed)
             updates.append((p.id, e, f))
         if updates:
@@ -310,7 +315,7 @@ class CatalogWriter:
 
     def delete(self, part_id: str) -> None:
         """Remove an added part from the catalog; shipped parts cannot be deleted (409)."""
-        if part_id in self.base.catalog.index_of:
+        if part_id in self.engine.catalog.index_of:
             raise ConflictError("shipped_part", f"part {part_id!r} ships with the model's artifacts and "
                                 "cannot be deleted; leave it out per request with exclude_parts")
         with self._reachable():
@@ -329,7 +334,7 @@ class CatalogWriter:
             raise InputError("invalid_shape_id", f"shape_id {shape_id!r} must be 1-100 letters, digits, '.', "
                              f"'_' or '-', starting with a letter or digit (and not '{ADDED_SHAPE_PREFIX}', "
                              "kept for parts sent without one)")
-        if shape_id in self.base.catalog.shape_ids:
+        if shape_id in self.engine.catalog.shape_ids:
             raise ConflictError("shipped_shape", f"shape {shape_id!r} belongs to the shipped catalog; add "
                                 "parts of new shapes only")
 
@@ -384,8 +389,8 @@ class CatalogWriter:
                loaded: dict[int, PartGeometry | StoreError] | None = None) -> list[AddedPart]:
         """Add rows to ``self.parts``, in order, with their geometry from ``cached``, ``loaded`` or
         (rows in neither) the store; rows that cannot be served are listed in ``self.skipped``."""
-        D = self.base.catalog.embeddings.shape[1]
-        Fp = self.base.catalog.part_features.shape[1]
+        D = self.engine.catalog.embeddings.shape[1]
+        Fp = self.engine.catalog.part_features.shape[1]
         S = self.builder.n_points
         admitted = []
         loaded = loaded if loaded is not None else self._read_geometries(rows, cached or {})
@@ -396,7 +401,7 @@ class CatalogWriter:
             # next start stores the vectors (_reembed_stale). Storing them now would make every
             # such add a re-embedding change, and every replica reload its catalog for it.
             restamp = p.model_version != self.model_version and isinstance(self.store, PgCatalogStore)
-            if p.part_id in self.base.catalog.index_of:
+            if p.part_id in self.engine.catalog.index_of:
                 reason = "its id is also the id of a shipped part"
             elif not restamp and (p.embedding.shape != (D,) or p.part_feature.shape != (Fp,)):
                 reason = (f"embedding/feature sizes {p.embedding.shape}/{p.part_feature.shape} do not fit "
@@ -416,8 +421,8 @@ class CatalogWriter:
                 self.skipped[p.id] = {"part_id": p.part_id, "reason": reason}
                 continue
             if restamp:
-                e, f = embed_geometry(self.base.networks, g.vertices, g.faces, self.base.artifacts.n_points,
-                                      self.settings.seed)
+                e, f = embed_geometry(self.engine.networks, g.vertices, g.faces,
+                                      self.engine.artifacts.n_points, self.settings.seed)
                 p = dataclasses.replace(p, embedding=e, part_feature=f, model_version=self.model_version)
             if len(g.points) != S:  # preview size of another artifact version
                 g = dataclasses.replace(g, points=resample_points(g.points, S, self.settings.seed))
@@ -427,15 +432,15 @@ class CatalogWriter:
         return admitted
 
     def _publish_snapshot(self) -> None:
+        """The next snapshot (the engine, its networks and caches, stay as they are)."""
         catalog = self.builder.catalog()
-        index = combined_index(self.base.index, catalog, len(self.base.catalog))
-        artifacts = dataclasses.replace(self.base.artifacts, catalog=catalog, index=index)
-        engine = type(self.base)(artifacts, self.settings)
-        self.engine = engine
-        self._publish(engine)
+        index = combined_index(self.engine.index, catalog, len(self.engine.catalog))
+        snapshot = self.engine.snapshot(catalog, index)
+        self.snapshot = snapshot
+        self._publish(snapshot)
 
     def _added_embeddings(self) -> np.ndarray:
-        D = self.base.catalog.embeddings.shape[1]
+        D = self.engine.catalog.embeddings.shape[1]
         if not self.parts:
             return np.zeros((0, D), np.float32)
         return np.stack([p.embedding for p in self.parts.values()]).astype(np.float32)
@@ -443,7 +448,7 @@ class CatalogWriter:
     def _write_index(self) -> None:
         assert self.store.index_path is not None, "only the data folder has an index file"
         write_index_file(self.store.index_path, self.seq, self.model_version, list(self.parts),
-                         self._added_embeddings(), self.base.index.metric_type)
+                         self._added_embeddings(), self.engine.index.metric_type)
         self.index_seq = self.seq
 
     def _poll(self) -> None:
@@ -465,8 +470,8 @@ class CatalogWriter:
         except StoreUnavailableError:  # the database is down: what this replica knows
             deleted, last = None, self.follower.database_seq if self.follower is not None else None
         return {
-            "writable": True, "backend": self.store.backend, "shipped_parts": len(self.base.catalog),
-            "added_parts": len(self.parts), "deleted_parts": deleted, "parts": len(self.engine.catalog),
+            "writable": True, "backend": self.store.backend, "shipped_parts": len(self.engine.catalog),
+            "added_parts": len(self.parts), "deleted_parts": deleted, "parts": len(self.snapshot.catalog),
             "sequence": self.seq, "database_sequence": last,
             "index_sequence": self.index_seq if self.store.index_path is not None else None,
             "index_rebuilt_at_start": self.index_rebuilt, "reembedded_at_start": self.reembedded,

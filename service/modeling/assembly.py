@@ -70,6 +70,7 @@ from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.preferences import Preferences
+from service.suggest.snapshot import CatalogSnapshot
 
 Strategy = Literal["greedy", "sample"]
 
@@ -238,16 +239,19 @@ def box_iou(lo: np.ndarray, hi: np.ndarray, los: np.ndarray, his: np.ndarray) ->
 
 
 class Assembler:
-    """Automatic assembly on a loaded engine (its catalog, networks and contact refinement)."""
+    """Automatic assembly on a loaded engine (its networks and contact refinement) and one catalog
+    snapshot (None: the engine's shipped catalog)."""
 
-    def __init__(self, engine: SuggestionEngine):
+    def __init__(self, engine: SuggestionEngine, snapshot: CatalogSnapshot | None = None):
         self.engine = engine
+        self.snapshot = snapshot or engine.shipped
+        self.catalog = self.snapshot.catalog
         self.settings = engine.settings
         self._part_counts: tuple[float, float] = (0.0, np.inf)   # set per assembly (its category)
 
     # ---------------------------------------------------------------- the parts of a state
     def _start_parts(self, start: Start) -> list[_Placed]:
-        cat = self.engine.catalog
+        cat = self.catalog
         if start.part_index is not None:
             i = start.part_index
             return [self._catalog_part(i, cat.translations[i].astype(np.float64))]
@@ -264,7 +268,7 @@ class Assembler:
 
     def _catalog_part(self, i: int, t: np.ndarray, scale: np.ndarray | None = None) -> _Placed:
         """Catalog part ``i`` scaled about its centre by ``scale`` (per axis) and moved to ``t``."""
-        cat = self.engine.catalog
+        cat = self.catalog
         sc = np.ones(3) if scale is None else np.asarray(scale, dtype=np.float64)
         pts = cat.part_points(i).astype(np.float64) * sc + t
         contacts = self.engine.contacts
@@ -314,7 +318,7 @@ class Assembler:
         if len(heavy) == 0:
             return np.zeros(n, np.int64), np.full(n, np.inf)
         rows = np.array([sug.part_index for sug in result.suggestions], dtype=np.int64)
-        y = self.engine.catalog.embeddings[rows].astype(np.float64)                    # (C, D)
+        y = self.catalog.embeddings[rows].astype(np.float64)                    # (C, D)
         z = (y[:, None, :] - result.mode_means[heavy][None]) / result.mode_sigmas[heavy][None]  # (C, H, D)
         d = np.sqrt(np.mean(z * z, axis=2))                                            # (C, H)
         best = np.argmin(d, axis=1)
@@ -345,7 +349,7 @@ class Assembler:
         if cand.row is None:
             return False
         rows = np.array([-1 if p.row is None else p.row for p in state.parts])
-        emb = self.engine.catalog.embeddings
+        emb = self.catalog.embeddings
         z = (emb[rows].astype(np.float64) - emb[cand.row]) / sigma
         z = np.where(rows >= 0, np.sqrt(np.mean(z * z, axis=1)), np.inf)
         overlap = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_overlap_iou
@@ -415,7 +419,7 @@ class Assembler:
         if len(state.rows) == 0:
             return -np.inf
         live = np.flatnonzero(weights > 0)
-        ll, _ = mixture_log_likelihood(self.engine.catalog.embeddings[state.rows], weights[live],
+        ll, _ = mixture_log_likelihood(self.catalog.embeddings[state.rows], weights[live],
                                        result.mode_means[live], result.mode_sigmas[live])
         return float(np.max(ll))
 
@@ -493,7 +497,7 @@ class Assembler:
         options = options or AssembleOptions()
         max_parts, budget = self._check(start, options)
         t0 = time.perf_counter()
-        cat = self.engine.catalog
+        cat = self.catalog
         category: str | None = None
         if options.categories:
             cat.category_codes(list(options.categories))  # unknown names fail here
@@ -571,7 +575,7 @@ class Assembler:
         for round_ in range(self.settings.assemble_candidate_rounds):
             t = time.perf_counter()
             result = self.engine.suggest(query, replace(
-                suggest, exclude_parts=tuple(tested)) if tested else suggest)
+                suggest, exclude_parts=tuple(tested)) if tested else suggest, snapshot=self.snapshot)
             timings["suggest"] += time.perf_counter() - t
             t = time.perf_counter()
             picks, why = self._step(result, state, options, n, rng, reached)
@@ -594,7 +598,7 @@ class Assembler:
         likely = self._likely(result, weights)
         if not likely:
             return [], "unlikely"
-        cat = self.engine.catalog
+        cat = self.catalog
         # A branch never reaches a set of parts another branch already has (A then B, B then A).
         fresh = likely if n == 1 else [
             c for c in likely if state.groups | {int(cat.group[c.suggestion.part_index])} not in reached]
@@ -615,7 +619,7 @@ class Assembler:
     def part_counts(self, category: str | None) -> tuple[float, float]:
         """How many parts the catalog's shapes of ``category`` have (all shapes without one): the
         ``assemble_complete_quantiles`` of the count per shape, the data's own statistics."""
-        cat = self.engine.catalog
+        cat = self.catalog
         keep = (np.ones(len(cat), bool) if category is None
                 else cat.category_of == cat.category_codes([category])[0])
         counts = np.bincount(cat.shape_of[keep])
@@ -644,7 +648,8 @@ class Assembler:
         if not refine:
             return t, zero, placed
         offset = self.engine.refine_against(state.assembly(), np.array([sug.part_index]), t[None],
-                                            np.asarray(sug.scale, dtype=np.float64)[None])[0]
+                                            np.asarray(sug.scale, dtype=np.float64)[None],
+                                            catalog=self.catalog)[0]
         if not np.any(offset):
             return t, zero, placed
         moved = self._catalog_part(sug.part_index, t + offset, sug.scale)

@@ -5,7 +5,8 @@ One request (or a batch of them) goes through these steps, each one batched:
 1. points to the canonical frame, resampled to the networks' N points (seeded);
 2. g: the mixture {phi_k, mu_k, sigma_k} and h_query: the query's placement feature, one run
    each for the whole batch;
-3. FAISS: the nearest catalog parts of every mean, all K means (of all queries sharing the same
+3. the search (``CatalogSearch`` of the request's ``CatalogSnapshot``: numpy brute force or
+   FAISS): the nearest catalog parts of every mean, all K means (of all queries sharing the same
    filter) in one search;
 4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
    parts collapsed (catalog ``duplicate_of``), the top ones kept (k, or ``complement_candidates``
@@ -28,18 +29,22 @@ No HTTP here: routes, the CLI and tests call these methods directly.
 from __future__ import annotations
 
 import logging
+import threading
 import time
+import weakref
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import faiss
 import numpy as np
 
+from service.artifacts.catalog import Catalog
 from service.artifacts.loading import Artifacts
+from service.artifacts.models import Mixture
 from service.errors import DeadlineError, InputError, PayloadTooLargeError, ServiceError
 from service.geometry.frames import Frame
 from service.geometry.inputs import check_points
@@ -47,10 +52,12 @@ from service.geometry.mesh import resample_points
 from service.settings import Settings
 from service.suggest.complement import covered_share, demote_covered
 from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
+from service.suggest.engine_settings import EngineSettings
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, share_order
 from service.suggest.region import Region
+from service.suggest.snapshot import CatalogSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -186,13 +193,63 @@ class PlaceResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-# A query's ranked candidates: kept rows (k',), log-likelihoods (k',), best modes (k',) and
-# the number of candidates scored.
-_Ranked = tuple[np.ndarray, np.ndarray, np.ndarray, int]
+@dataclass(frozen=True)
+class Ranked:
+    """One query's candidates after scoring: the kept catalog rows, best first.
+
+    Shapes:
+        rows, scores, modes: (k',) int64, float64, int64.
+    """
+
+    rows: np.ndarray      # catalog rows
+    scores: np.ndarray    # log-likelihoods under the (reweighted) mixture
+    modes: np.ndarray     # the mode that explains each part best
+    scored: int           # distinct candidates scored before ranking
+
+    @classmethod
+    def empty(cls) -> Ranked:
+        none = np.zeros(0, np.int64)
+        return cls(none, np.zeros(0), none, 0)
+
+
+@dataclass(frozen=True)
+class Placed:
+    """One query's chosen parts with h's placement, in the order they are answered.
+
+    Shapes:
+        rows, scores, modes: (P,); translations: (P, 3) canonical; scales: (P, 3) fitted, canonical axes.
+    """
+
+    rows: np.ndarray
+    scores: np.ndarray
+    modes: np.ndarray
+    translations: np.ndarray
+    scales: np.ndarray
+
+    def take(self, keep: np.ndarray) -> Placed:
+        """The parts ``keep`` (a mask or indices, in that order)."""
+        return Placed(self.rows[keep], self.scores[keep], self.modes[keep], self.translations[keep],
+                      self.scales[keep])
+
+
+class QueryMixture(NamedTuple):
+    """g's mixture for one query of a batch.
+
+    Shapes:
+        weights: (K,); means, sigmas: (K, D).
+    """
+
+    weights: np.ndarray
+    means: np.ndarray
+    sigmas: np.ndarray
+
+    @classmethod
+    def of(cls, mix: Mixture, b: int) -> QueryMixture:
+        return cls(mix.weights[b], mix.means[b], mix.sigmas[b])
 
 
 @dataclass
-class _Query:
+class Query:
     """One validated query inside a batch: canonical points and its resolved filter."""
 
     item: int
@@ -209,26 +266,80 @@ class _Query:
     region_report: RegionReport | None = None
 
 
+class StageTimer:
+    """Seconds per named stage of one engine call (the ``timings`` of its results)."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = time.perf_counter() - t
+
+
 class SuggestionEngine:
-    """Suggest and place catalog parts for partial assemblies, on loaded artifacts."""
+    """Suggest and place catalog parts for partial assemblies.
+
+    Long-lived: the networks, the settings the engine reads (``EngineSettings``), the contact
+    refinement's cache of part samples and the thread that runs h_query beside g. The catalog
+    comes from a ``CatalogSnapshot`` given per call; without one, the shipped catalog of the
+    artifacts (``shipped``) is read.
+    """
 
     def __init__(self, artifacts: Artifacts, settings: Settings):
         self.artifacts = artifacts
-        self.settings = settings
-        self.catalog = artifacts.catalog
+        self.settings = settings   # kept for what runs on the engine (assembly, frame fitting)
+        self.config = c = EngineSettings.of(settings)
         self.networks = artifacts.networks
-        self.index = artifacts.index
-        self.brute_force = self._brute_force_search()
+        self.shipped = self.snapshot(artifacts.catalog, artifacts.index)
         self.contacts = PartContacts(
-            ContactParams(max_offset=settings.contact_max_offset, tolerance=settings.contact_tolerance,
-                          search_points=settings.contact_search_points, seed=settings.seed),
-            part_samples=settings.contact_part_samples, assembly_points=settings.contact_assembly_points,
-            cache_entries=settings.contact_cache_parts)
-        self._styles: tuple[int, np.ndarray] | None = None  # (catalog id, style per part)
+            ContactParams(max_offset=c.contact_max_offset, tolerance=c.contact_tolerance,
+                          search_points=c.contact_search_points, seed=c.seed),
+            part_samples=c.contact_part_samples, assembly_points=c.contact_assembly_points,
+            cache_entries=c.contact_cache_parts)
+        self._beside: ThreadPoolExecutor | None = None
+        self._beside_lock = threading.Lock()
+
+    def snapshot(self, catalog: Catalog, index: faiss.Index) -> CatalogSnapshot:
+        """A snapshot of ``catalog`` and its index, searched as this engine's settings say."""
+        c = self.config
+        return CatalogSnapshot.of(catalog, index, c.brute_force_max_parts, c.exact_search_max_filtered)
 
     @property
     def model_version(self) -> str:
         return self.artifacts.model_version
+
+    @property
+    def catalog(self) -> Catalog:
+        """The shipped catalog (a served process reads the current snapshot's, ``service.api.served``)."""
+        return self.shipped.catalog
+
+    @property
+    def index(self) -> faiss.Index:
+        return self.shipped.index
+
+    @property
+    def brute_force(self) -> BruteForceNeighbours | None:
+        return self.shipped.search.brute_force
+
+    def _runner(self) -> ThreadPoolExecutor:
+        """The one thread that runs h_query beside g, started at first use."""
+        with self._beside_lock:
+            if self._beside is None:
+                self._beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
+                weakref.finalize(self, self._beside.shutdown, wait=False)
+            return self._beside
+
+    def close(self) -> None:
+        """Stop the h_query thread (after the call it runs); a later call starts it again."""
+        with self._beside_lock:
+            beside, self._beside = self._beside, None
+        if beside is not None:
+            beside.shutdown(wait=True)
 
     # ---------------------------------------------------------------- step 1: input
     def canonical(self, points: np.ndarray, frame: Frame) -> np.ndarray:
@@ -237,8 +348,8 @@ class SuggestionEngine:
         Shapes:
             points: (M, 3) in the caller's frame -> (M, 3) float32 canonical.
         """
-        s = self.settings
-        pts = frame.to_canonical(check_points(points, s.min_points, s.max_points))
+        c = self.config
+        pts = frame.to_canonical(check_points(points, c.min_points, c.max_points))
         if not np.isfinite(pts).all():  # finite input, but a frame that blows it up (tiny radius)
             raise InputError("non_finite_points", "points are not finite in the canonical frame; "
                              "check the frame's center and radius")
@@ -249,7 +360,7 @@ class SuggestionEngine:
         n = self.artifacts.n_points
         pts = canonical
         if len(pts) != n:
-            pts = resample_points(pts, n, self.settings.seed)
+            pts = resample_points(pts, n, self.config.seed)
         return np.ascontiguousarray(pts, dtype=np.float32)
 
     def prepare(self, points: np.ndarray, frame: Frame) -> np.ndarray:
@@ -260,8 +371,9 @@ class SuggestionEngine:
         """
         return self.resample(self.canonical(points, frame))
 
-    def _resolve(self, item: int, points: np.ndarray, options: SuggestOptions) -> _Query:
-        cat = self.catalog
+    def resolve(self, item: int, points: np.ndarray, options: SuggestOptions, snap: CatalogSnapshot) -> Query:
+        """A query checked, in the canonical frame, with the catalog rows its filters allow."""
+        cat = snap.catalog
         k = self._checked_k(options)
         allowed: np.ndarray | None = None
         if options.categories:
@@ -274,14 +386,14 @@ class SuggestionEngine:
             keep = ~np.isin(cat.shape_of, [cat.shape_code(sid) for sid in options.exclude_shapes])
             allowed = keep if allowed is None else allowed & keep
         if options.styles:
-            keep = self._style_mask(options.styles)
+            keep = snap.style_mask(options.styles)
             allowed = keep if allowed is None else allowed & keep
         key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
                tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)))
         full = self.canonical(points, options.frame)
         region = options.region.in_frame(options.frame) if options.region is not None else None
-        return _Query(item, self.resample(full), full, len(points), options, k, allowed, key,
-                      warnings=self._frame_warnings(full), region=region)
+        return Query(item, self.resample(full), full, len(points), options, k, allowed, key,
+                     warnings=self._frame_warnings(full), region=region)
 
     def _frame_warnings(self, canonical: np.ndarray) -> list[QueryWarning]:
         """A ``frame`` warning when the points are far from the model's unit-radius frame.
@@ -289,31 +401,31 @@ class SuggestionEngine:
         Shapes:
             canonical: (M, 3) float32.
         """
-        s = self.settings
+        c = self.config
         lo, hi = canonical.min(axis=0), canonical.max(axis=0)
         reach = float(np.linalg.norm(canonical - (lo + hi) / 2, axis=1).max())
-        if s.ood_min_extent <= reach <= s.ood_max_extent:
+        if c.ood_min_extent <= reach <= c.ood_max_extent:
             return []
         return [QueryWarning("frame", f"the points reach {reach:.3g} from their centre in the model's frame, "
                              "where a whole object reaches 1: the answer is unlikely to fit; give "
                              "frame.radius (the object's radius in your units) and frame.center")]
 
-    def _infer_category(self, q: _Query, probs: np.ndarray | None) -> None:
+    def infer_category(self, q: Query, probs: np.ndarray | None, snap: CatalogSnapshot) -> None:
         """Read the query's category from g's head when it named none; filter when sure enough.
 
         Shapes:
             probs: (C,) over the manifest's categories, or None without a head.
         """
-        s, cat = self.settings, self.catalog
+        c, cat = self.config, snap.catalog
         names = self.artifacts.manifest.get("categories") or []
-        if probs is None or q.options.categories or not s.infer_category or len(names) != len(probs):
+        if probs is None or q.options.categories or not c.infer_category or len(names) != len(probs):
             return
         best = int(np.argmax(probs))
         name, confidence = str(names[best]), float(probs[best])
         in_catalog = name in cat.categories
         # A style filter already names what the caller wants (styles belong to one category):
         # the inference is reported, not applied.
-        applied = confidence >= s.category_min_confidence and in_catalog and not q.options.styles
+        applied = confidence >= c.category_min_confidence and in_catalog and not q.options.styles
         q.inferred = InferredCategory(name, confidence, applied)
         if q.options.styles:
             return
@@ -327,44 +439,31 @@ class SuggestionEngine:
                 f"{confidence:.2f}), which is not sure enough to keep the suggestions in one category; "
                 "name the category (categories) or check the frame"))
 
-    def _style_mask(self, styles: tuple[str, ...]) -> np.ndarray:
-        """Parts whose catalog ``style`` is one of ``styles``; ``InputError`` naming unknown styles."""
-        cat = self.catalog
-        if self._styles is None or self._styles[0] != id(cat.records) or len(self._styles[1]) != len(cat):
-            self._styles = (id(cat.records), np.array([str(r.get("style") or "") for r in cat.records]))
-        per_part = self._styles[1]
-        known = set(per_part.tolist()) - {""}
-        unknown = [s for s in styles if s not in known]
-        if unknown:
-            raise InputError("unknown_style", f"unknown style(s) {', '.join(map(repr, unknown))}; known "
-                             f"styles: {', '.join(sorted(known))}")
-        return np.isin(per_part, list(styles))
-
     def _checks_complement(self, options: SuggestOptions) -> bool:
         """Whether a suggestion query's candidates go through the complement check."""
-        return _or_default(options.complement_check, self.settings.suggest_complement_check)
+        return _or_default(options.complement_check, self.config.suggest_complement_check)
 
-    def _shortlist(self, q: _Query) -> int:
+    def _shortlist(self, q: Query) -> int:
         """Ranked candidates kept for placement: k, or more when the complement check will reorder
         them, or the region's candidate budget when only parts placed in a region count."""
-        n = max(q.k, self.settings.complement_candidates) if self._checks_complement(q.options) else q.k
-        return max(n, self.settings.region_candidates) if q.region is not None else n
+        n = max(q.k, self.config.complement_candidates) if self._checks_complement(q.options) else q.k
+        return max(n, self.config.region_candidates) if q.region is not None else n
 
-    def _per_mode(self, q: _Query) -> int:
+    def _per_mode(self, q: Query) -> int:
         """Nearest parts a query needs of each mode's mean: at least k, so that a large k is not
         starved of candidates, and the region's candidate budget for a region query."""
-        return max(q.k, self.settings.region_candidates) if q.region is not None else q.k
+        return max(q.k, self.config.region_candidates) if q.region is not None else q.k
 
     def _refines(self, options: SuggestOptions) -> bool:
         """Whether a suggestion query's placements get contact refinement."""
-        return _or_default(options.refine_contact, self.settings.suggest_refine_contact)
+        return _or_default(options.refine_contact, self.config.suggest_refine_contact)
 
     # ---------------------------------------------------------------- cost, checked up front
     def query_cost(self, n_points: int, options: SuggestOptions) -> float:
         """Estimated CPU milliseconds of one suggestion query (see ``max_request_cost_ms``)."""
-        k = self.settings.default_k if options.k is None else options.k
+        k = self.config.default_k if options.k is None else options.k
         refined = max(0, k) if self._refines(options) else 0
-        placed = self.settings.region_candidates if options.region is not None else 0
+        placed = self.config.region_candidates if options.region is not None else 0
         return (QUERY_COST_MS + POINT_COST_MS * max(0, n_points) + REFINED_PART_COST_MS * refined
                 + REGION_PART_COST_MS * placed)
 
@@ -372,7 +471,7 @@ class SuggestionEngine:
         """Refuse what can be refused before a query joins a batch; its estimated cost.
 
         Raises ``InputError`` for k out of range, too many exclusions or preferences that leave
-        no mode (the checks of ``_resolve`` that need neither points nor the catalog).
+        no mode (the checks of ``resolve`` that need neither points nor the catalog).
         """
         self._checked_k(options)
         return self.query_cost(n_points, options)
@@ -387,7 +486,7 @@ class SuggestionEngine:
 
     def check_budget(self, cost: float, queries: int = 1) -> None:
         """``PayloadTooLargeError`` when a request's estimated cost is over ``max_request_cost_ms``."""
-        budget = self.settings.max_request_cost_ms
+        budget = self.config.max_request_cost_ms
         if cost > budget:
             raise PayloadTooLargeError("over_budget", (
                 f"the request's {queries} quer{'y' if queries == 1 else 'ies'} would take about "
@@ -396,157 +495,185 @@ class SuggestionEngine:
                 "refine_contact (12 ms per refined suggestion), or split the request"))
 
     # ---------------------------------------------------------------- public API
-    def suggest(self, points: np.ndarray, options: SuggestOptions | None = None) -> SuggestResult:
+    def suggest(self, points: np.ndarray, options: SuggestOptions | None = None,
+                snapshot: CatalogSnapshot | None = None) -> SuggestResult:
         """Ranked, placed suggestions for one partial assembly; raises ``ServiceError`` on bad input.
 
         Shapes:
             points: (M, 3) in the caller's frame (``options.frame``).
         """
-        result = self.suggest_batch([(points, options or SuggestOptions())])[0]
+        result = self.suggest_batch([(points, options or SuggestOptions())], snapshot=snapshot)[0]
         if isinstance(result, ServiceError):
             raise result
         return result
 
     def suggest_batch(self, items: list[tuple[np.ndarray, SuggestOptions]],
-                      deadlines: Sequence[float | None] | None = None) -> list[SuggestResult | ServiceError]:
+                      deadlines: Sequence[float | None] | None = None,
+                      snapshot: CatalogSnapshot | None = None) -> list[SuggestResult | ServiceError]:
         """Suggestions for many queries with batched inference; a bad item yields its own error.
 
         Returns one entry per item, in order: a ``SuggestResult`` or the ``ServiceError`` that
         item raised (the other items are unaffected: every step past the batched network runs
         is checked per query). ``deadlines`` (``time.monotonic()``, one per item, None: none):
         an item past its deadline before contact refinement, the costly step, gets a
-        ``DeadlineError`` instead of being refined.
+        ``DeadlineError`` instead of being refined. ``snapshot``: the catalog to read (None:
+        the shipped one).
         """
-        t0 = time.perf_counter()
-        # OpenMP's thread count is per calling thread: set it in this one (the batcher's worker)
-        # for the FAISS calls below, or FAISS starts a team of one thread per core for every
-        # calling thread (searches took 13 ms instead of 0.1 ms in the server).
-        faiss.omp_set_num_threads(self.settings.faiss_threads)
+        snap = snapshot or self.shipped
+        timer = StageTimer()
+        with timer.stage("total"):
+            out = self._run_batch(items, deadlines, snap, timer)
+        return out
+
+    def _run_batch(self, items: list[tuple[np.ndarray, SuggestOptions]],
+                   deadlines: Sequence[float | None] | None, snap: CatalogSnapshot,
+                   timer: StageTimer) -> list[SuggestResult | ServiceError]:
+        """The steps of ``suggest_batch``, each timed (the stage names the metrics report)."""
         errors: dict[int, ServiceError] = {}
-        queries: list[_Query] = []
-        for i, (points, options) in enumerate(items):
-            try:
-                queries.append(self._resolve(i, points, options))
-            except ServiceError as exc:
-                errors[i] = exc
+        queries: list[Query] = []
+        with timer.stage("prepare"):
+            # OpenMP's thread count is per calling thread: set it in this one (the batcher's
+            # worker) for the FAISS calls below, or FAISS starts a team of one thread per core for
+            # every calling thread (searches took 13 ms instead of 0.1 ms in the server).
+            faiss.omp_set_num_threads(self.config.faiss_threads)
+            for i, (points, options) in enumerate(items):
+                try:
+                    queries.append(self.resolve(i, points, options, snap))
+                except ServiceError as exc:
+                    errors[i] = exc
         if not queries:
             return [errors[i] for i in range(len(items))]
-        timings = {"prepare": time.perf_counter() - t0}
         batch = np.stack([q.points for q in queries])  # (B, N, 3)
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
-        beside = (_BESIDE.submit(_timed, self.networks.query_features, batch)
-                  if len(queries) <= self.settings.overlap_max_batch else None)
-        t = time.perf_counter()
-        mix = self.networks.mixture(batch)
-        for b, q in enumerate(queries):
-            self._infer_category(q, None if mix.category_probs is None else mix.category_probs[b])
-        timings["g"] = time.perf_counter() - t
-        t = time.perf_counter()
-        candidates = self._search(queries, mix.means)
-        timings["search"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        ranked: dict[int, _Ranked] = {}  # query position b -> its ranked candidates
-        for b, q in enumerate(queries):
-            with _own_error(q, errors):
-                ranked[b] = self._rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b])
-        timings["score"] = time.perf_counter() - t
-
-        qf, timings["h_query"] = (beside.result() if beside is not None
-                                  else _timed(self.networks.query_features, batch))
-        # One h_head run over every kept candidate of every query.
-        t = time.perf_counter()
-        rows = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(r[0]), b) for b, r in ranked.items()]
-                              ).astype(np.int64)
-        parts = np.concatenate([np.zeros(0, np.int64)] + [r[0] for r in ranked.values()]).astype(np.int64)
-        translations, scales = (np.zeros((0, 3), np.float32), np.ones((0, 3), np.float32))
-        if len(parts):
-            translations, scales = self.networks.place_and_fit(qf[rows], self.catalog.part_features[parts])
-        timings["h_head"] = time.perf_counter() - t
-        t = time.perf_counter()
-        placed: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
-        fitted: dict[int, np.ndarray] = {}
-        for b, (idx, scores, modes, _) in ranked.items():
-            q = queries[b]
-            tr = translations[rows == b]
-            with _own_error(q, errors):
-                fit = self._fitted(scales[rows == b], q.options.fit_scale)
-                if q.region is not None:
-                    inside = self._in_region(q, idx, tr, fit)
-                    idx, scores, modes = idx[inside], scores[inside], modes[inside]
-                    tr, fit = tr[inside], fit[inside]
-                order = self._complement_order(q, idx, tr)
-                placed[b] = (idx[order], scores[order], modes[order], tr[order])
-                fitted[b] = fit[order]
-        timings["complement"] = time.perf_counter() - t
-        t = time.perf_counter()
+        beside = (self._runner().submit(_timed, self.networks.query_features, batch)
+                  if len(queries) <= self.config.overlap_max_batch else None)
+        with timer.stage("g"):
+            mix = self.networks.mixture(batch)
+            for b, q in enumerate(queries):
+                self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
+        with timer.stage("search"):
+            candidates = self.search(queries, mix.means, snap)
+        ranked: dict[int, Ranked] = {}  # query position b -> its ranked candidates
+        with timer.stage("score"):
+            for b, q in enumerate(queries):
+                with _own_error(q, errors):
+                    ranked[b] = self.rank(q, candidates[b], mix.weights[b], mix.means[b], mix.sigmas[b], snap)
+        qf, timer.timings["h_query"] = (beside.result() if beside is not None
+                                        else _timed(self.networks.query_features, batch))
+        with timer.stage("h_head"):
+            translations, scales = self.place_ranked(qf, ranked, snap)
+        placed: dict[int, Placed] = {}
+        with timer.stage("complement"):
+            for b, r in ranked.items():
+                with _own_error(queries[b], errors):
+                    placed[b] = self.select(queries[b], r, translations[b], scales[b], snap)
         offsets: dict[int, np.ndarray] = {}
-        for b, (idx, _, _, tr) in placed.items():
-            q = queries[b]
-            deadline = deadlines[q.item] if deadlines is not None else None
-            with _own_error(q, errors):
-                if deadline is not None and time.monotonic() > deadline:
-                    raise DeadlineError("deadline_exceeded", "the request's deadline passed before its "
-                                        "placements were refined")
-                offsets[b] = (self.contact_offsets(q.full, idx, tr) if self._refines(q.options) and len(idx)
-                              else np.zeros((len(idx), 3)))
-        timings["contact"] = time.perf_counter() - t
-
+        with timer.stage("contact"):
+            for b, p in placed.items():
+                q = queries[b]
+                with _own_error(q, errors):
+                    offsets[b] = self.refine(q, p, deadlines[q.item] if deadlines is not None else None, snap)
         out: dict[int, SuggestResult | ServiceError] = dict(errors)
         for b, off in offsets.items():
             q = queries[b]
-            idx, scores, modes, tr = placed[b]
             with _own_error(q, errors):
-                found = self._suggestions(idx, scores, modes, mix.weights[b], tr, off, q.options.frame,
-                                          fitted[b])
-                out[q.item] = SuggestResult(
-                    suggestions=found,
-                    mode_weights=mix.weights[b], frame=q.options.frame, n_input_points=q.n_input,
-                    candidates=ranked[b][3], timings=timings, mode_means=mix.means[b],
-                    mode_sigmas=mix.sigmas[b], inferred_category=q.inferred,
-                    warnings=q.warnings + self._familiarity_warnings(idx, modes, mix.means[b], mix.sigmas[b]),
-                    region=q.region_report)
+                out[q.item] = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b].scored, snap,
+                                          timer.timings)
         out.update(errors)
-        timings["total"] = time.perf_counter() - t0
         return [out[i] for i in range(len(items))]
 
+    def place_ranked(self, query_features: np.ndarray, ranked: dict[int, Ranked], snap: CatalogSnapshot
+                     ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """h_head over every kept candidate of every query, in one run: raw translations and
+        scales (canonical) per query position.
+
+        Shapes:
+            query_features: (B, Fq) -> {b: (k'_b, 3)}, {b: (k'_b, 3)}.
+        """
+        rows = np.concatenate([np.zeros(0, np.int64)] + [np.full(len(r.rows), b) for b, r in ranked.items()]
+                              ).astype(np.int64)
+        parts = np.concatenate([np.zeros(0, np.int64)] + [r.rows for r in ranked.values()]).astype(np.int64)
+        translations, scales = (np.zeros((0, 3), np.float32), np.ones((0, 3), np.float32))
+        if len(parts):
+            translations, scales = self.networks.place_and_fit(query_features[rows],
+                                                               snap.catalog.part_features[parts])
+        return ({b: translations[rows == b] for b in ranked}, {b: scales[rows == b] for b in ranked})
+
+    def select(self, q: Query, ranked: Ranked, translations: np.ndarray, raw_scales: np.ndarray,
+               snap: CatalogSnapshot) -> Placed:
+        """A query's placed candidates as answered: scales fitted, only those in its region (if it
+        gave one), covered parts demoted by the complement check, the top k.
+
+        Shapes:
+            translations, raw_scales: (k', 3) canonical, h's output for ``ranked.rows``.
+        """
+        fit = self._fitted(raw_scales, q.options.fit_scale)
+        placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit)
+        if q.region is not None:
+            placed = placed.take(self._in_region(q, placed, snap))
+        return placed.take(self._complement_order(q, placed, snap))
+
+    def refine(self, q: Query, placed: Placed, deadline: float | None, snap: CatalogSnapshot) -> np.ndarray:
+        """Contact refinement offsets (canonical) of a query's placed parts, zeros when it is off.
+
+        Raises ``DeadlineError`` when ``deadline`` (``time.monotonic()``) has passed.
+
+        Shapes:
+            -> (P, 3) float64.
+        """
+        if deadline is not None and time.monotonic() > deadline:
+            raise DeadlineError("deadline_exceeded", "the request's deadline passed before its "
+                                "placements were refined")
+        if not (self._refines(q.options) and len(placed.rows)):
+            return np.zeros((len(placed.rows), 3))
+        return self.contact_offsets(q.full, placed.rows, placed.translations, snap.catalog)
+
+    def answer(self, q: Query, placed: Placed, offsets: np.ndarray, mix: QueryMixture, scored: int,
+               snap: CatalogSnapshot, timings: dict[str, float]) -> SuggestResult:
+        """A query's result: its placed parts in the caller's frame, its mixture and warnings."""
+        return SuggestResult(
+            suggestions=self._suggestions(placed, offsets, mix.weights, q.options.frame, snap.catalog),
+            mode_weights=mix.weights, frame=q.options.frame, n_input_points=q.n_input,
+            candidates=scored, timings=timings, mode_means=mix.means, mode_sigmas=mix.sigmas,
+            inferred_category=q.inferred,
+            warnings=q.warnings + self._familiarity_warnings(placed, mix.means, mix.sigmas, snap.catalog),
+            region=q.region_report)
+
     def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None,
-              refine_contact: bool = True, fit_scale: bool | None = None) -> PlaceResult:
+              refine_contact: bool = True, fit_scale: bool | None = None,
+              snapshot: CatalogSnapshot | None = None) -> PlaceResult:
         """Translations (and placed boxes) of chosen parts next to a partial assembly.
 
         Shapes:
             points: (M, 3) in the caller's frame.
         """
         frame = frame or Frame()
+        cat = (snapshot or self.shipped).catalog
         if not part_ids:
             raise InputError("no_parts", "give at least one part id to place")
-        if len(part_ids) > self.settings.max_place_parts:
+        if len(part_ids) > self.config.max_place_parts:
             raise InputError("too_many_parts", f"{len(part_ids)} part ids given, at most "
-                             f"{self.settings.max_place_parts} are accepted")
-        idx = np.array([self.catalog.lookup(p) for p in part_ids], dtype=np.int64)
-        t0 = time.perf_counter()
-        full = self.canonical(points, frame)
-        canonical = self.resample(full)
-        timings = {"prepare": time.perf_counter() - t0}
-        t = time.perf_counter()
-        qf = self.networks.query_features(canonical[None])
-        timings["h_query"] = time.perf_counter() - t
-        t = time.perf_counter()
-        tr, raw_scale = self.networks.place_and_fit(np.repeat(qf, len(idx), axis=0),
-                                                    self.catalog.part_features[idx])
-        scale = self._fitted(raw_scale, fit_scale)
-        timings["h_head"] = time.perf_counter() - t
-        t = time.perf_counter()
-        off = self.contact_offsets(full, idx, tr) if refine_contact else np.zeros((len(idx), 3))
-        timings["contact"] = time.perf_counter() - t
-        trans, lo, hi = self._placed(idx, tr + off, frame, scale)
+                             f"{self.config.max_place_parts} are accepted")
+        idx = np.array([cat.lookup(p) for p in part_ids], dtype=np.int64)
+        timer = StageTimer()
+        with timer.stage("prepare"):
+            full = self.canonical(points, frame)
+            canonical = self.resample(full)
+        with timer.stage("h_query"):
+            qf = self.networks.query_features(canonical[None])
+        with timer.stage("h_head"):
+            tr, raw_scale = self.networks.place_and_fit(np.repeat(qf, len(idx), axis=0),
+                                                        cat.part_features[idx])
+            scale = self._fitted(raw_scale, fit_scale)
+        with timer.stage("contact"):
+            off = self.contact_offsets(full, idx, tr, cat) if refine_contact else np.zeros((len(idx), 3))
+        trans, lo, hi = _placed_boxes(cat, idx, tr + off, frame, scale)
         off_caller = off @ frame.rotation * frame.radius
         scale_caller = _caller_scale(scale, frame)
-        placements = [Placement(int(i), self.catalog.part_ids[i], trans[j], lo[j], hi[j], off_caller[j],
-                                scale_caller[j])
-                      for j, i in enumerate(idx)]
-        return PlaceResult(placements, frame, len(points), timings)
+        placements = [Placement(int(i), cat.part_ids[i], trans[j], lo[j], hi[j], off_caller[j],
+                                scale_caller[j]) for j, i in enumerate(idx)]
+        return PlaceResult(placements, frame, len(points), timer.timings)
 
     def warmup(self) -> SuggestResult:
         """Run one suggestion and one placement on a query made from the first catalog shape;
@@ -554,45 +681,49 @@ class SuggestionEngine:
         cat = self.catalog
         parts = np.flatnonzero(cat.shape_of == cat.shape_of[0])
         points = np.concatenate([cat.part_points(int(i)) + cat.translations[i] for i in parts])
-        result = self.suggest(points, SuggestOptions(k=min(5, self.settings.max_k)))
+        result = self.suggest(points, SuggestOptions(k=min(5, self.config.max_k)))
         if result.suggestions:
             self.place(points, [result.suggestions[0].part_id])
         log.info("warm-up passed: %d suggestions in %.1f ms", len(result.suggestions),
                  1000 * result.timings.get("total", 0.0))
         return result
 
-    def contact_offsets(self, full: np.ndarray, rows: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    def contact_offsets(self, full: np.ndarray, rows: np.ndarray, translations: np.ndarray,
+                        catalog: Catalog | None = None) -> np.ndarray:
         """Contact refinement offsets (canonical) of parts placed next to canonical points.
 
         Shapes:
             full: (M, 3) canonical query points; rows: (n,); translations: (n, 3) -> (n, 3) float64.
         """
-        return self.refine_against(self.contacts.assembly_from_points(full), rows, translations)
+        assembly = self.contacts.assembly_from_points(full)
+        return self.refine_against(assembly, rows, translations, catalog=catalog)
 
     def refine_against(self, assembly: Assembly, rows: np.ndarray, translations: np.ndarray,
-                       scales: np.ndarray | None = None) -> np.ndarray:
+                       scales: np.ndarray | None = None, catalog: Catalog | None = None) -> np.ndarray:
         """Contact refinement offsets of catalog parts placed against an assembly.
 
         The bounded search first (``contact_max_offset``); a part it leaves floating (apart from
         the assembly, not sunk into it) gets a second search reaching ``contact_reach``, so that
         a part h left hanging in the air is pulled onto what it attaches to. ``scales``: per-axis
-        sizes the parts are fitted to (None: as in the catalog).
+        sizes the parts are fitted to (None: as in the catalog). ``catalog``: the one ``rows``
+        index (None: the shipped one).
 
         Shapes:
             rows: (n,); translations: (n, 3) canonical; scales: (n, 3) -> (n, 3) float64 offsets.
         """
+        cat = catalog if catalog is not None else self.catalog
         t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
         if scales is None or np.all(np.asarray(scales) == 1.0):
-            found = self.contacts.refine(self.catalog, rows, t, assembly)
-            surfaces = [lambda j=j: self.contacts.part_surface(self.catalog, int(rows[j])).moved(t[j])
+            found = self.contacts.refine(cat, rows, t, assembly)
+            surfaces = [lambda j=j: self.contacts.part_surface(cat, int(rows[j])).moved(t[j])
                         for j in range(len(t))]
         else:
-            surfaces = [lambda j=j: scaled_surface(self.contacts.part_surface(self.catalog, int(rows[j])),
+            surfaces = [lambda j=j: scaled_surface(self.contacts.part_surface(cat, int(rows[j])),
                                                    scales[j]).moved(t[j]) for j in range(len(t))]
             found = [refine_offset(make(), assembly, self.contacts.params) for make in surfaces]
         offsets = np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
         params = self.contacts.params
-        reach = replace(params, max_offset=self.settings.contact_reach)
+        reach = replace(params, max_offset=self.config.contact_reach)
         if reach.max_offset <= params.max_offset:
             return offsets
         for j, r in enumerate(found):
@@ -601,9 +732,9 @@ class SuggestionEngine:
         return offsets
 
     # ---------------------------------------------------------------- steps 3-6
-    def _search(self, queries: list[_Query], means: np.ndarray) -> list[np.ndarray]:
-        """Candidate catalog rows per query: the nearest parts to any of its modes' means (numpy
-        brute force for small flat catalogs, else FAISS).
+    def search(self, queries: list[Query], means: np.ndarray, snap: CatalogSnapshot) -> list[np.ndarray]:
+        """Candidate catalog rows per query: the nearest parts to any of its modes' means
+        (``CatalogSearch``: numpy brute force for small flat catalogs, else FAISS).
 
         Queries sharing a filter share one search call (all their K means at once).
 
@@ -616,74 +747,26 @@ class SuggestionEngine:
             groups[q.filter_key].append(b)
         found: list[np.ndarray] = [np.zeros(0, np.int64)] * len(queries)
         for members in groups.values():
-            allowed = queries[members[0]].allowed
-            want = max(self.settings.neighbours_per_mode, *(self._per_mode(queries[b]) for b in members))
-            nn = min(len(self.catalog), want)
+            want = max(self.config.neighbours_per_mode, *(self._per_mode(queries[b]) for b in members))
+            nn = min(len(snap.catalog), want)
             flat = np.ascontiguousarray(means[members].reshape(-1, means.shape[2]), dtype=np.float32)
-            if self.brute_force is not None:
-                unions = self.brute_force.neighbour_union(flat, K, nn, allowed)
-                for b, ids in zip(members, unions, strict=True):
-                    found[b] = ids
-                continue
-            labels = self._faiss_search(flat, nn, allowed)
-            for j, b in enumerate(members):
-                ids = labels[j * K:(j + 1) * K].ravel()
-                ids = np.unique(ids[ids >= 0])
-                if allowed is not None:
-                    ids = ids[allowed[ids]]  # also covers indexes that ignore selectors
+            unions = snap.search.neighbour_union(flat, K, nn, queries[members[0]].allowed)
+            for b, ids in zip(members, unions, strict=True):
                 found[b] = ids
         return found
 
-    def _brute_force_search(self) -> BruteForceNeighbours | None:
-        """numpy brute force in place of a flat index, for catalogs up to ``brute_force_max_parts``."""
-        small = len(self.catalog) <= self.settings.brute_force_max_parts
-        if not (small and isinstance(self.index, faiss.IndexFlat)):
-            return None
-        return BruteForceNeighbours(self.catalog.embeddings,
-                                    inner_product=self.index.metric_type == faiss.METRIC_INNER_PRODUCT)
+    def rank(self, q: Query, cand: np.ndarray, weights: np.ndarray, means: np.ndarray,
+             sigmas: np.ndarray, snap: CatalogSnapshot) -> Ranked:
+        """Score candidates under the mixture, sort, collapse duplicates, keep the shortlist.
 
-    def _faiss_search(self, x: np.ndarray, nn: int, allowed: np.ndarray | None) -> np.ndarray:
-        """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""
-        if allowed is None:
-            return self.index.search(x, nn)[1]
-        rows = np.flatnonzero(allowed)
-        if len(rows) <= self.settings.exact_search_max_filtered and (
-                len(rows) < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
-            # An approximate index probes the lists (or graph nodes) nearest the query, and few of
-            # them may hold parts that pass a narrow filter; a flat index with a selector checks
-            # every part one by one (1.1 ms for a category of the shipped catalog, against 0.1 ms
-            # for the same search over that category's rows): search those parts exactly instead.
-            return self._exact_subset(x, nn, rows)
-        packed = np.packbits(allowed, bitorder="little")
-        sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
-        params = _search_parameters(self.index, sel)
-        if params is None:  # an index type without selector support: filter afterwards
-            return self.index.search(x, min(len(self.catalog), 4 * nn))[1]
-        return self.index.search(x, nn, params=params)[1]
-
-    def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
-        """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""
-        out = np.full((len(x), nn), -1, dtype=np.int64)
-        if len(rows) == 0:
-            return out
-        k = min(nn, len(rows))
-        sub = np.ascontiguousarray(self.catalog.embeddings[rows], dtype=np.float32)
-        _, found = faiss.knn(x, sub, k, metric=self.index.metric_type)
-        out[:, :k] = np.where(found >= 0, rows[np.maximum(found, 0)], -1)
-        return out
-
-    def _rank(self, q: _Query, cand: np.ndarray, weights: np.ndarray, means: np.ndarray,
-              sigmas: np.ndarray) -> _Ranked:
-        """Score candidates under the mixture, sort, collapse duplicates, keep the top k.
-
-        Returns kept rows (k',), their log-likelihoods (k',), best modes (k',) and the number
-        of candidates scored.
+        Shapes:
+            cand: (C,) catalog rows; weights: (K,); means, sigmas: (K, D).
         """
         if len(cand) == 0:
-            empty = np.zeros(0, np.int64)
-            return empty, np.zeros(0), empty, 0
+            return Ranked.empty()
+        c, cat = self.config, snap.catalog
         prefs = q.options.preferences
-        emb = self.catalog.embeddings[cand]
+        emb = cat.embeddings[cand]
         n_scored = len(cand)
         if prefs.exclude_modes:  # drop the parts g's own mixture puts in an excluded mode
             _, own_mode = mixture_log_likelihood(emb, weights, means, sigmas)
@@ -696,30 +779,29 @@ class SuggestionEngine:
         order = np.argsort(-ll, kind="stable")  # ties keep catalog order: deterministic
         cand, ll, mode = cand[order], ll[order], mode[order]
         if q.options.collapse_duplicates:
-            _, first = np.unique(self.catalog.group[cand], return_index=True)
+            _, first = np.unique(cat.group[cand], return_index=True)
             keep = np.sort(first)
         else:
             keep = np.arange(len(cand))
         if prefs.diversity:
-            keep = keep[diverse_order(mode[keep], w, self.settings.diversity_min_mode_weight)]
-        elif self.settings.suggest_order == "share":
-            keep = keep[share_order(mode[keep], w, self.settings.share_min_mode_weight)]
+            keep = keep[diverse_order(mode[keep], w, c.diversity_min_mode_weight)]
+        elif c.suggest_order == "share":
+            keep = keep[share_order(mode[keep], w, c.share_min_mode_weight)]
         keep = keep[:self._shortlist(q)]
-        return cand[keep], ll[keep], mode[keep], n_scored
+        return Ranked(cand[keep], ll[keep], mode[keep], n_scored)
 
-    def _in_region(self, q: _Query, idx: np.ndarray, translations: np.ndarray, scales: np.ndarray
-                   ) -> np.ndarray:
+    def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
 
         Judged on h's placement with the fitted scale, before contact refinement (which moves a
         part by at most ``contact_max_offset``).
 
         Shapes:
-            idx (P,), translations (P, 3) canonical, scales (P, 3) -> (P,) bool.
+            -> (P,) bool.
         """
         assert q.region is not None
-        cat = self.catalog
-        t, sc = translations.astype(np.float64), scales.astype(np.float64)
+        cat, idx = snap.catalog, placed.rows
+        t, sc = placed.translations.astype(np.float64), placed.scales.astype(np.float64)
         gap = q.region.gap(t + sc * cat.bbox_min[idx], t + sc * cat.bbox_max[idx])
         inside = gap <= 0.0
         nearest = None
@@ -736,30 +818,16 @@ class SuggestionEngine:
         q.region_report = RegionReport(placed=len(gap), inside=int(inside.sum()), nearest_gap=nearest)
         return inside
 
-    def _complement_order(self, q: _Query, idx: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    def _complement_order(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """The top k of a query's ranked, placed candidates (indices), covered parts demoted."""
+        idx = placed.rows
         if not self._checks_complement(q.options) or len(idx) == 0:
             return np.arange(min(len(idx), q.k))
-        s = self.settings
-        samples = self.catalog.part_samples(idx, s.complement_part_samples)
-        share = covered_share(q.points, samples, translations.astype(np.float32), s.complement_cover_distance)
-        return demote_covered(share, s.complement_cover_share)[:q.k]
-
-    def _placed(self, idx: np.ndarray, translations: np.ndarray, frame: Frame, scales: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Canonical translations of parts to caller-frame translations and placed boxes.
-
-        The box is the part's catalog box scaled about its centre (the translation) by its
-        fitted per-axis scale.
-
-        Shapes:
-            idx (P,), translations (P, 3), scales (P, 3) canonical axes -> (P, 3) x 3, caller frame.
-        """
-        t = translations.astype(np.float64)
-        sc = scales.astype(np.float64)
-        cat = self.catalog
-        lo, hi = frame.box_from_canonical(t + sc * cat.bbox_min[idx], t + sc * cat.bbox_max[idx])
-        return frame.from_canonical(t), lo, hi
+        c = self.config
+        samples = snap.catalog.part_samples(idx, c.complement_part_samples)
+        share = covered_share(q.points, samples, placed.translations.astype(np.float32),
+                              c.complement_cover_distance)
+        return demote_covered(share, c.complement_cover_share)[:q.k]
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
@@ -767,57 +835,68 @@ class SuggestionEngine:
         Shapes:
             raw (P, 3) -> (P, 3) float64.
         """
-        s = self.settings
-        if not _or_default(asked, s.fit_scale):
+        c = self.config
+        if not _or_default(asked, c.fit_scale):
             return np.ones((len(raw), 3))
-        return np.clip(raw.astype(np.float64), s.scale_min, s.scale_max)
+        return np.clip(raw.astype(np.float64), c.scale_min, c.scale_max)
 
-    def _familiarity_warnings(self, idx: np.ndarray, modes: np.ndarray, means: np.ndarray,
-                              sigmas: np.ndarray) -> list[QueryWarning]:
+    def _familiarity_warnings(self, placed: Placed, means: np.ndarray, sigmas: np.ndarray,
+                              catalog: Catalog) -> list[QueryWarning]:
         """An ``unfamiliar`` warning when even the best suggestion is far from its mode's mean.
 
         Shapes:
-            idx (P,) ranked rows, modes (P,); means, sigmas (K, D).
+            means, sigmas (K, D).
         """
-        if len(idx) == 0:
+        if len(placed.rows) == 0:
             return []
-        k = int(modes[0])
-        z = (self.catalog.embeddings[int(idx[0])] - means[k]) / sigmas[k]
+        k = int(placed.modes[0])
+        z = (catalog.embeddings[int(placed.rows[0])] - means[k]) / sigmas[k]
         distance = float(np.sqrt(np.mean(np.square(z))))
-        if distance <= self.settings.ood_max_mode_distance:
+        limit = self.config.ood_max_mode_distance
+        if distance <= limit:
             return []
         return [QueryWarning("unfamiliar", f"the best suggestion lies {distance:.1f} sigmas from what the "
-                             "model expects (in-distribution queries stay within "
-                             f"{self.settings.ood_max_mode_distance:g}): the partial assembly is unlike "
-                             "anything the model was trained on; check the frame (frame.radius, "
-                             "frame.center, frame.up) and the category")]
+                             f"model expects (in-distribution queries stay within {limit:g}): the "
+                             "partial assembly is unlike anything the model was trained on; check the "
+                             "frame (frame.radius, frame.center, frame.up) and the category")]
 
-    def _suggestions(self, idx: np.ndarray, scores: np.ndarray, modes: np.ndarray, weights: np.ndarray,
-                     translations: np.ndarray, offsets: np.ndarray, frame: Frame, scales: np.ndarray
-                     ) -> list[Suggestion]:
-        cat = self.catalog
-        trans, lo, hi = self._placed(idx, translations + offsets, frame, scales)
+    def _suggestions(self, placed: Placed, offsets: np.ndarray, weights: np.ndarray, frame: Frame,
+                     catalog: Catalog) -> list[Suggestion]:
+        moved = placed.translations + offsets
+        trans, lo, hi = _placed_boxes(catalog, placed.rows, moved, frame, placed.scales)
         off_caller = offsets @ frame.rotation * frame.radius
-        scale_caller = _caller_scale(scales, frame)
+        scale_caller = _caller_scale(placed.scales, frame)
         out = []
-        for r, i in enumerate(idx.tolist()):
-            rec = cat.records[i]
+        for r, i in enumerate(placed.rows.tolist()):
+            rec = catalog.records[i]
+            mode = int(placed.modes[r])
             out.append(Suggestion(
                 rank=r + 1, part_index=i, part_id=rec["part_id"], shape_id=rec["shape_id"],
-                category=rec["category"], label=rec["label"], score=float(scores[r]),
-                mode=int(modes[r]), mode_weight=float(weights[modes[r]]),
-                duplicates=int(cat.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
+                category=rec["category"], label=rec["label"], score=float(placed.scores[r]),
+                mode=mode, mode_weight=float(weights[mode]),
+                duplicates=int(catalog.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
                 contact_offset=off_caller[r], scale=scale_caller[r]))
         return out
 
 
-# The one thread (per process, shared by every engine snapshot) that runs h_query beside g; the
-# executor starts it at the first submit.
-_BESIDE = ThreadPoolExecutor(max_workers=1, thread_name_prefix="h-query")
+def _placed_boxes(catalog: Catalog, idx: np.ndarray, translations: np.ndarray, frame: Frame,
+                  scales: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Canonical translations of parts to caller-frame translations and placed boxes.
+
+    The box is the part's catalog box scaled about its centre (the translation) by its fitted
+    per-axis scale.
+
+    Shapes:
+        idx (P,), translations (P, 3), scales (P, 3) canonical axes -> (P, 3) x 3, caller frame.
+    """
+    t = translations.astype(np.float64)
+    sc = scales.astype(np.float64)
+    lo, hi = frame.box_from_canonical(t + sc * catalog.bbox_min[idx], t + sc * catalog.bbox_max[idx])
+    return frame.from_canonical(t), lo, hi
 
 
 @contextmanager
-def _own_error(q: _Query, errors: dict[int, ServiceError]) -> Iterator[None]:
+def _own_error(q: Query, errors: dict[int, ServiceError]) -> Iterator[None]:
     """Record a query's own ``ServiceError`` against it alone (its batch goes on without it)."""
     try:
         yield
@@ -860,18 +939,3 @@ def scaled_surface(surface: Surface, scale: np.ndarray) -> Surface:
 def _or_default(asked: bool | None, setting: bool) -> bool:
     """A request's flag, or the service's setting when the request did not say."""
     return setting if asked is None else asked
-
-
-def _search_parameters(index: faiss.Index, sel: faiss.IDSelector) -> faiss.SearchParameters | None:
-    """Search parameters carrying an ID selector, of the kind this index type expects."""
-    params: Any
-    if isinstance(index, faiss.IndexIVF):
-        params = faiss.SearchParametersIVF()
-    elif isinstance(index, faiss.IndexHNSW):
-        params = getattr(faiss, "SearchParametersHNSW")()  # noqa: B009  (missing from faiss's stubs)
-    elif isinstance(index, faiss.IndexFlat):
-        params = faiss.SearchParameters()
-    else:
-        return None
-    params.sel = sel
-    return params

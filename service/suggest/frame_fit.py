@@ -28,6 +28,7 @@ from service.errors import ServiceError
 from service.geometry.frames import Frame, UpAxis
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.suggest.snapshot import CatalogSnapshot
 
 UP_AXES: tuple[UpAxis, ...] = ("y", "z")
 
@@ -123,12 +124,13 @@ def fit_queries(engine: SuggestionEngine, points: np.ndarray, options: SuggestOp
 
 
 def fit_frame(engine: SuggestionEngine, points: np.ndarray, options: SuggestOptions,
-              up_axes: Sequence[UpAxis] = UP_AXES) -> FrameFit:
-    """Estimate the complete object's frame of a partial (see the module doc); one engine batch."""
+              up_axes: Sequence[UpAxis] = UP_AXES, snapshot: CatalogSnapshot | None = None) -> FrameFit:
+    """Estimate the complete object's frame of a partial (see the module doc); one engine batch
+    on ``snapshot`` (None: the shipped catalog)."""
     frames, queries = fit_queries(engine, points, options, up_axes)
     if not frames:
         return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
-    return best_frame(frames, engine.suggest_batch(queries))
+    return best_frame(frames, engine.suggest_batch(queries, snapshot=snapshot))
 
 
 def _ratios(max_ratio: float, n: int) -> list[float]:

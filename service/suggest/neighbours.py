@@ -1,4 +1,6 @@
-"""Exact nearest catalog parts by brute force in numpy, for catalogs a flat index would serve.
+"""The search of the request path: the catalog parts nearest each mixture mean (``CatalogSearch``).
+
+Exact nearest catalog parts by brute force in numpy, for catalogs a flat index would serve.
 
 The engine needs, per query, the parts among the ``nn`` nearest of any of its mixture means (the
 candidates it then re-scores by likelihood). On the shipped catalog (7,315 parts, 50-D) FAISS's
@@ -12,6 +14,9 @@ for an inner-product index the nearest parts are those of largest ``m.x``.
 
 from __future__ import annotations
 
+from typing import Any
+
+import faiss
 import numpy as np
 
 
@@ -54,3 +59,87 @@ class BruteForceNeighbours:
         if allowed is not None:
             near &= allowed  # an all-inf row (nn == available) must not admit filtered parts
         return [np.flatnonzero(row).astype(np.int64) for row in near]
+
+
+class CatalogSearch:
+    """The nearest catalog parts of mixture means, over one catalog's embeddings and index.
+
+    numpy brute force (``BruteForceNeighbours``) for a flat index over at most
+    ``brute_force_max_parts`` parts; else FAISS, with a filter as an ID selector, or an exact
+    search over the allowed rows when they are few.
+    """
+
+    def __init__(self, embeddings: np.ndarray, index: faiss.Index, brute_force_max_parts: int,
+                 exact_search_max_filtered: int):
+        self.embeddings = embeddings
+        self.index = index
+        self.exact_search_max_filtered = exact_search_max_filtered
+        small = len(embeddings) <= brute_force_max_parts
+        inner = index.metric_type == faiss.METRIC_INNER_PRODUCT
+        self.brute_force = (BruteForceNeighbours(embeddings, inner_product=inner)
+                            if small and isinstance(index, faiss.IndexFlat) else None)
+
+    def neighbour_union(self, means: np.ndarray, modes: int, nn: int,
+                        allowed: np.ndarray | None = None) -> list[np.ndarray]:
+        """Distinct allowed rows among the ``nn`` nearest parts of any of each query's ``modes`` means.
+
+        Shapes:
+            means: (Q * modes, D) float32, each query's means consecutive; allowed: (P,) bool.
+            returns: Q int64 arrays of distinct catalog rows.
+        """
+        if self.brute_force is not None:
+            return self.brute_force.neighbour_union(means, modes, nn, allowed)
+        labels = self._faiss_search(means, nn, allowed)
+        found = []
+        for j in range(len(means) // modes):
+            ids = labels[j * modes:(j + 1) * modes].ravel()
+            ids = np.unique(ids[ids >= 0])
+            if allowed is not None:
+                ids = ids[allowed[ids]]  # also covers indexes that ignore selectors
+            found.append(ids)
+        return found
+
+    def _faiss_search(self, x: np.ndarray, nn: int, allowed: np.ndarray | None) -> np.ndarray:
+        """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""
+        if allowed is None:
+            return self.index.search(x, nn)[1]
+        rows = np.flatnonzero(allowed)
+        if len(rows) <= self.exact_search_max_filtered and (
+                len(rows) < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
+            # An approximate index probes the lists (or graph nodes) nearest the query, and few of
+            # them may hold parts that pass a narrow filter; a flat index with a selector checks
+            # every part one by one (1.1 ms for a category of the shipped catalog, against 0.1 ms
+            # for the same search over that category's rows): search those parts exactly instead.
+            return self._exact_subset(x, nn, rows)
+        packed = np.packbits(allowed, bitorder="little")
+        sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
+        params = _search_parameters(self.index, sel)
+        if params is None:  # an index type without selector support: filter afterwards
+            return self.index.search(x, min(len(self.embeddings), 4 * nn))[1]
+        return self.index.search(x, nn, params=params)[1]
+
+    def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
+        """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""
+        out = np.full((len(x), nn), -1, dtype=np.int64)
+        if len(rows) == 0:
+            return out
+        k = min(nn, len(rows))
+        sub = np.ascontiguousarray(self.embeddings[rows], dtype=np.float32)
+        _, found = faiss.knn(x, sub, k, metric=self.index.metric_type)
+        out[:, :k] = np.where(found >= 0, rows[np.maximum(found, 0)], -1)
+        return out
+
+
+def _search_parameters(index: faiss.Index, sel: faiss.IDSelector) -> faiss.SearchParameters | None:
+    """Search parameters carrying an ID selector, of the kind this index type expects."""
+    params: Any
+    if isinstance(index, faiss.IndexIVF):
+        params = faiss.SearchParametersIVF()
+    elif isinstance(index, faiss.IndexHNSW):
+        params = getattr(faiss, "SearchParametersHNSW")()  # noqa: B009  (missing from faiss's stubs)
+    elif isinstance(index, faiss.IndexFlat):
+        params = faiss.SearchParameters()
+    else:
+        return None
+    params.sel = sel
+    return params

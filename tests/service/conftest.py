@@ -55,7 +55,7 @@ def client(settings: Settings) -> Iterator[TestClient]:
 
 @pytest.fixture(scope="session")
 def engine(client: TestClient) -> SuggestionEngine:
-    return client.app.state.engine  # type: ignore[attr-defined]
+    return client.app.state.served.engine  # type: ignore[attr-defined]
 
 
 @pytest.fixture(scope="session")

@@ -80,7 +80,7 @@ def pin(folder: Path) -> Path:
     from service.api.app import create_app
 
     with TestClient(create_app(make_settings(folder))) as client:
-        engine = client.app.state.engine  # type: ignore[attr-defined]
+        engine = client.app.state.served.engine  # type: ignore[attr-defined]
         arts = engine.artifacts
         graphs = graph_values(arts.networks, arts.n_points)
         values = {k: np.asarray(v).round(6).tolist() for k, v in graphs.items()}

@@ -317,8 +317,8 @@ def test_requests_after_shutdown_are_refused(artifacts: Path, query: AssemblyQue
     body = {"points_base64": points_to_base64(query.points), "k": 2}
     with TestClient(app) as client:
         assert client.post("/suggest", json=body).status_code == 200
-        batcher = app.state.batcher
-    assert app.state.batcher is None
+        batcher = app.state.served.batcher
+    assert app.state.served is None
     with pytest.raises(NotReadyError):
         asyncio.run(batcher.submit((query.points, SuggestOptions(k=2))))
     with TestClient(app, raise_server_exceptions=False) as client:  # a restart gets a new batcher

@@ -118,7 +118,7 @@ def test_backup_is_a_working_copy(tmp_path: Path) -> None:
 def test_added_part_is_searchable_at_once_and_persists(artifacts: Path, data_dir: Path) -> None:
     settings = writable_settings(artifacts, data_dir)
     with _boot(settings) as c:
-        before = _state(c).engine
+        before = _state(c).served.snapshot
         r = add_part(c, 1, category="widget", label="plank", name="a block", style="plain")
         assert r.status_code == 201, r.text
         part = r.json()
@@ -127,7 +127,7 @@ def test_added_part_is_searchable_at_once_and_persists(artifacts: Path, data_dir
         got = c.get(f"/parts/{part['part_id']}").json()
         assert got == part
         # The snapshot in use before the write is untouched; the next request sees the part.
-        assert len(before.catalog) == len(_state(c).engine.catalog) - 1
+        assert len(before.catalog) == len(_state(c).served.snapshot.catalog) - 1
         mesh = trimesh.load_mesh(io.BytesIO(part_mesh(1)), file_type="ply")
         query = {"points": sample_surface(mesh.vertices, mesh.faces, 200, 0).tolist(), "category": "widget",
                  "k": 5}
@@ -210,7 +210,7 @@ def test_damaged_or_stale_data_is_repaired_at_start(artifacts: Path, data_dir: P
     settings = writable_settings(artifacts, data_dir)
     with _boot(settings) as c:
         ids = [add_part(c, s).json()["part_id"] for s in range(3)]
-        embedding = _state(c).engine.catalog.embeddings[-1].copy()
+        embedding = _state(c).served.snapshot.catalog.embeddings[-1].copy()
     (data_dir / INDEX_FILE).write_bytes(b"half an index")
     with sqlite3.connect(data_dir / "catalog.sqlite3") as db:  # as if made by another model version
         db.execute("UPDATE parts SET model_version = 'older-model'")
@@ -224,7 +224,8 @@ def test_damaged_or_stale_data_is_repaired_at_start(artifacts: Path, data_dir: P
         assert c.get(f"/parts/{ids[0]}").status_code == 404
         assert c.get(f"/parts/{ids[2]}").status_code == 200
         # The same model on the same geometry: the same embedding, up to float rounding.
-        np.testing.assert_allclose(_state(c).engine.catalog.embeddings[-1], embedding, rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(_state(c).served.snapshot.catalog.embeddings[-1], embedding,
+                                   rtol=1e-4, atol=1e-6)
 
 
 def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path) -> None:
@@ -233,10 +234,10 @@ def test_other_processes_additions_are_picked_up(artifacts: Path, data_dir: Path
     with _boot(settings) as a, _boot(settings) as b:
         pid = add_part(a, 5, category="shared").json()["part_id"]
         assert b.get(f"/parts/{pid}").status_code == 404
-        assert _state(b).writer.sync() is True  # what the polling thread calls
+        assert _state(b).served.writer.sync() is True  # what the polling thread calls
         assert b.get(f"/parts/{pid}").status_code == 200
         assert b.delete(f"/parts/{pid}", headers=AUTH).status_code == 204
-        _state(a).writer.sync()
+        _state(a).served.writer.sync()
         assert a.get(f"/parts/{pid}").status_code == 404
         assert a.get("/catalog").json()["sequence"] == b.get("/catalog").json()["sequence"] == 2
 

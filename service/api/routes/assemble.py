@@ -10,25 +10,27 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
-from service.api.batched_route import request_deadline
-from service.api.deps import EngineDep, SettingsDep, UploadsDep, unique_form_fields
+from service.api.deps import DeadlineDep, ServedDep, SettingsDep, UploadsDep, unique_form_fields
 from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
 from service.api.schemas_modeling import AssembleOptionsIn, AssembleRequest, AssembleResponse, ExportRequest
+from service.api.served import Served
+from service.artifacts.catalog import Catalog
 from service.errors import InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
-from service.modeling.assembly import AssembleOptions, Assembler, Start
+from service.modeling.assembly import AssembleOptions, Start
 from service.modeling.export_mesh import MEDIA_TYPES, export_assembly
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import fit_frame, fit_requested, up_axes_for
+from service.suggest.frame_fit import fit_requested, up_axes_for
+from service.suggest.snapshot import CatalogSnapshot
 
 router = APIRouter(tags=["modeling"])
 
@@ -51,11 +53,12 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 }}}}}
 
 
-def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int, frame: Frame) -> Start:
+def start_of(body: AssembleRequest, engine: SuggestionEngine, catalog: Catalog, max_points: int,
+             frame: Frame) -> Start:
     """The request's start in the canonical frame: one part, or placed parts and/or points."""
     if body.part_id is not None:
-        return Start(kind="part", part_index=engine.catalog.lookup(body.part_id))
-    rows = tuple(engine.catalog.lookup(p.part_id) for p in body.parts or [])
+        return Start(kind="part", part_index=catalog.lookup(body.part_id))
+    rows = tuple(catalog.lookup(p.part_id) for p in body.parts or [])
     trans = np.array([p.translation for p in body.parts or []], dtype=np.float64).reshape(-1, 3)
     if len(trans):
         trans = frame.to_canonical(trans).astype(np.float64)
@@ -64,12 +67,12 @@ def start_of(body: AssembleRequest, engine: SuggestionEngine, max_points: int, f
     return Start(kind="parts" if rows else "points", points=points, parts=rows, part_translations=trans)
 
 
-def fitted_frame(engine: SuggestionEngine, points: np.ndarray, options: AssembleOptions,
-                 framed: bool) -> Frame:
+def fitted_frame(served: Served, points: np.ndarray, options: AssembleOptions, framed: bool,
+                 snapshot: CatalogSnapshot) -> Frame:
     """The complete object's frame estimated from start points (``service.suggest.frame_fit``)."""
-    fit = fit_frame(engine, points, SuggestOptions(categories=options.categories, styles=options.styles,
-                                                   frame=options.frame),
-                    up_axes_for(options.frame if framed else None))
+    fit = served.fit_frame(points, SuggestOptions(categories=options.categories, styles=options.styles,
+                                                  frame=options.frame),
+                           up_axes_for(options.frame if framed else None), snapshot)
     if not fit.hypotheses:
         raise InputError("frame_unfit", "the start points have no extent: no frame can be fitted to them")
     return fit.frame
@@ -77,15 +80,18 @@ def fitted_frame(engine: SuggestionEngine, points: np.ndarray, options: Assemble
 
 @router.post("/assemble", response_model=AssembleResponse, responses=_ERRORS,
              summary="Grow a shape automatically from a start part or points")
-def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
+def post_assemble(body: AssembleRequest, served: ServedDep, settings: SettingsDep) -> OrjsonResponse:
+    snapshot = served.snapshot  # one catalog for the start's rows, the assembly and the answer
     options = body.to_options()
     cloud = body.points is not None or body.points_base64 is not None
     fit = fit_requested(body.fit_frame, body.frame is not None, False, settings) and cloud
     if fit:
-        options = replace(options, frame=fitted_frame(engine, body.to_points(settings.max_points), options,
-                                                      body.frame is not None))
-    result = Assembler(engine).assemble(start_of(body, engine, settings.max_points, options.frame), options)
-    return OrjsonResponse(render_assemble(result, engine, options.strategy, fit))
+        options = replace(options, frame=fitted_frame(served, body.to_points(settings.max_points), options,
+                                                      body.frame is not None, snapshot))
+    start = start_of(body, served.engine, snapshot.catalog, settings.max_points, options.frame)
+    result = served.assemble(start, options, snapshot)
+    answer = render_assemble(result, snapshot.catalog, served.model_version, options.strategy, fit)
+    return OrjsonResponse(answer)
 
 
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
@@ -97,7 +103,7 @@ def post_assemble(body: AssembleRequest, engine: EngineDep, settings: SettingsDe
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
 })
 async def post_assemble_mesh(
-    request: Request, engine: EngineDep, settings: SettingsDep, uploads: UploadsDep,
+    served: ServedDep, settings: SettingsDep, uploads: UploadsDep, deadline: DeadlineDep,
     file: UploadFile = File(..., description=(
         "The start mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF.")),
     options: str | None = Form(None, description="Assembly options as JSON (the options of /assemble).",
@@ -113,19 +119,20 @@ async def post_assemble_mesh(
         raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
                                       for e in exc.errors()]) from None
     data = await file.read()
-    n = max(engine.artifacts.n_points, settings.contact_part_samples)
+    n = max(served.engine.artifacts.n_points, settings.contact_part_samples)
     points, area = await run_in_threadpool(uploads.sample, data, fmt, n=n, name=file.filename or "upload",
-                                           deadline=request_deadline(request))
+                                           deadline=deadline)
     del data
+    snapshot = served.snapshot  # one catalog for the assembly and the answer
     assemble_options = opts.to_options()
     fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
     if fit:
         assemble_options = replace(assemble_options, frame=await run_in_threadpool(
-            fitted_frame, engine, points, assemble_options, opts.frame is not None))
+            fitted_frame, served, points, assemble_options, opts.frame is not None, snapshot))
     frame = assemble_options.frame
-    start = Start(kind="mesh", points=engine.canonical(points, frame), area=area / frame.radius ** 2)
-    result = await run_in_threadpool(Assembler(engine).assemble, start, assemble_options)
-    return OrjsonResponse(render_assemble(result, engine, opts.strategy, fit))
+    start = Start(kind="mesh", points=served.engine.canonical(points, frame), area=area / frame.radius ** 2)
+    result = await run_in_threadpool(served.assemble, start, assemble_options, snapshot)
+    return OrjsonResponse(render_assemble(result, snapshot.catalog, served.model_version, opts.strategy, fit))
 
 
 @router.post("/export", response_class=Response, summary="Placed parts as one GLB or OBJ file", responses={
@@ -136,9 +143,9 @@ async def post_assemble_mesh(
     422: {"model": ErrorResponse, "description": (
         "No parts, more than COMPLEMENTME_MAX_EXPORT_PARTS, or bad translation, scale or frame.")},
 })
-def post_export(body: ExportRequest, engine: EngineDep, settings: SettingsDep) -> Response:
+def post_export(body: ExportRequest, served: ServedDep, settings: SettingsDep) -> Response:
     frame = body.frame.to_frame() if body.frame else None
-    data = export_assembly(engine.catalog, body.to_items(), body.format, frame,
+    data = export_assembly(served.catalog, body.to_items(), body.format, frame,
                            max_parts=settings.max_export_parts)
     return Response(data, media_type=MEDIA_TYPES[body.format],
                     headers={"Content-Disposition": f'attachment; filename="assembly.{body.format}"'})

@@ -24,7 +24,7 @@ import threading
 import time
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, FastAPI, Header, Request
+from fastapi import APIRouter, Header, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -32,7 +32,7 @@ from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
 from service.api.auth import WriterDep
-from service.api.deps import SettingsDep
+from service.api.deps import DeadlineDep, SettingsDep, served_of
 from service.api.render import render_stored_part
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
@@ -45,7 +45,6 @@ from service.errors import DeadlineError, InputError
 from service.geometry.frames import Frame
 from service.geometry.inputs import mesh_format
 from service.settings import Settings
-from service.suggest.engine import SuggestionEngine
 
 router = APIRouter(tags=["catalog"])
 
@@ -180,7 +179,7 @@ async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
           "(database_unavailable, with Retry-After): nothing was stored."},
     507: {"model": ErrorResponse, "description": "The data folder holds COMPLEMENTME_MAX_ADDED_PARTS parts."},
 })
-async def post_part(request: Request, writer: WriterDep, settings: SettingsDep,
+async def post_part(request: Request, writer: WriterDep, settings: SettingsDep, deadline: DeadlineDep,
                     idempotency_key: IdempotencyKey = None) -> OrjsonResponse:
     """Upload one part's mesh: it is checked, centred, embedded and searchable by the next request.
 
@@ -193,7 +192,8 @@ async def post_part(request: Request, writer: WriterDep, settings: SettingsDep,
     fmt = mesh_format(upload.filename, meta.format)
     frame = meta.to_frame()
     data = await upload.read()
-    deadline = getattr(request.state, "deadline", time.monotonic() + settings.request_timeout)
+    if deadline is None:
+        deadline = time.monotonic() + settings.request_timeout
     window = CommitWindow(deadline - min(settings.write_commit_margin, settings.request_timeout / 2))
     name = upload.filename or "upload"
     task = asyncio.ensure_future(
@@ -294,29 +294,12 @@ async def delete_part(part_id: PartId, writer: WriterDep) -> Response:
 
 @router.get("/catalog", response_model=CatalogStatus, summary="The catalog's additions and their state")
 def get_catalog_status(request: Request) -> OrjsonResponse:
-    writer: CatalogWriter | None = getattr(request.app.state, "writer", None)
-    if writer is not None:
-        return OrjsonResponse(writer.status())
-    engine: SuggestionEngine | None = request.app.state.engine
-    n = len(engine.catalog) if engine is not None else 0
+    served = served_of(request.app)
+    if served is not None and served.writer is not None:
+        return OrjsonResponse(served.writer.status())
+    n = len(served.catalog) if served is not None else 0
     return OrjsonResponse({"writable": False, "backend": None, "shipped_parts": n, "added_parts": 0,
                            "deleted_parts": 0, "parts": n, "sequence": None, "database_sequence": None,
                            "index_sequence": None, "index_rebuilt_at_start": False, "reembedded_at_start": 0,
                            "left_out": [], "replication": None})
-
-
-def start_catalog_writer(app: FastAPI, engine: SuggestionEngine) -> CatalogWriter | None:
-    """Open the data folder (if configured) and serve its snapshot; None for a read-only server."""
-    settings: Settings = app.state.settings
-    if not settings.catalog_enabled:
-        return None
-
-    def publish(snapshot: SuggestionEngine) -> None:
-        app.state.engine = snapshot  # one reference swap: requests hold the engine they started with
-        app.state.metrics.set_model(snapshot.model_version, len(snapshot.catalog))
-
-    writer = CatalogWriter.open(settings, engine, publish)
-    if writer.follower is not None:
-        app.state.metrics.watch_replication(writer.replication)
-    return writer
 

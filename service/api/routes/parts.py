@@ -15,7 +15,7 @@ import trimesh
 from fastapi import APIRouter, Path, Query
 from starlette.responses import Response
 
-from service.api.deps import EngineDep, SettingsDep
+from service.api.deps import ServedDep, SettingsDep
 from service.api.render import render_part
 from service.api.responses import OrjsonResponse
 from service.api.schemas import CategoryOut, ErrorResponse, PartOut, PartPointsOut, PartsPage
@@ -36,7 +36,7 @@ _NOT_FOUND: dict[int | str, dict[str, Any]] = {
             responses={404: {"model": ErrorResponse, "description": "No part comes from shape_id."},
                        422: {"model": ErrorResponse, "description": "Unknown category or bad paging."}})
 def list_parts(
-    engine: EngineDep, settings: SettingsDep,
+    served: ServedDep, settings: SettingsDep,
     category: str | None = Query(None, description="Only parts of this category.", examples=["chair"]),
     shape_id: str | None = Query(None, description="Only parts of this source shape.",
                                  examples=["chair-0007"]),
@@ -51,7 +51,7 @@ def list_parts(
     if limit > settings.max_page_size:
         raise InputError("limit_out_of_range",
                          f"limit must be at most {settings.max_page_size}, found {limit}")
-    cat = engine.catalog
+    cat = served.catalog  # one snapshot for the whole answer
     mask = np.ones(len(cat), dtype=bool)
     if category is not None:
         mask &= cat.category_of == cat.category_codes([category])[0]
@@ -78,8 +78,8 @@ def _matches(record: dict[str, Any], text: str) -> bool:
 @router.get("/categories", response_model=list[CategoryOut], summary="Categories in the catalog",
             responses={200: {"content": {"application/json": {"example": [
                 {"name": "airplane", "parts": 771}, {"name": "chair", "parts": 889}]}}}})
-def list_categories(engine: EngineDep) -> OrjsonResponse:
-    cat = engine.catalog
+def list_categories(served: ServedDep) -> OrjsonResponse:
+    cat = served.catalog
     counts = np.bincount(cat.category_of, minlength=len(cat.categories))
     return OrjsonResponse([{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)])
 
@@ -93,11 +93,11 @@ def list_categories(engine: EngineDep) -> OrjsonResponse:
           "description": "The mesh, centred at its bounding-box centre, in canonical units. "
                          "Place it at a suggestion's translation (times the frame's scale and rotation)."}})
 def get_part_mesh(
-    part_id: PartId, engine: EngineDep,
+    part_id: PartId, served: ServedDep,
     format: Literal["glb", "obj", "ply"] = Query("glb", description="Mesh file format.", examples=["obj"]),
 ) -> Response:
-    i = engine.catalog.lookup(part_id)
-    vertices, faces = engine.catalog.mesh(i)
+    cat = served.catalog
+    vertices, faces = cat.mesh(cat.lookup(part_id))
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
     data = mesh.export(file_type=format)
     body = data.encode("utf-8") if isinstance(data, str) else bytes(data)
@@ -109,12 +109,12 @@ def get_part_mesh(
 @router.get("/parts/{part_id:path}/points", response_model=PartPointsOut, responses=_NOT_FOUND,
             summary="A part's point samples, centred")
 def get_part_points(
-    part_id: PartId, engine: EngineDep,
+    part_id: PartId, served: ServedDep,
     encoding: Literal["json", "base64"] = Query("json", description=(
         "Points as a JSON list or base64 float32."), examples=["base64"]),
 ) -> OrjsonResponse:
-    i = engine.catalog.lookup(part_id)
-    pts = engine.catalog.part_points(i)
+    cat = served.catalog
+    pts = cat.part_points(cat.lookup(part_id))
     body: dict[str, Any] = {"part_id": part_id, "n_points": len(pts)}
     if encoding == "base64":
         body["points_base64"] = points_to_base64(pts)
@@ -125,5 +125,6 @@ def get_part_points(
 
 @router.get("/parts/{part_id:path}", response_model=PartOut, responses=_NOT_FOUND,
             summary="One catalog part's record")
-def get_part(part_id: PartId, engine: EngineDep) -> OrjsonResponse:
-    return OrjsonResponse(render_part(engine.catalog, engine.catalog.lookup(part_id)))
+def get_part(part_id: PartId, served: ServedDep) -> OrjsonResponse:
+    cat = served.catalog
+    return OrjsonResponse(render_part(cat, cat.lookup(part_id)))

@@ -8,7 +8,7 @@ import numpy as np
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from service.api.deps import EngineDep, MetricsDep, SettingsDep
+from service.api.deps import MetricsDep, ServedDep, SettingsDep, served_of
 from service.api.errors import error_response
 from service.api.metrics import CONTENT_TYPE
 from service.api.responses import OrjsonResponse
@@ -39,12 +39,11 @@ async def get_readyz(request: Request) -> OrjsonResponse:
     """200 once the artifacts are loaded and warm. With the postgres catalog backend the answer also
     says where the replica is in the database's changes, and `status` is `degraded` (still 200:
     suggestions are served from the last snapshot) while the database cannot be reached."""
-    engine = getattr(request.app.state, "engine", None)
-    if engine is None or not request.app.state.ready:
+    served = served_of(request.app)
+    if served is None or not request.app.state.ready:
         return error_response(503, "not_ready", "artifacts not loaded or warm-up not passed")
-    body: dict[str, Any] = {"status": "ready", "model_version": engine.model_version}
-    writer = getattr(request.app.state, "writer", None)
-    replication = writer.replication() if writer is not None else None
+    body: dict[str, Any] = {"status": "ready", "model_version": served.model_version}
+    replication = served.writer.replication() if served.writer is not None else None
     if replication is not None:
         body["catalog"] = replication
         if replication["database"] != "up":
@@ -60,11 +59,11 @@ async def get_metrics(metrics: MetricsDep) -> Response:
 
 
 @router.get("/model", response_model=ModelInfo, summary="The loaded model, its catalog and the limits")
-async def get_model(engine: EngineDep, settings: SettingsDep) -> OrjsonResponse:
-    m, cat = engine.artifacts.manifest, engine.catalog
+async def get_model(served: ServedDep, settings: SettingsDep) -> OrjsonResponse:
+    m, cat = served.engine.artifacts.manifest, served.catalog
     counts = np.bincount(cat.category_of, minlength=len(cat.categories))
     body: dict[str, Any] = {
-        "model_version": engine.model_version, "format_version": m["format_version"],
+        "model_version": served.model_version, "format_version": m["format_version"],
         "n_points": m["n_points"], "embedding_dim": m["embedding_dim"], "n_modes": m["n_modes"],
         "part_count": len(cat),  # shipped + added parts, as the categories below
         "categories": [{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)],

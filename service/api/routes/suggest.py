@@ -2,8 +2,9 @@
 
 The suggestion handlers are ``async``: they decode the request on the event loop (a mesh or a
 whole batch of items in the threadpool), hand the queries to the micro-batcher
-(``service.api.batching``), whose worker runs them through the engine together with other
-requests' queries, and render the answer. ``/place`` is a plain ``def`` run in the threadpool.
+(``Served.suggest``, through ``service.api.batching``), whose worker runs them through the
+engine together with other requests' queries, and render the answer. ``/place`` is a plain
+``def`` run in the threadpool.
 """
 
 from __future__ import annotations
@@ -12,18 +13,19 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from service.api.batched_route import BatchedRoute, batch_ticket, request_deadline
+from service.api.batched_route import BatchedRoute
+from service.api.batching import Ticket
 from service.api.deps import (
-    BatcherDep,
-    EngineDep,
+    DeadlineDep,
     MetricsDep,
+    ServedDep,
     SettingsDep,
-    SuggestBatcher,
+    TicketDep,
     UploadsDep,
     unique_form_fields,
 )
@@ -40,6 +42,7 @@ from service.api.schemas import (
     SuggestRequest,
     SuggestResponse,
 )
+from service.api.served import Served
 from service.errors import InputError, ServiceError
 from service.geometry.inputs import mesh_format
 from service.suggest.engine import SuggestionEngine, SuggestOptions
@@ -73,25 +76,26 @@ _MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-dat
 
 @batched.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
               summary="Suggest complementary parts for a partial assembly given as points")
-async def post_suggest(body: SuggestRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
-                       settings: SettingsDep) -> OrjsonResponse:
+async def post_suggest(body: SuggestRequest, served: ServedDep, settings: SettingsDep, ticket: TicketDep,
+                       deadline: DeadlineDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
     options = body.to_options()
-    engine.check_budget(engine.check_query(len(points), options))
+    served.check(len(points), options)
     if body.fit_frame:
-        options = await fitted(engine, batcher, request, points, options, body.frame is not None)
-    result = await batcher.submit((points, options), batch_ticket(request), request_deadline(request))
-    return OrjsonResponse(render_suggest(result, engine.model_version, bool(body.fit_frame)))
+        options = await fitted(served, points, options, body.frame is not None, ticket, deadline)
+    result = await served.suggest(points, options, ticket, deadline)
+    return OrjsonResponse(render_suggest(result, served.model_version, bool(body.fit_frame)))
 
 
-async def fitted(engine: SuggestionEngine, batcher: SuggestBatcher, request: Request,
-                 points: np.ndarray, options: SuggestOptions, framed: bool) -> SuggestOptions:
+async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, framed: bool,
+                 ticket: Ticket | None, deadline: float | None) -> SuggestOptions:
     """The options with the frame estimated from the partial (``service.suggest.frame_fit``): every
     hypothesis scored in one batch. ``framed``: the caller gave a frame, whose up axis is kept."""
-    frames, queries = fit_queries(engine, points, options, up_axes_for(options.frame if framed else None))
+    up_axes = up_axes_for(options.frame if framed else None)
+    frames, queries = fit_queries(served.engine, points, options, up_axes)
     if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
-    answers = await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
+    answers = await served.suggest_many(queries, ticket, deadline)
     return replace(options, frame=best_frame(frames, answers).frame)
 
 
@@ -105,7 +109,7 @@ async def fitted(engine: SuggestionEngine, batcher: SuggestBatcher, request: Req
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
 })
 async def post_suggest_mesh(
-    request: Request, engine: EngineDep, batcher: BatcherDep, uploads: UploadsDep, settings: SettingsDep,
+    served: ServedDep, uploads: UploadsDep, settings: SettingsDep, ticket: TicketDep, deadline: DeadlineDep,
     file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
     options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
                                examples=['{"k": 5, "category": "chair"}']),
@@ -120,34 +124,35 @@ async def post_suggest_mesh(
         raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
                                       for e in exc.errors()]) from None
     options_out = opts.to_options()
-    engine.check_budget(engine.check_query(engine.artifacts.n_points, options_out))
+    n_points = served.engine.artifacts.n_points
+    served.check(n_points, options_out)
     data = await file.read()
-    points, _ = await run_in_threadpool(uploads.sample, data, fmt, n=engine.artifacts.n_points,
-                                        name=file.filename or "upload", deadline=request_deadline(request))
+    points, _ = await run_in_threadpool(uploads.sample, data, fmt, n=n_points,
+                                        name=file.filename or "upload", deadline=deadline)
     del data  # the upload's bytes are not needed while the query waits for its batch
     fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
     if fit:
-        options_out = await fitted(engine, batcher, request, points, options_out, opts.frame is not None)
-    result = await batcher.submit((points, options_out), batch_ticket(request), request_deadline(request))
-    return OrjsonResponse(render_suggest(result, engine.model_version, fit))
+        options_out = await fitted(served, points, options_out, opts.frame is not None, ticket, deadline)
+    result = await served.suggest(points, options_out, ticket, deadline)
+    return OrjsonResponse(render_suggest(result, served.model_version, fit))
 
 
 @batched.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
               summary="Suggest for many partial assemblies at once (batched inference)")
-async def post_suggest_batch(body: BatchRequest, request: Request, engine: EngineDep, batcher: BatcherDep,
-                             settings: SettingsDep) -> OrjsonResponse:
+async def post_suggest_batch(body: BatchRequest, served: ServedDep, settings: SettingsDep, ticket: TicketDep,
+                             deadline: DeadlineDep) -> OrjsonResponse:
     """Each item is validated on its own: a bad item gets an error entry, the others are answered."""
     items = body.checked_items(settings.limits)
+    engine = served.engine
     engine.check_budget(sum(_estimated_cost(engine, raw) for raw in items), len(items))
     results, valid, queries = await run_in_threadpool(_decode_items, items, engine, settings.max_points)
-    answers = (await batcher.submit_many(queries, batch_ticket(request), request_deadline(request))
-               if queries else [])
+    answers = await served.suggest_many(queries, ticket, deadline) if queries else []
     for i, answer in zip(valid, answers, strict=True):
         if isinstance(answer, ServiceError):
             results[i] = {"index": i, "ok": False, "error": service_error_body(answer)["error"]}
         else:
-            results[i] = {"index": i, "ok": True, "result": render_suggest(answer, engine.model_version)}
-    return OrjsonResponse({"model_version": engine.model_version, "results": results})
+            results[i] = {"index": i, "ok": True, "result": render_suggest(answer, served.model_version)}
+    return OrjsonResponse({"model_version": served.model_version, "results": results})
 
 
 def _estimated_cost(engine: SuggestionEngine, raw: Any) -> float:
@@ -160,7 +165,7 @@ def _estimated_cost(engine: SuggestionEngine, raw: Any) -> float:
         return engine.query_cost(0, SuggestOptions())
     points, b64, k, refine = (raw.get(f) for f in ("points", "points_base64", "k", "refine_contact"))
     n = len(points) if isinstance(points, list) else len(b64) * 3 // 4 // 12 if isinstance(b64, str) else 0
-    k = min(max(k, 1), engine.settings.max_k) if isinstance(k, int) and not isinstance(k, bool) else None
+    k = min(max(k, 1), engine.config.max_k) if isinstance(k, int) and not isinstance(k, bool) else None
     refine = refine if isinstance(refine, bool) else None
     region = _ANY_REGION if isinstance(raw.get("region"), dict) else None
     return engine.query_cost(n, SuggestOptions(k=k, refine_contact=refine, region=region))
@@ -190,13 +195,13 @@ def _decode_items(items: list[Any], engine: SuggestionEngine, max_points: int
 
 @router.post("/place", response_model=PlaceResponse, responses=_POINT_ERRORS,
              summary="Place chosen catalog parts next to a partial assembly")
-def post_place(body: PlaceRequest, engine: EngineDep, settings: SettingsDep,
+def post_place(body: PlaceRequest, served: ServedDep, settings: SettingsDep,
                metrics: MetricsDep) -> OrjsonResponse:
     points = body.to_points(settings.max_points)
-    result = engine.place(points, body.part_ids, body.frame.to_frame() if body.frame else None,
+    result = served.place(points, body.part_ids, body.frame.to_frame() if body.frame else None,
                           refine_contact=body.refine_contact, fit_scale=body.fit_scale)
     metrics.observe_engine(result.timings, 1, [])
-    return OrjsonResponse(render_place(result, engine.model_version))
+    return OrjsonResponse(render_place(result, served.model_version))
 
 
 router.include_router(batched)  # after its routes: include_router copies them
