@@ -62,7 +62,7 @@ def ensure_venv(folder: Path = VENV, timeout: float = 1200.0) -> Path:
             pass
     log.info("creating the framework peer's venv %s (%s)", folder, ", ".join(wanted))
     # The project's interpreter makes the venv: same Python version on both sides.
-    subprocess.run([sys.executable, "-m", "venv", "--clear", str(folder)], check=True, timeout=120)
+    subprocess.run([sys.executable, "-m", "venv", "--clear", str(folder)], check=True, timeout=timeout)
     proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
                            *wanted], capture_output=True, text=True, timeout=timeout, check=False)
     if proc.returncode != 0:
