@@ -33,10 +33,11 @@ from service.settings import Settings
 
 log = logging.getLogger(__name__)
 
-# BentoML answers 503 to a request its dispatcher cannot serve within max_latency_ms: this is a
-# bound on a request's whole time in the batching queue and the model, not a wait. 1000 ms is the
-# documentation's example, far above what c = 64 needs here.
-BENTOML_MAX_LATENCY_MS = 1000.0
+# BentoML's max_latency_ms is not how long its dispatcher waits for a batch (its regression of
+# recent batch times decides that) but a deadline: a request it expects to miss it gets a 503.
+# BentoML's default, 60 s: the documentation's example, 1 s, shed a third of the requests at
+# c = 32 on a loaded 2-core host (smoke run), which would measure load shedding, not serving.
+BENTOML_MAX_LATENCY_MS = 60_000.0
 TRANSLATION_TOLERANCE = 1e-4  # canonical units; the same graphs on the same inputs, batched differently
 
 

@@ -74,7 +74,7 @@ def _results() -> dict[str, dict[str, Any]]:
                            {"connections": 32, "throughput": 400 / rps32, "p50": 100 / 75.0,
                             "p99": p99 / 90}]}
 
-    framework = {"ours": ours, "peers": {"bentoml": fw("1.4.40", 200, 300.0, 1000.0),
+    framework = {"ours": ours, "peers": {"bentoml": fw("1.4.30", 200, 300.0, 1000.0),
                                          "litserve": fw("0.2.19", 320, 120.0, 2.0)}}
     configs = {"engine": {}, "http": {"load": cfg_load, "server_env": {}},
                "catalog": {"noise": 0.05, "index_kind": "auto", "recall_k": 64, "recall_queries": 63},
@@ -132,7 +132,7 @@ def test_framework_section_judges_against_the_strongest_peer() -> None:
     assert framework_target(res["framework"])[2] is True  # 400 / 250 = 1.6x, p99 90 < 120 ms
     text = render_results(res)
     assert "### f. Framework peers (issue 20)" in text
-    assert "**BentoML 1.4.40** (max_batch_size 32, max_latency_ms 1000)" in text
+    assert "**BentoML 1.4.30** (max_batch_size 32, max_latency_ms 1000)" in text
     assert "**LitServe 0.2.19** (max_batch_size 32, batch_timeout 0.002 s)" in text
     assert "same top-2 part ids as ours **yes**" in text
     assert "| 32 | 200 | 400 | 2.0x | 100 / 300 | 75.00 / 90.00 | 1.3x | 3.3x | 0 / 0 |" in text
