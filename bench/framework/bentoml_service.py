@@ -38,7 +38,8 @@ class SuggestModel:
     def __init__(self) -> None:
         self.model = PeerModel(CONFIG)
 
-    @bentoml.api(batchable=True, max_batch_size=CONFIG.max_batch_size, max_latency_ms=CONFIG.max_latency_ms)
+    @bentoml.api(batchable=True, max_batch_size=CONFIG.max_batch_size,
+                 max_latency_ms=int(CONFIG.max_latency_ms))
     def suggest_batch(self, queries: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
         return self.model.suggest_batch([parse_request(q, CONFIG) for q in queries])
 
