@@ -132,6 +132,23 @@ def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load:
     _save(results_dir, "peer", cfg.as_dict(), lambda: run_peer_bench(_query(query), cfg, cache))
 
 
+def do_framework(results_dir: Path, query: Path, cache: Path, frameworks: str, concurrency: str, load: Any,
+                 server_env: list[str] | None) -> None:
+    from bench.framework.venv import FRAMEWORKS
+    from bench.framework_bench import FrameworkBenchConfig, run_framework_bench
+    from service.settings import get_settings
+
+    names = tuple(n.strip() for n in frameworks.split(",") if n.strip())
+    unknown = [n for n in names if n not in FRAMEWORKS]
+    if not names or unknown:
+        raise typer.BadParameter(f"--frameworks takes a comma-separated list of {', '.join(FRAMEWORKS)}, "
+                                 f"found {frameworks!r}")
+    cfg = FrameworkBenchConfig(frameworks=names, concurrency=_ints(concurrency, "--concurrency"), load=load,
+                               server_env=_env_pairs(server_env))
+    _save(results_dir, "framework", cfg.as_dict(),
+          lambda: run_framework_bench(_query(query), cfg, cache, get_settings()))
+
+
 def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, requests: int | None,
                    warmup: int | None, target_faces: int, server_env: list[str] | None) -> None:
     from bench.interactive_bench import InteractiveBenchConfig, run_interactive_bench
@@ -211,6 +228,32 @@ def peer(
 
 
 @app.command()
+def framework(
+    results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
+    cache_dir: Path = CacheOpt,
+    frameworks: str = typer.Option("bentoml,litserve", help="Framework peers to run, in order."),
+    concurrency: str = typer.Option("1,8,32,64", help="Concurrency levels."),
+    duration: float | None = typer.Option(None, min=1, help="Measured seconds per level (default 10)."),
+    warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per level (default 3)."),
+    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
+    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
+    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for our server (repeatable)."),
+) -> None:
+    """f. Framework peers (BentoML, LitServe; same graphs and index) against our service, same run."""
+    load = _load(quick, duration, warmup_seconds, wrk_threads, timeout)
+    do_framework(results_dir, query, cache_dir, frameworks, concurrency, load, server_env)
+
+
+@app.command(name="framework-venv")
+def framework_venv() -> None:
+    """Create the framework peers' venv (bench/.venv-peer) if it is missing or out of date."""
+    from bench.framework.venv import ensure_venv, installed_versions
+
+    python = ensure_venv()
+    log.info("framework peer venv ready: %s %s", python, installed_versions(python))
+
+
+@app.command()
 def interactive(
     results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
     cache_dir: Path = CacheOpt,
@@ -238,11 +281,12 @@ def run_all(
     duration: float | None = typer.Option(None, min=1, help="Measured seconds per load level (default 10)."),
     sizes: str | None = typer.Option(None, help="Catalog sizes (default 10000,100000,1000000)."),
 ) -> None:
-    """engine, http, catalog, peer and interactive with their defaults, then the report."""
+    """engine, http, catalog, peer, interactive and framework with their defaults, then the report."""
     load = _load(quick, duration, None, 1, 30.0)
     do_engine(results_dir, query, quick, None, None)
     do_http(results_dir, query, quick, cache_dir, "1,8,32,64", load, None)
     do_catalog(results_dir, query, quick, cache_dir, sizes, 0.05, "auto", None, None, None, None)
     do_peer(results_dir, query, cache_dir, "1,32", load, None)
     do_interactive(results_dir, query, quick, cache_dir, None, None, 100_000, None)
+    do_framework(results_dir, query, cache_dir, "bentoml,litserve", "1,8,32,64", load, None)
     do_report(results_dir, doc)

@@ -286,6 +286,66 @@ def _peer(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+FRAMEWORK_NAMES = {"bentoml": "BentoML", "litserve": "LitServe"}
+
+
+def framework_target(data: dict[str, Any]) -> tuple[str, str, bool | None]:
+    """Issue 20's target against the strongest framework peer (most req/s at concurrency 32)."""
+    target = "Concurrency 32: >= 1.5x the framework peer's throughput, lower p99 (same run)"
+    peers = data["results"]["peers"]
+    ours = {row["connections"]: row for row in data["results"]["ours"]}.get(32)
+    at32 = {name: _level(p["levels"], "json", 32) for name, p in peers.items()}
+    measured = {name: row for name, row in at32.items() if row is not None and row["throughput_rps"] > 0}
+    if ours is None or not measured:
+        return target, "-", None
+    name, peer = max(measured.items(), key=lambda kv: kv[1]["throughput_rps"])
+    ratio = ours["throughput_rps"] / peer["throughput_rps"]
+    lower_p99 = ours["p99_ms"] is not None and peer["p99_ms"] is not None and ours["p99_ms"] < peer["p99_ms"]
+    text = (f"{_x(ratio)} {FRAMEWORK_NAMES.get(name, name)}'s throughput ({ours['throughput_rps']:.0f} vs "
+            f"{peer['throughput_rps']:.0f} req/s), p99 {_ms(ours['p99_ms'])} vs {_ms(peer['p99_ms'])} ms")
+    return target, text, ratio >= 1.5 and lower_p99 and ours["errors"] == 0
+
+
+def _framework(data: dict[str, Any]) -> list[str]:
+    r, cfg = data["results"], data["config"]
+    load = cfg["load"]
+    ours = {row["connections"]: row for row in r["ours"]}
+    lines = [
+        f"Framework peers (`bench/framework/`: the same exported graphs, FAISS index and catalog, the "
+        f"default /suggest computed by `bench/framework/pipeline.py`, served as each framework documents "
+        f"with its own batching) and our service, one after the other on loopback, {cfg['workers']} worker "
+        f"process(es) per side, JSON body, {load['duration']:.0f} s per row after {load['warmup']:.0f} s "
+        f"of warm-up. Ratios: throughput ours / peer, latency peer / ours (above 1 favours us).",
+        "",
+        "| Target | Measured | |", "|---|---|---|",
+    ]
+    target, measured, ok = framework_target(data)
+    lines.append(f"| {target} | {measured} | {_met(ok)} |")
+    for name, p in r["peers"].items():
+        pc, ans = p["config"], p["answers"]
+        title = FRAMEWORK_NAMES.get(name, name)
+        batching = (f"max_batch_size {pc['max_batch_size']}, max_latency_ms {pc['max_latency_ms']:g}"
+                    if name == "bentoml" else
+                    f"max_batch_size {pc['max_batch_size']}, batch_timeout {pc['max_latency_ms'] / 1000:g} s")
+        levels = {row["connections"]: row for row in p["levels"]}
+        lines += [
+            "", f"**{title} {p.get('version') or '?'}** ({batching}); its answer to the benchmark query: "
+            f"same top-{len(ans['our_ids'])} part ids as ours **{'yes' if ans['same_ids'] else 'no'}**, "
+            f"largest translation difference {ans['max_translation_gap']:.2g}.", "",
+            f"| Concurrency | {title} req/s | Ours req/s | Throughput ratio | {title} p50 / p99 ms "
+            "| Ours p50 / p99 ms | p50 ratio | p99 ratio | Errors peer / ours |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for ratio in p["ratios"]:
+            c = ratio["connections"]
+            pr, o = levels[c], ours[c]
+            lines.append(f"| {c} | {pr['throughput_rps']:.0f} | {o['throughput_rps']:.0f} | "
+                         f"{_x(ratio['throughput'])} | {_ms(pr['p50_ms'])} / {_ms(pr['p99_ms'])} | "
+                         f"{_ms(o['p50_ms'])} / {_ms(o['p99_ms'])} | "
+                         f"{_x(ratio['p50'])} | {_x(ratio['p99'])} | {_errors(pr)} / {_errors(o)} |")
+    return lines
+
+
 INTERACTIVE_LABELS = {"suggest_mesh_glb": "/suggest/mesh, GLB", "suggest_mesh_obj": "/suggest/mesh, OBJ",
                       "place_5": "/place, 5 parts", "suggest_contact_off": "/suggest, refine_contact false",
                       "suggest_contact_on": "/suggest, refine_contact true", "assemble": "/assemble (greedy)"}
@@ -412,7 +472,8 @@ def render_results(res: dict[str, dict[str, Any]]) -> str:
     out += [f"| {t} | {m} | {_met(ok)} |" for t, m, ok in targets(res)]
     sections = (("engine", "a. Engine latency per stage", _engine), ("http", "b. HTTP load", _http),
                 ("catalog", "c. Catalog scaling", _catalog), ("peer", "d. Peer baseline", _peer),
-                ("interactive", "e. Interactive paths at concurrency 1 (issue 20)", _interactive))
+                ("interactive", "e. Interactive paths at concurrency 1 (issue 20)", _interactive),
+                ("framework", "f. Framework peers (issue 20)", _framework))
     for name, title, fn in sections:
         out += ["", f"### {title}", ""]
         out += fn(res[name]) if name in res else ["Not run (`python -m bench " + name + "`)."]

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from bench.report import BEGIN, END, render_results, targets, write_report
+from bench.report import BEGIN, END, framework_target, render_results, targets, write_report
 from bench.results import load_results, save_result
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "performance.md"
@@ -62,10 +62,24 @@ def _results() -> dict[str, dict[str, Any]]:
             "ratios": [{"connections": 1, "throughput": 5.0, "p50": 5.0, "p99": 30 / 7},
                        {"connections": 32, "throughput": 350 / 30, "p50": 11.25, "p99": 1500 / 95}]}
     cfg_load = {"duration": 10.0, "warmup": 3.0, "threads": 1, "timeout": 30.0}
+    ours = [_level("json", 1, 180, 5.5, 8.0), _level("json", 32, 400, 75.0, 90.0)]
+    answers = {"peer_ids": ["a", "b"], "our_ids": ["a", "b"], "same_ids": True, "max_translation_gap": 0.0,
+               "match": True}
+
+    def fw(version: str, rps32: float, p99: float, wait_ms: float) -> dict[str, Any]:
+        levels = [_level("json", 1, 150, 6.0, 9.0), _level("json", 32, rps32, 100.0, p99)]
+        return {"version": version, "config": {"max_batch_size": 32, "max_latency_ms": wait_ms},
+                "answers": answers, "levels": levels,
+                "ratios": [{"connections": 1, "throughput": 180 / 150, "p50": 6.0 / 5.5, "p99": 9.0 / 8.0},
+                           {"connections": 32, "throughput": 400 / rps32, "p50": 100 / 75.0,
+                            "p99": p99 / 90}]}
+
+    framework = {"ours": ours, "peers": {"bentoml": fw("1.4.30", 200, 300.0, 1000.0),
+                                         "litserve": fw("0.2.19", 320, 120.0, 2.0)}}
     configs = {"engine": {}, "http": {"load": cfg_load, "server_env": {}},
                "catalog": {"noise": 0.05, "index_kind": "auto", "recall_k": 64, "recall_queries": 63},
-               "peer": {"load": cfg_load}}
-    data = {"engine": engine, "http": http, "catalog": catalog, "peer": peer}
+               "peer": {"load": cfg_load}, "framework": {"load": cfg_load, "workers": 2}}
+    data = {"engine": engine, "http": http, "catalog": catalog, "peer": peer, "framework": framework}
     return {k: {"benchmark": k, "machine": MACHINE, "config": configs[k], "results": v}
             for k, v in data.items()}
 
@@ -106,6 +120,22 @@ def test_rendered_tables_hold_the_numbers() -> None:
     assert "same top part: **yes**" in text
     assert "| **end to end, in process** | 3.80 / 7.60 |" in text
     assert "| Stage | json, contact default (off) |" in text
+
+
+def test_framework_section_judges_against_the_strongest_peer() -> None:
+    res = _results()
+    _, measured, ok = framework_target(res["framework"])
+    # LitServe has more req/s at c = 32 than BentoML: 400 / 320 = 1.25x, short of 1.5x.
+    assert ok is False
+    assert measured.startswith("1.2x LitServe's throughput (400 vs 320 req/s), p99 90.00 vs 120")
+    res["framework"]["results"]["peers"]["litserve"]["levels"][1]["throughput_rps"] = 250
+    assert framework_target(res["framework"])[2] is True  # 400 / 250 = 1.6x, p99 90 < 120 ms
+    text = render_results(res)
+    assert "### f. Framework peers (issue 20)" in text
+    assert "**BentoML 1.4.30** (max_batch_size 32, max_latency_ms 1000)" in text
+    assert "**LitServe 0.2.19** (max_batch_size 32, batch_timeout 0.002 s)" in text
+    assert "same top-2 part ids as ours **yes**" in text
+    assert "| 32 | 200 | 400 | 2.0x | 100 / 300 | 75.00 / 90.00 | 1.3x | 3.3x | 0 / 0 |" in text
 
 
 def test_report_replaces_only_the_generated_section(tmp_path: Path) -> None:
