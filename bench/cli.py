@@ -160,6 +160,25 @@ def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, req
     _save(results_dir, "interactive", cfg.as_dict(), lambda: run_interactive_bench(_query(query), cfg, cache))
 
 
+def do_balancers(results_dir: Path, query: Path, quick: bool, cache: Path, setups: str, rounds: int | None,
+                 connections: int, load: Any, haproxy_mode: str, haproxy_balance: str,
+                 server_env: list[str] | None) -> None:
+    from bench.balancer_bench import DEFAULT_SERVER_ENV, BalancerBenchConfig, run_balancer_bench
+
+    env = dict(DEFAULT_SERVER_ENV)
+    for key, value in _env_pairs(server_env):
+        if key != "COMPLEMENTME_WORKERS":  # every set-up runs its own count of processes
+            env[key] = value
+    try:
+        cfg = BalancerBenchConfig(setups=tuple(s.strip() for s in setups.split(",") if s.strip()),
+                                  rounds=rounds or (1 if quick else 3), connections=connections, load=load,
+                                  server_env=tuple(env.items()), haproxy_mode=haproxy_mode,
+                                  haproxy_balance=haproxy_balance)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    _save(results_dir, "balancers", cfg.as_dict(), lambda: run_balancer_bench(_query(query), cfg, cache))
+
+
 def do_report(results_dir: Path, doc: Path) -> None:
     from bench.report import render_results, write_report
     from bench.results import load_results
@@ -264,6 +283,31 @@ def interactive(
 ) -> None:
     """e. Interactive paths at concurrency 1: mesh upload (GLB, OBJ), /place, contact, /assemble."""
     do_interactive(results_dir, query, quick, cache_dir, requests, warmup, target_faces, server_env)
+
+
+@app.command()
+def balancers(
+    results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
+    cache_dir: Path = CacheOpt,
+    setups: str = typer.Option("ours,gunicorn,uvicorn,haproxy", help="Set-ups to compare, in the first "
+                               "round's order."),
+    rounds: int | None = typer.Option(None, min=1, help="Runs of every set-up, interleaved (default 3)."),
+    connections: int = typer.Option(32, min=1, help="wrk connections."),
+    duration: float | None = typer.Option(None, min=1, help="Measured seconds per run (default 20)."),
+    warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per run (default 5)."),
+    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
+    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
+    haproxy_mode: str = typer.Option("http", help="HAProxy's mode: http (balances requests) or tcp "
+                                     "(balances connections)."),
+    haproxy_balance: str = typer.Option("leastconn", help="HAProxy's balance algorithm."),
+    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for every server (repeatable)."),
+) -> None:
+    """f. Two server processes behind each of four balancers, c = 32, interleaved rounds (issue 17)."""
+    if warmup_seconds is None and not quick:
+        warmup_seconds = 5.0
+    load = _load(quick, duration or (None if quick else 20.0), warmup_seconds, wrk_threads, timeout)
+    do_balancers(results_dir, query, quick, cache_dir, setups, rounds, connections, load, haproxy_mode,
+                 haproxy_balance, server_env)
 
 
 @app.command()

@@ -461,6 +461,69 @@ def _interactive(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _setup_label(name: str, data: dict[str, Any]) -> str:
+    """How a set-up of the balancer benchmark was started, with the versions that served it."""
+    cfg, v = data["config"], data["results"].get("versions", {})
+    n, hp = cfg["processes"], cfg.get("haproxy", {})
+    labels = {
+        "ours": f"ours: `complementme serve --workers {n}`",
+        "gunicorn": f"gunicorn {v.get('gunicorn')}, {n} uvicorn workers "
+                    f"(uvicorn-worker {v.get('uvicorn-worker')})",
+        "uvicorn": f"`uvicorn --workers {n}`",
+        "haproxy": f"HAProxy {v.get('haproxy')} ({hp.get('mode')}, {hp.get('balance')}) + {n} x "
+                   "`complementme serve --workers 1`",
+    }
+    return labels.get(name, name)
+
+
+def _range(pair: list[float] | None, fmt: Any) -> str:
+    return "" if not pair else f" ({fmt(pair[0])}-{fmt(pair[1])})"
+
+
+def _share(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f} %"
+
+
+def _balancers(data: dict[str, Any]) -> list[str]:
+    cfg, r = data["config"], data["results"]
+    load = cfg["load"]
+    lines = [
+        f"{cfg['processes']} server processes per set-up on loopback, started fresh for every run; wrk "
+        f"with {cfg['connections']} connections posting the {cfg['body']} body, {load['duration']:.0f} s "
+        f"per run after {load['warmup']:.0f} s of warm-up; {cfg['rounds']} rounds, each starting at the "
+        f"next set-up; server environment `{cfg.get('server_env')}`. Median over the rounds (range). "
+        "Busiest worker: its share of the server processes' CPU during the measured run (50 % is an even "
+        "split of two); front: the CPU of everything else in the set-up (supervisor, arbiter or proxy), "
+        "in cores. Against ours: throughput this / ours, latency ours / this (above 1: better than ours).",
+        "",
+        "| Set-up | req/s | p50 ms | p99 ms | Errors | Busiest worker | Front (cores) "
+        "| Against ours: req/s, p50, p99 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in r["summary"]:
+        vs = row.get("vs_ours") or {}
+        ratios = [vs.get(k) for k in ("throughput", "p50", "p99")]
+        against = ", ".join("-" if v is None else f"{v:.2f}" for v in ratios) if vs else "-"
+        front = "-" if row["front_cores"] is None else f"{row['front_cores']:.2f}"
+        lines.append(
+            f"| {_setup_label(row['setup'], data)} | {row['throughput_rps']:.0f}"
+            f"{_range(row['throughput_range'], lambda x: f'{x:.0f}')} | {_ms(row['p50_ms'])} | "
+            f"{_ms(row['p99_ms'])}{_range(row['p99_range'], _ms)} | {row['errors']} | "
+            f"{_share(row['busiest_share'])} | {front} | {against} |")
+    lines += ["", "Every run, in the order they ran:", "",
+              "| Round | Set-up | req/s | p50 ms | p99 ms | Errors | Busiest worker |",
+              "|---|---|---|---|---|---|---|"]
+    for run in r["runs"]:
+        changed = run["cpu"].get("changed")
+        note = f" (processes replaced: {', '.join(k.split()[0] for k in changed)})" if changed else ""
+        lines.append(f"| {run['round'] + 1} | {run['setup']} | {run['throughput_rps']:.0f} | "
+                     f"{_ms(run['p50_ms'])} | {_ms(run['p99_ms'])} | {_errors(run)} | "
+                     f"{_share(run['cpu']['busiest_share'])}{note} |")
+    if not r.get("same_top_part", True):
+        lines += ["", "**The set-ups did not all answer the benchmark query with the same top part.**"]
+    return lines
+
+
 def render_results(res: dict[str, dict[str, Any]]) -> str:
     """The generated section (between the markers) for whatever results are present."""
     out = [BEGIN, ""]
@@ -473,7 +536,8 @@ def render_results(res: dict[str, dict[str, Any]]) -> str:
     sections = (("engine", "a. Engine latency per stage", _engine), ("http", "b. HTTP load", _http),
                 ("catalog", "c. Catalog scaling", _catalog), ("peer", "d. Peer baseline", _peer),
                 ("interactive", "e. Interactive paths at concurrency 1 (issue 20)", _interactive),
-                ("framework", "f. Framework peers (issue 20)", _framework))
+                ("framework", "f. Framework peers (issue 20)", _framework),
+                ("balancers", "g. Balancers: two processes behind one port (issue 17)", _balancers))
     for name, title, fn in sections:
         out += ["", f"### {title}", ""]
         out += fn(res[name]) if name in res else ["Not run (`python -m bench " + name + "`)."]

@@ -13,7 +13,7 @@ from typing import Any
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 CACHE_DIR = Path(__file__).resolve().parent / ".cache"
-BENCHMARKS = ("engine", "http", "catalog", "peer", "interactive", "framework")
+BENCHMARKS = ("engine", "http", "catalog", "peer", "interactive", "framework", "balancers")
 
 
 def _clean(value: Any) -> Any:

@@ -49,12 +49,12 @@ class Server:
 @contextmanager
 def running_server(command: Sequence[str], *, port: int, ready_path: str, log_path: Path,
                    env: dict[str, str] | None = None, cwd: Path | None = None,
-                   start_timeout: float = 180.0) -> Iterator[Server]:
+                   start_timeout: float = 180.0, stop_signal: int = signal.SIGINT) -> Iterator[Server]:
     """Run ``command`` (which must listen on ``port``) until the block ends.
 
     Waits until ``GET ready_path`` answers 200; raises ``RuntimeError`` with the log's tail if
-    the process exits first or ``start_timeout`` seconds pass. On exit the server gets SIGINT
-    (uvicorn's graceful stop), then SIGKILL after 15 s.
+    the process exits first or ``start_timeout`` seconds pass. On exit the server gets
+    ``stop_signal`` (SIGINT: uvicorn's graceful stop; gunicorn's is SIGTERM), then SIGKILL after 15 s.
     """
     log_path.parent.mkdir(parents=True, exist_ok=True)
     url = f"http://127.0.0.1:{port}"
@@ -63,14 +63,15 @@ def running_server(command: Sequence[str], *, port: int, ready_path: str, log_pa
         proc = subprocess.Popen(list(command), stdout=out, stderr=subprocess.STDOUT, env=full_env,
                                 cwd=str(cwd) if cwd else None)
         try:
-            _wait_ready(proc, url + ready_path, log_path, start_timeout)
+            _wait_ready(proc, url + ready_path, log_path, start_timeout, stop_signal)
             log.info("server ready at %s (pid %d, log %s)", url, proc.pid, log_path)
             yield Server(url=url, process=proc, log_path=log_path)
         finally:
-            _stop(proc)
+            _stop(proc, stop_signal)
 
 
-def _wait_ready(proc: subprocess.Popen[bytes], url: str, log_path: Path, timeout: float) -> None:
+def _wait_ready(proc: subprocess.Popen[bytes], url: str, log_path: Path, timeout: float,
+                stop_signal: int) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -82,15 +83,15 @@ def _wait_ready(proc: subprocess.Popen[bytes], url: str, log_path: Path, timeout
         except httpx.HTTPError:
             pass
         time.sleep(0.25)
-    _stop(proc)
+    _stop(proc, stop_signal)
     raise RuntimeError(f"server not ready at {url} after {timeout:.0f} s; log {log_path}:\n"
                        f"{log_tail(log_path)}")
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
+def _stop(proc: subprocess.Popen[bytes], stop_signal: int = signal.SIGINT) -> None:
     if proc.poll() is not None:
         return
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(stop_signal)
     try:
         proc.wait(timeout=15)
     except subprocess.TimeoutExpired:

@@ -1,5 +1,5 @@
 """docker/requirements-service.txt lists exactly pyproject.toml's service dependencies; docker/constraints.txt
-locks every package they, and the train and test extras, pull in."""
+locks every package they, and the train, test and bench extras, pull in."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def test_constraints_pin_every_requirement_within_pyprojects_bounds() -> None:
     lines = (REPO / "docker" / "constraints.txt").read_text().splitlines()
     pins = dict(line.split("==", 1) for line in lines if line and not line.startswith("#"))
     needed = [*project["dependencies"], *project["optional-dependencies"]["train"],
-              *project["optional-dependencies"]["test"]]
+              *project["optional-dependencies"]["test"], *project["optional-dependencies"]["bench"]]
     for line in needed:
         req = Requirement(line)
         if req.marker is not None and not req.marker.evaluate():
@@ -75,4 +75,4 @@ def test_constraints_are_the_versions_installed_here() -> None:
     assert committed == load_generator().render_constraints(REPO / "pyproject.toml"), (
         "docker/constraints.txt differs from the packages installed here: run "
         "`python docker/make_requirements.py` in the project's venv "
-        "(after `pip install -e \".[train,test]\"`)")
+        "(after `pip install -e \".[train,test,bench]\"`)")
