@@ -34,7 +34,7 @@ from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
 from service.api.metrics import Metrics
 from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, MetricsMiddleware
-from service.api.openapi_extras import add_common_responses
+from service.api.openapi_extras import add_common_responses, add_limits
 from service.api.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
 from service.api.routes.page import install_page
@@ -154,6 +154,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(probes.router)
     app.include_router(catalog_write.router)
     add_common_responses(app)
+    add_limits(app, settings.limits)
     app.include_router(assemble.router)
     install_page(app)
     install_offline_docs(app)

@@ -8,6 +8,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from service.api.app import create_app
 from service.artifacts.catalog import Catalog
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -68,3 +69,30 @@ def test_sent_errors_match_the_documented_body(client: TestClient, catalog: Cata
     assert not _matches({"detail": [{"loc": ["query"], "msg": "x", "type": "y"}]},
                         documented[str(status)]["content"]["application/json"]["schema"],
                         schema["components"]["schemas"])
+
+
+def test_the_document_carries_this_servers_limits_and_the_server_enforces_them(settings: Any,
+                                                                              query: Any) -> None:
+    """A client generated from /openapi.json sees the limits of the server it came from."""
+    small = settings.model_copy(update={"max_k": 7, "default_k": 5, "max_batch_items": 2, "min_points": 20})
+    with TestClient(create_app(small)) as c:
+        schema = c.get("/openapi.json").json()
+        assert schema["info"]["x-limits"]["max_k"] == 7
+        models = schema["components"]["schemas"]
+        k = next(b for b in models["SuggestRequest"]["properties"]["k"]["anyOf"]
+                 if b.get("type") == "integer")
+        assert (k["minimum"], k["maximum"], k["default"]) == (1, 7, 5)
+        items = models["BatchRequest"]["properties"]["items"]
+        assert (items["minItems"], items["maxItems"]) == (1, 2)
+        cloud = next(b for b in models["SuggestRequest"]["properties"]["points"]["anyOf"]
+                     if b.get("type") == "array")
+        assert (cloud["minItems"], cloud["maxItems"]) == (20, small.max_points)
+        # ... and the bounds are the ones the server enforces.
+        points = query.points.tolist()
+        assert c.post("/suggest", json={"points": points, "k": 7}).status_code == 200
+        over = c.post("/suggest", json={"points": points, "k": 8})
+        assert over.status_code == 422 and over.json()["error"]["code"] == "k_out_of_range"
+        batch = c.post("/suggest/batch", json={"items": [{"points": points}] * 3})
+        assert batch.status_code == 422 and batch.json()["error"]["code"] == "too_many_items"
+        few = c.post("/suggest", json={"points": points[:19]})
+        assert few.status_code == 422 and few.json()["error"]["code"] == "too_few_points"
