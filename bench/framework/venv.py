@@ -12,6 +12,7 @@ its test call ``ensure_venv`` too, which does nothing when the venv matches what
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
@@ -53,27 +54,46 @@ def venv_python(folder: Path = VENV) -> Path:
 
 
 def ensure_venv(folder: Path = VENV, timeout: float = 1200.0) -> Path:
-    """The peer venv's python, creating or rebuilding the venv when it is missing or out of date."""
+    """The peer venv's python, creating or rebuilding the venv when it is missing or out of date.
+
+    One process at a time builds it (a lock file beside the folder): a test and the command run
+    together once left a venv whose stamp said "built" while the other's ``--clear`` had emptied
+    it, so the stamp is trusted only when the frameworks are also installed.
+    """
     wanted = requirements()
-    stamp = folder / STAMP
-    python = venv_python(folder)
-    if python.is_file() and stamp.is_file():
-        try:
-            if json.loads(stamp.read_text()).get("requirements") == wanted:
-                return python
-        except json.JSONDecodeError:
-            pass
-    log.info("creating the framework peer's venv %s (%s)", folder, ", ".join(wanted))
-    # The project's interpreter makes the venv: same Python version on both sides.
-    subprocess.run([sys.executable, "-m", "venv", "--clear", str(folder)], check=True, timeout=timeout)
-    proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-                           *wanted], capture_output=True, text=True, timeout=timeout, check=False)
-    if proc.returncode != 0:
-        raise RuntimeError(f"pip could not install the peer's requirements into {folder}:\n"
-                           f"{proc.stderr[-3000:] or proc.stdout[-3000:]}")
-    digest = hashlib.sha256("\n".join(wanted).encode()).hexdigest()
-    stamp.write_text(json.dumps({"requirements": wanted, "sha256": digest}, indent=1) + "\n")
-    return python
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.parent / f"{folder.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        python = venv_python(folder)
+        if _built(folder, wanted):
+            return python
+        log.info("creating the framework peer's venv %s (%s)", folder, ", ".join(wanted))
+        # The project's interpreter makes the venv: same Python version on both sides.
+        subprocess.run([sys.executable, "-m", "venv", "--clear", str(folder)], check=True, timeout=timeout)
+        proc = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
+                               *wanted], capture_output=True, text=True, timeout=timeout, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"pip could not install the peer's requirements into {folder}:\n"
+                               f"{proc.stderr[-3000:] or proc.stdout[-3000:]}")
+        digest = hashlib.sha256("\n".join(wanted).encode()).hexdigest()
+        (folder / STAMP).write_text(json.dumps({"requirements": wanted, "sha256": digest}, indent=1) + "\n")
+        return python
+
+
+def _built(folder: Path, wanted: list[str]) -> bool:
+    """Whether the venv was built from ``wanted`` and still holds both frameworks."""
+    python, stamp = venv_python(folder), folder / STAMP
+    if not (python.is_file() and stamp.is_file()):
+        return False
+    try:
+        if json.loads(stamp.read_text()).get("requirements") != wanted:
+            return False
+    except json.JSONDecodeError:
+        return False
+    try:
+        return set(FRAMEWORKS) <= set(installed_versions(python))
+    except (subprocess.SubprocessError, OSError, ValueError):
+        return False
 
 
 def installed_versions(python: Path, names: tuple[str, ...] = (*FRAMEWORKS, *NUMERIC)) -> dict[str, str]:
