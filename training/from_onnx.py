@@ -30,11 +30,11 @@ import torch
 from onnx import numpy_helper
 from torch import nn
 
-from service.artifacts.layout import GRAPH_FILES, GRAPH_INPUTS, GRAPH_OUTPUTS, MANIFEST
+from service.artifacts.layout import GRAPH_FILES, GRAPH_INPUTS, MANIFEST
 from service.artifacts.loading import build_session
 from training.checkpoint import Trained
 from training.config import ModelConfig, TrainConfig, model_config_from_dict
-from training.export import example_inputs, graph_modules
+from training.export import example_inputs, graph_modules, output_names
 from training.models import PlacementNet, RetrievalPair, build_models
 
 # Largest difference between onnxruntime's and torch's outputs accepted as "the same network".
@@ -147,12 +147,13 @@ def check_parity(module: nn.Module, graph: str, path: Path, placement: Placement
     """Run the graph in onnxruntime and ``module`` in torch on one input; ``ValueError`` if they differ."""
     inputs = example_inputs(graph, placement, batch=3, n=128)
     session = build_session(path, torch.get_num_threads())
-    expected = session.run(GRAPH_OUTPUTS[graph], {name: x.numpy() for name, x in
+    names = output_names(graph, module)   # with the optional heads (category, scale) it has
+    expected = session.run(names, {name: x.numpy() for name, x in
                                                   zip(GRAPH_INPUTS[graph], inputs, strict=True)})
     with torch.no_grad():
         got = module(*inputs)
     got = got if isinstance(got, tuple) else (got,)
-    for name, a, b in zip(GRAPH_OUTPUTS[graph], expected, got, strict=True):
+    for name, a, b in zip(names, expected, got, strict=True):
         diff = float(np.abs(a - b.numpy()).max())
         if not diff <= PARITY_ATOL:
             raise ValueError(f"{path}: torch and onnxruntime differ by {diff:.2e} on {name!r} "

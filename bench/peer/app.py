@@ -104,7 +104,9 @@ def suggest(model: PeerModel, points: np.ndarray, k: int) -> list[dict[str, Any]
     order = np.argsort(-ll, kind="stable")[:k]
     top, scores = cand[order], ll[order]
     with torch.no_grad():
-        translations = model.h(x.expand(len(top), -1, -1), model.part_points[top]).numpy()
+        placed = model.h(x.expand(len(top), -1, -1), model.part_points[top])
+    # A model with a scale head (v3) answers (translations, log scales); the peer places only.
+    translations = (placed[0] if isinstance(placed, tuple) else placed).numpy()
     return [{"rank": r + 1, "part_id": model.part_ids[i], "score": float(s), "translation": t.tolist()}
             for r, (i, s, t) in enumerate(zip(top.tolist(), scores, translations, strict=True))]
 
