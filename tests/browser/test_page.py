@@ -368,7 +368,7 @@ def test_alternatives_leave_the_view_its_size(page: Any, artifact_dir: Path) -> 
 
     The view keeps its size and its place, whole in the window, also when the tree's last node
     is scrolled into sight (the tree scrolls in its own panel, not the page or the column)."""
-    _start_from(page, "chair-0007/6")
+    _start_from(page, "chair-0007/3")
     before = _placement(page, "#viewport")
     window = page.viewport_size
     assert before[1] >= 0 and before[1] + before[3] <= window["height"], (before, window)
@@ -395,7 +395,7 @@ def test_alternatives_leave_the_view_its_size(page: Any, artifact_dir: Path) -> 
 
 
 def test_download_is_confirmed(page: Any) -> None:
-    _start_from(page, "chair-0007/6")
+    _start_from(page, "chair-0007/3")
     page.locator(CARDS).first.click()
     _wait_parts(page, 2)
     page.select_option("#export-format", "obj")

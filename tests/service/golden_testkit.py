@@ -87,6 +87,7 @@ def pin(folder: Path) -> Path:
         record = {"model_version": arts.model_version, "graphs": values,
                   "answers": answer_values(client, engine.catalog, arts.n_points)}
     path = golden_path(record["model_version"])
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=1) + "\n")
     return path
 

@@ -94,6 +94,11 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
     assert named.inferred_category is None and {s.category for s in named.suggestions} == {"chair"}
 
 
+# Known shortfall of model v3 (v3-8k-s8000): the mixture still collapses (issue 15's first
+# point): for a held-out chair's seat g puts 0.999 of its weight on one mode, and the benchmark's
+# one-part queries keep 1.26 modes of weight >= 0.05 (docs/benchmark.md). Strict: the model that
+# fixes it makes this XPASS, and the mark goes.
+@pytest.mark.xfail(reason="one live mode for a seat alone (v3-8k-s8000)", strict=True)
 def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
     from service_testkit import make_settings
 
