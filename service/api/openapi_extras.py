@@ -2,7 +2,8 @@
 
 Some answers do not come from a route but from the layers around every route: the overload
 gate (503 ``overloaded`` with Retry-After) and the deadline (504) on every POST and DELETE, the
-body limit (413) and the parsers (400 for a body that is not JSON or not valid multipart) on
+body limit (413) and the parsers (400 for a body that is not JSON or not valid multipart; 415 for
+a JSON body of another media type or not in UTF-8) on
 every operation with a body, and 503 ``not_ready`` before the artifacts are loaded. Declaring
 them here keeps each route's own ``responses`` about what the route itself decides, and keeps
 the document true for every operation, including ones added later.
@@ -35,6 +36,9 @@ def _common(path: str, op: dict[str, Any]) -> dict[str, str]:
     extra: dict[str, str] = {}
     if "requestBody" in op:
         extra["400"] = "The body is not valid JSON, or not a valid multipart form."
+        if "application/json" in op["requestBody"].get("content", {}):
+            extra["415"] = ("unsupported_media_type: a Content-Type other than JSON, or a JSON body that is "
+                            "not UTF-8.")
         extra["413"] = ("The body is larger than COMPLEMENTME_MAX_BODY_BYTES (COMPLEMENTME_MAX_UPLOAD_BYTES "
                         "for mesh uploads).")
     if path not in _ALWAYS_UP:
