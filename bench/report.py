@@ -258,6 +258,22 @@ def _catalog(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _ratio_table(name: str, ratios: list[dict[str, Any]], peer: dict[int, dict[str, Any]],
+                 ours: dict[int, dict[str, Any]], peer_rps: str = "{:.0f}") -> list[str]:
+    """A peer's load levels beside ours, with the ratios (sections d and f)."""
+    lines = [f"| Concurrency | {name} req/s | Ours req/s | Throughput ratio | {name} p50 / p99 ms "
+             "| Ours p50 / p99 ms | p50 ratio | p99 ratio | Errors peer / ours |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for ratio in ratios:
+        c = ratio["connections"]
+        p, o = peer[c], ours[c]
+        lines.append(f"| {c} | {peer_rps.format(p['throughput_rps'])} | {o['throughput_rps']:.0f} | "
+                     f"{_x(ratio['throughput'])} | {_ms(p['p50_ms'])} / {_ms(p['p99_ms'])} | "
+                     f"{_ms(o['p50_ms'])} / {_ms(o['p99_ms'])} | "
+                     f"{_x(ratio['p50'])} | {_x(ratio['p99'])} | {_errors(p)} / {_errors(o)} |")
+    return lines
+
+
 def _peer(data: dict[str, Any]) -> list[str]:
     r = data["results"]
     load = data["config"]["load"]
@@ -270,17 +286,8 @@ def _peer(data: dict[str, Any]) -> list[str]:
         f"{load['duration']:.0f} s per row after {load['warmup']:.0f} s of warm-up. Ratios: throughput "
         f"ours / peer, latency peer / ours (above 1 favours us).",
         "",
-        "| Concurrency | Peer req/s | Ours req/s | Throughput ratio | Peer p50 / p99 ms "
-        "| Ours p50 / p99 ms | p50 ratio | p99 ratio | Errors peer / ours |",
-        "|---|---|---|---|---|---|---|---|---|",
+        *_ratio_table("Peer", r["ratios"], peer, ours, peer_rps="{:.1f}"),
     ]
-    for ratio in r["ratios"]:
-        c = ratio["connections"]
-        p, o = peer[c], ours[c]
-        lines.append(f"| {c} | {p['throughput_rps']:.1f} | {o['throughput_rps']:.0f} | "
-                     f"{_x(ratio['throughput'])} | {_ms(p['p50_ms'])} / {_ms(p['p99_ms'])} | "
-                     f"{_ms(o['p50_ms'])} / {_ms(o['p99_ms'])} | "
-                     f"{_x(ratio['p50'])} | {_x(ratio['p99'])} | {_errors(p)} / {_errors(o)} |")
     lines += ["", f"Sanity: top parts of the benchmark query, peer {', '.join(s['peer_top'])}; ours "
               f"{', '.join(s['our_top'])}: same top part: **{'yes' if s['same_top_part'] else 'no'}**."]
     return lines
@@ -332,17 +339,8 @@ def _framework(data: dict[str, Any]) -> list[str]:
             "", f"**{title} {p.get('version') or '?'}** ({batching}); its answer to the benchmark query: "
             f"same top-{len(ans['our_ids'])} part ids as ours **{'yes' if ans['same_ids'] else 'no'}**, "
             f"largest translation difference {ans['max_translation_gap']:.2g}.", "",
-            f"| Concurrency | {title} req/s | Ours req/s | Throughput ratio | {title} p50 / p99 ms "
-            "| Ours p50 / p99 ms | p50 ratio | p99 ratio | Errors peer / ours |",
-            "|---|---|---|---|---|---|---|---|---|",
+            *_ratio_table(title, p["ratios"], levels, ours),
         ]
-        for ratio in p["ratios"]:
-            c = ratio["connections"]
-            pr, o = levels[c], ours[c]
-            lines.append(f"| {c} | {pr['throughput_rps']:.0f} | {o['throughput_rps']:.0f} | "
-                         f"{_x(ratio['throughput'])} | {_ms(pr['p50_ms'])} / {_ms(pr['p99_ms'])} | "
-                         f"{_ms(o['p50_ms'])} / {_ms(o['p99_ms'])} | "
-                         f"{_x(ratio['p50'])} | {_x(ratio['p99'])} | {_errors(pr)} / {_errors(o)} |")
     return lines
 
 
