@@ -140,6 +140,17 @@ class TrainConfig:
                               metadata=_help("Weight of the relaxed winner-takes-all pull of the modes."))
     wta_epsilon: float = field(default=0.05,
                                metadata=_help("Share of that pull spread over the other modes."))
+    # Not in the paper: plain WTA lets the mode nearest to everything win every positive; the
+    # others stop moving and their weights die (live modes 2.88 at step 1,000, 1.23 at 8,000,
+    # measured on the v3 preset). The evolving WTA pulls the K nearest modes at first and
+    # narrows to one over this share of the steps (losses.wta_winners).
+    wta_anneal: float = field(default=0.0,
+                              metadata=_help("Share of the steps in which the WTA pull narrows K to 1."))
+    # Not in the paper: the weights learn how often each mode wins a positive (cross-entropy of
+    # log phi against the winner), so a weight says what share of the complements its mode
+    # explains instead of which mode Equation 2 prefers for this triplet.
+    wta_weight_ce: float = field(default=0.0,
+                                 metadata=_help("Weight of g's weights' cross-entropy on the WTA winner."))
     # The pulls fit g's mixture to the embedded positives; letting their gradient reach f as
     # well shrinks the whole embedding towards the modes (measured: catalog spread below sigma).
     pull_moves_embedding: bool = field(default=False,
@@ -204,7 +215,7 @@ class TrainConfig:
                 raise ValueError(f"train config: {name} must be positive, got {getattr(self, name)}")
         for name in ("minutes", "max_minutes", "val_every", "num_workers", "threads", "set_nll_weight",
                      "category_weight", "scale_augment", "scale_weight", "augment", "match_weight",
-                     "match_weight_ce"):
+                     "match_weight_ce", "wta_weight_ce"):
             if getattr(self, name) < 0:
                 raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.test_fraction < 1.0:
@@ -216,6 +227,8 @@ class TrainConfig:
             raise ValueError("train config: learning rates must be > 0 and lr_decay in (0, 1]")
         if self.nll_weight < 0 or self.wta_weight < 0 or not 0 <= self.wta_epsilon < 1:
             raise ValueError("train config: nll_weight and wta_weight must be >= 0 and wta_epsilon in [0, 1)")
+        if not 0.0 <= self.wta_anneal <= 1.0:
+            raise ValueError(f"train config: wta_anneal must be in [0, 1], got {self.wta_anneal}")
         shares = (self.query_negative_fraction, self.lookalike_negative_fraction)
         if min(shares) < 0 or sum(shares) > 1:
             raise ValueError("train config: query_negative_fraction and lookalike_negative_fraction must be "

@@ -42,21 +42,36 @@ def mixture_nll(y: torch.Tensor, log_weights: torch.Tensor, means: torch.Tensor,
 
 
 def relaxed_wta_pull(y: torch.Tensor, means: torch.Tensor, log_sigmas: torch.Tensor,
-                     epsilon: float) -> torch.Tensor:
-    """Pull the Gaussian nearest to each positive onto it (relaxed winner-takes-all).
+                     epsilon: float, winners: int = 1) -> torch.Tensor:
+    """Pull the Gaussians nearest to each positive onto it (relaxed winner-takes-all).
 
-    The per-mode negative log density of ``y`` is averaged with weight ``1 - epsilon`` on the
-    best mode and ``epsilon / (K - 1)`` on the others. Unlike the mixture NLL it ignores the
-    mixture weights, so it cannot win by moving all weight to one central mode.
+    The per-mode negative log density of ``y`` is averaged with weight ``(1 - epsilon) /
+    winners`` on each of the ``winners`` best modes and ``epsilon / (K - winners)`` on the
+    others. Unlike the mixture NLL it ignores the mixture weights, so it cannot win by moving
+    all weight to one central mode. ``winners > 1`` is the evolving winner-takes-all of Makansi
+    et al. (CVPR 2019): starting with every mode pulled and narrowing to one keeps all modes
+    near the data, where plain WTA leaves the modes that never win far away for good.
 
     Shapes:
         y (B, D), means (B, K, D), log_sigmas (B, K, D) -> (B,).
     """
     nll = -component_log_density(y, means, log_sigmas)                 # (B, K)
     k = nll.shape[1]
-    best = nll.argmin(dim=1, keepdim=True)
-    w = torch.full_like(nll, epsilon / max(k - 1, 1)).scatter(1, best, 1.0 - epsilon if k > 1 else 1.0)
+    top = min(max(winners, 1), k)
+    if top == k:
+        return nll.mean(dim=1)
+    best = nll.topk(top, dim=1, largest=False).indices                  # (B, top)
+    w = torch.full_like(nll, epsilon / (k - top)).scatter(1, best, (1.0 - epsilon) / top)
     return (w * nll).sum(dim=1)
+
+
+def wta_winners(step: int, steps: int, n_modes: int, anneal: float) -> int:
+    """How many modes the evolving winner-takes-all pulls at ``step``: from K down to 1 over
+    the first ``anneal`` share of the run (1 throughout when ``anneal`` is 0)."""
+    if anneal <= 0:
+        return 1
+    progress = min(step / (anneal * steps), 1.0)
+    return max(1, round(n_modes - (n_modes - 1) * progress))
 
 
 def triplet_hinge(e_pos: torch.Tensor, e_neg: torch.Tensor, margin: float) -> torch.Tensor:

@@ -44,6 +44,7 @@ from training.losses import (
     placement_loss,
     relaxed_wta_pull,
     triplet_loss,
+    wta_winners,
 )
 from training.models import build_models, count_parameters
 from training.plots import (
@@ -113,8 +114,8 @@ def lr_factor(cfg: TrainConfig, step: int, progress: float) -> float:
 
 
 def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Tensor, first: torch.Tensor,
-                        z_emb: torch.Tensor, log_w: torch.Tensor, means: torch.Tensor, log_s: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                        z_emb: torch.Tensor, log_w: torch.Tensor, means: torch.Tensor, log_s: torch.Tensor,
+                        step: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The loss of f and g: Equation 2, plus the optional fits of the mixture to the positives.
 
     ``pos_emb`` holds every drawn complement of every query (``owner`` says whose; ``first``
@@ -141,8 +142,13 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
         nll = mixture_nll(y_fit, log_w[owner], means[owner], log_s[owner])
         loss = loss + cfg.set_nll_weight * (share * nll).sum()
     if cfg.wta_weight:
-        pull = relaxed_wta_pull(y_fit, means[owner], log_s[owner], cfg.wta_epsilon)
+        winners = wta_winners(step, cfg.steps, means.shape[1], cfg.wta_anneal)
+        pull = relaxed_wta_pull(y_fit, means[owner], log_s[owner], cfg.wta_epsilon, winners)
         loss = loss + cfg.wta_weight * (share * pull).sum()
+    if cfg.wta_weight_ce:
+        per_mode = -component_log_density(y_fit, means[owner], log_s[owner]).detach()  # (M, K)
+        winner = per_mode.argmin(dim=1)                                                 # (M,)
+        loss = loss - cfg.wta_weight_ce * (share * log_w[owner, winner]).sum()
     if cfg.match_weight or cfg.match_weight_ce:
         per_mode = -component_log_density(y_fit, means[owner], log_s[owner])        # (M, K)
         mode = matched_modes(per_mode, owner, b)                                      # (M,)
@@ -385,7 +391,7 @@ class _Run:
         emb, log_w, means, log_s, logits = self.pair_run(X, torch.cat([pos, Z]))
         m = len(pos)
         loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:m], owner, first, emb[m:], log_w, means,
-                                                        log_s)
+                                                        log_s, self.step)
         if cfg.category_weight and logits is not None:
             closs = F.cross_entropy(logits, batch["category"])
             loss = loss + cfg.category_weight * closs

@@ -15,6 +15,7 @@ from training.losses import (
     relaxed_wta_pull,
     triplet_hinge,
     triplet_loss,
+    wta_winners,
 )
 
 
@@ -145,6 +146,22 @@ def test_relaxed_wta_pull_weights_the_nearest_mode():
     assert got.item() == pytest.approx(expected.item(), rel=1e-6)
     # epsilon 0: the nearest mode alone, and the mixture weights play no part.
     assert relaxed_wta_pull(y, means, log_s, 0.0).item() == pytest.approx(per_mode[1].item(), rel=1e-6)
+
+
+def test_evolving_wta_pulls_the_nearest_modes_then_narrows_to_one():
+    means = torch.tensor([[[0.0, 0.0], [1.0, 1.0], [5.0, 5.0]]])
+    log_s = torch.log(torch.full((1, 3, 2), 0.5))
+    y = torch.tensor([[0.9, 1.1]])
+    per_mode = -component_log_density(y, means, log_s)[0]
+    # Two winners share 1 - epsilon; the far mode keeps epsilon.
+    got = relaxed_wta_pull(y, means, log_s, epsilon=0.1, winners=2)
+    expected = 0.45 * (per_mode[1] + per_mode[0]) + 0.1 * per_mode[2]
+    assert got.item() == pytest.approx(expected.item(), rel=1e-6)
+    # Every mode a winner: the plain mean, whatever epsilon.
+    assert relaxed_wta_pull(y, means, log_s, 0.1, winners=3).item() == pytest.approx(per_mode.mean().item())
+    # The schedule: K modes at the start, one from the end of the anneal on, one throughout without it.
+    assert [wta_winners(s, 1000, 8, 0.5) for s in (0, 250, 500, 900)] == [8, 4, 1, 1]
+    assert wta_winners(0, 1000, 8, 0.0) == 1
 
 
 def test_matched_modes_give_a_query_s_complements_distinct_modes():

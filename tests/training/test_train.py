@@ -222,3 +222,43 @@ def test_set_nll_spreads_the_modes_over_a_query_s_complements():
     assert float(dist.min(dim=1).values.max()) < 0.1              # a mode on each answer
     mass = [float(w[dist[i] < 0.1].sum()) for i in range(2)]      # (two modes may share one)
     assert all(abs(m - 0.5) < 0.05 for m in mass), mass
+
+
+def _fit_shared_mixture(anneal: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One query X answered by two complements in turn (one positive per draw, as in v3).
+
+    Mode 0 starts between the answers and the others far off. Returns (answers, weights, means)
+    after the fit.
+    """
+    torch.manual_seed(0)
+    answers = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    pos = answers.repeat(4, 1)                                     # 8 draws, alternating answers
+    owner = first = torch.arange(8)
+    z = torch.full((8, 3), 5.0)
+    logits = torch.zeros(3, requires_grad=True)
+    start = torch.tensor([[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, -3.0, 0.0]])
+    means = (start + 0.05 * torch.randn(3, 3)).requires_grad_(True)
+    log_s = torch.log(torch.full((8, 3, 3), 0.3))
+    steps = 400
+    cfg = resolve_config(overrides={"wta_weight": 0.1, "wta_anneal": anneal, "wta_weight_ce": 1.0,
+                                    "margin": 0.001, "steps": steps})
+    opt = torch.optim.Adam([logits, means], lr=0.05)
+    for step in range(steps):
+        log_w = torch.log_softmax(logits, dim=0).expand(8, 3)
+        loss, _, _, _ = retrieval_objective(cfg, pos, owner, first, z, log_w, means.expand(8, 3, 3), log_s,
+                                            step)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return answers, torch.softmax(logits, dim=0).detach(), means.detach()
+
+
+def test_evolving_wta_and_winner_weights_give_each_answer_a_live_mode():
+    answers, w, means = _fit_shared_mixture(anneal=0.5)
+    dist = torch.cdist(answers, means)                            # (2 answers, 3 modes)
+    assert float(dist.min(dim=1).values.max()) < 0.1              # a mode on each answer
+    mass = [float(w[dist[i] < 0.1].sum()) for i in range(2)]
+    assert all(abs(m - 0.5) < 0.1 for m in mass), mass           # weights = share of wins
+    # The hinge is inactive here (far negatives): without the winner cross-entropy the weights
+    # would stay at 1/3 each.
+
