@@ -31,6 +31,7 @@ from bench.stats import summarize_seconds
 from service.artifacts.catalog import partial_assemblies
 from service.artifacts.indexing import build_index, configure_search
 from service.geometry.frames import Frame
+from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
@@ -194,8 +195,8 @@ def time_engines(engines: list[SuggestionEngine], body: bytes, cfg: CatalogBench
     return out
 
 
-def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogBenchConfig,
-                      cache: Path) -> dict[str, Any]:
+def run_catalog_bench(engine: SuggestionEngine, settings: Settings, query: BenchQuery,
+                      cfg: CatalogBenchConfig, cache: Path) -> dict[str, Any]:
     """The shipped catalog and every replicated size, measured the same way (requests interleaved)."""
     base = engine.catalog
     K = engine.artifacts.n_modes
@@ -206,7 +207,7 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
                                                     split="train"))
     body = (query.body(cfg.body) if cfg.refine_contact is None
             else query.body(cfg.body, refine_contact=cfg.refine_contact))
-    threads = engine.settings.faiss_threads
+    threads = engine.config.faiss_threads
     log.info("catalog: shipped catalog (%d parts, %s)", len(base), type(engine.index).__name__)
     rows = [{"parts": len(base), "kind": "shipped", "index": engine.artifacts.manifest.get("index"),
              "build_seconds": None, **measure_index(base.embeddings, engine.index, means, K, cfg, threads)}]
@@ -223,7 +224,7 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
                      "index_from_cache": cached, "setup_seconds": prep,
                      **measure_index(x, index, means, K, cfg, threads)})
         engines.append(SuggestionEngine(dataclasses.replace(engine.artifacts, index=index, catalog=catalog),
-                                        engine.settings))
+                                        settings))
         del x
     log.info("catalog: %d requests per size, the sizes interleaved", cfg.engine_reps)
     faiss.omp_set_num_threads(threads)
@@ -232,7 +233,7 @@ def run_catalog_bench(engine: SuggestionEngine, query: BenchQuery, cfg: CatalogB
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k, "body": cfg.body,
                   "refine_contact": cfg.refine_contact,
-                  "contact_applied": (contact_default(engine.settings) if cfg.refine_contact is None
+                  "contact_applied": (contact_default(engine.config) if cfg.refine_contact is None
                                       else cfg.refine_contact)},
         "n_modes": K,
         "rows": rows,

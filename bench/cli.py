@@ -92,8 +92,10 @@ def do_engine(results_dir: Path, query: Path, quick: bool, reps: int | None, war
 
     cfg = EngineBenchConfig(reps=reps or (30 if quick else 1000),
                             warmup=warmup if warmup is not None else (5 if quick else 50))
-    engine = load_engine(get_settings())
-    _save(results_dir, "engine", config_dict(cfg), lambda: run_engine_bench(engine, _query(query), cfg))
+    settings = get_settings()
+    engine = load_engine(settings)
+    _save(results_dir, "engine", config_dict(cfg),
+          lambda: run_engine_bench(engine, settings, _query(query), cfg))
 
 
 def do_http(results_dir: Path, query: Path, quick: bool, cache: Path, concurrency: str, load: Any,
@@ -118,8 +120,10 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
         engine_reps=engine_reps or (20 if quick else 300),
         recall_queries=recall_queries if recall_queries is not None else (15 if quick else 63),
         warmup=3 if quick else 20)
-    engine = load_engine(get_settings())
-    _save(results_dir, "catalog", cfg.as_dict(), lambda: run_catalog_bench(engine, _query(query), cfg, cache))
+    settings = get_settings()
+    engine = load_engine(settings)
+    _save(results_dir, "catalog", cfg.as_dict(),
+          lambda: run_catalog_bench(engine, settings, _query(query), cfg, cache))
 
 
 def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any,

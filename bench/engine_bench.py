@@ -33,6 +33,7 @@ from service.api.schemas import SuggestRequest
 from service.artifacts.loading import load_served_artifacts
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
+from service.suggest.engine_settings import EngineSettings
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def parse_body(body: bytes) -> Any:
 
 def request_once(engine: SuggestionEngine, body: bytes) -> tuple[dict[str, float], dict[str, float], bytes]:
     """One request through the route's path; returns stage seconds, engine timings and the answer."""
-    s = engine.settings
+    s = engine.config
     t0 = time.perf_counter()
     obj = parse_body(body)
     t1 = time.perf_counter()
@@ -112,10 +113,11 @@ def run_variant(engine: SuggestionEngine, body: bytes, reps: int, warmup: int,
     }
 
 
-def run_engine_bench(engine: SuggestionEngine, query: BenchQuery, cfg: EngineBenchConfig) -> dict[str, Any]:
+def run_engine_bench(engine: SuggestionEngine, settings: Settings, query: BenchQuery, cfg: EngineBenchConfig
+                     ) -> dict[str, Any]:
     """Every (body kind, contact refinement) variant; ``refine_contact`` None is the default request."""
     variants = []
-    default = contact_default(engine.settings)
+    default = contact_default(engine.config)
     for kind in cfg.bodies:
         for contact in cfg.contact:
             log.info("engine: %s body, refine_contact %s, %d reps", kind, contact, cfg.reps)
@@ -128,14 +130,14 @@ def run_engine_bench(engine: SuggestionEngine, query: BenchQuery, cfg: EngineBen
         "network_points": engine.artifacts.n_points,
         "catalog_parts": len(engine.catalog),
         "index": type(engine.index).__name__,
-        "settings": _timing_settings(engine.settings),
+        "settings": _timing_settings(settings),
         "variants": variants,
     }
 
 
-def contact_default(s: Settings) -> bool:
+def contact_default(s: EngineSettings) -> bool:
     """Whether /suggest refines contact when a request does not say (the service's setting)."""
-    return bool(getattr(s, "suggest_refine_contact", True))
+    return s.suggest_refine_contact
 
 
 def _timing_settings(s: Settings) -> dict[str, Any]:

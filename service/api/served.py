@@ -130,8 +130,8 @@ class Served:
                   snapshot: CatalogSnapshot) -> FrameFit:
         """The complete object's frame estimated from a partial, in one engine batch (not the
         batcher's), on ``snapshot`` (the one the request read at its start)."""
-        return fit_frame(self.engine, points, options, up_axes, snapshot=snapshot)
+        return fit_frame(self.engine, self.settings, points, options, up_axes, snapshot=snapshot)
 
     def assemble(self, start: Start, options: AssembleOptions, snapshot: CatalogSnapshot) -> AssembleResult:
         """Grow a shape from ``start`` (rows of ``snapshot``, the one the request read at its start)."""
-        return Assembler(self.engine, snapshot).assemble(start, options)
+        return Assembler(self.engine, self.settings, snapshot).assemble(start, options)

@@ -66,6 +66,7 @@ from scipy.spatial import cKDTree
 
 from service.errors import InputError
 from service.geometry.frames import Frame
+from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
 from service.suggest.mixture import mixture_log_likelihood
@@ -242,11 +243,11 @@ class Assembler:
     """Automatic assembly on a loaded engine (its networks and contact refinement) and one catalog
     snapshot (None: the engine's shipped catalog)."""
 
-    def __init__(self, engine: SuggestionEngine, snapshot: CatalogSnapshot | None = None):
+    def __init__(self, engine: SuggestionEngine, settings: Settings, snapshot: CatalogSnapshot | None = None):
         self.engine = engine
         self.snapshot = snapshot or engine.shipped
         self.catalog = self.snapshot.catalog
-        self.settings = engine.settings
+        self.settings = settings
         self._part_counts: tuple[float, float] = (0.0, np.inf)   # set per assembly (its category)
 
     # ---------------------------------------------------------------- the parts of a state

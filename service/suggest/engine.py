@@ -292,8 +292,10 @@ class SuggestionEngine:
 
     def __init__(self, artifacts: Artifacts, settings: Settings):
         self.artifacts = artifacts
-        self.settings = settings   # kept for what runs on the engine (assembly, frame fitting)
+        # What the engine reads of the settings, and no more: the assembly and the frame fit that
+        # run on it get the service's settings from their caller.
         self.config = c = EngineSettings.of(settings)
+        self.limits = settings.limits
         self.networks = artifacts.networks
         self.shipped = self.snapshot(artifacts.catalog, artifacts.index)
         self.contacts = PartContacts(
@@ -478,7 +480,7 @@ class SuggestionEngine:
 
     def _checked_k(self, options: SuggestOptions) -> int:
         """The query's k, after the checks that need neither points nor the catalog."""
-        limits = self.settings.limits
+        limits = self.limits
         k = limits.k(options.k)
         limits.check_exclusions(len(options.exclude_parts) + len(options.exclude_shapes))
         options.preferences.check(self.artifacts.n_modes)

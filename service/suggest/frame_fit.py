@@ -112,22 +112,22 @@ def up_axes_for(frame: Frame | None) -> tuple[UpAxis, ...]:
     return UP_AXES if frame is None else (frame.up_axis,)
 
 
-def fit_queries(engine: SuggestionEngine, points: np.ndarray, options: SuggestOptions,
+def fit_queries(settings: Settings, points: np.ndarray, options: SuggestOptions,
                 up_axes: Sequence[UpAxis]) -> tuple[list[Frame], list[tuple[np.ndarray, SuggestOptions]]]:
     """The hypotheses of one partial and their scoring queries (a few suggestions each, without
     the costly steps), for ``engine.suggest_batch`` or the micro-batcher."""
-    s = engine.settings
+    s = settings
     frames = frame_hypotheses(points, up_axes, _ratios(s.fit_frame_max_ratio, s.fit_frame_ratios),
                               np.linspace(-1.0, 1.0, s.fit_frame_shifts).tolist())
     scoring = replace(options, k=1, refine_contact=False, complement_check=False)
     return frames, [(points, replace(scoring, frame=f)) for f in frames]
 
 
-def fit_frame(engine: SuggestionEngine, points: np.ndarray, options: SuggestOptions,
+def fit_frame(engine: SuggestionEngine, settings: Settings, points: np.ndarray, options: SuggestOptions,
               up_axes: Sequence[UpAxis] = UP_AXES, snapshot: CatalogSnapshot | None = None) -> FrameFit:
     """Estimate the complete object's frame of a partial (see the module doc); one engine batch
     on ``snapshot`` (None: the shipped catalog)."""
-    frames, queries = fit_queries(engine, points, options, up_axes)
+    frames, queries = fit_queries(settings, points, options, up_axes)
     if not frames:
         return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
     return best_frame(frames, engine.suggest_batch(queries, snapshot=snapshot))

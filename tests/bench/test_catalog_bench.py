@@ -103,12 +103,13 @@ def test_engines_are_timed_in_interleaved_rounds_each_with_its_own_catalog(shipp
     from bench.query import load_query
     from service.settings import Settings
 
-    engine = load_engine(Settings(artifacts=Path(DEFAULT_ARTIFACTS), verify_checksums=False))
+    settings = Settings(artifacts=Path(DEFAULT_ARTIFACTS), verify_checksums=False)
+    engine = load_engine(settings)
     base = engine.catalog
     bigger = ReplicatedCatalog(base, replicate_embeddings(base.embeddings, 2 * len(base), noise=0.05, seed=0))
     flat = engine.index.__class__(base.embeddings.shape[1])
     flat.add(bigger.embeddings)
-    other = type(engine)(dataclasses.replace(engine.artifacts, index=flat, catalog=bigger), engine.settings)
+    other = type(engine)(dataclasses.replace(engine.artifacts, index=flat, catalog=bigger), settings)
     rows = time_engines([engine, other], load_query().body("json"),
                         CatalogBenchConfig(engine_reps=3, warmup=1))
     assert [r["engine"]["suggest"]["n"] for r in rows] == [3, 3]

@@ -87,37 +87,38 @@ def _box(lo: list[float], hi: list[float], n: int = 200, seed: int = 0) -> _Plac
     (([-.6, -.05, -.4], [.6, .05, .4]), ([.0, -.3, .2], [.1, .3, .3]), False),
     (([.5, .5, .5], [.7, .7, .7]), ([-.2, -.2, -.2], [.2, .2, .2]), False),
 ])
-def test_duplicate_rule(engine: SuggestionEngine, cand: tuple, placed: tuple, dup: bool) -> None:
-    asm = Assembler(engine)
+def test_duplicate_rule(engine: SuggestionEngine, cand: tuple, placed: tuple, dup: bool,
+                        settings: Settings) -> None:
+    asm = Assembler(engine, settings)
     assert asm._duplicate(_box(cand[0], cand[1]), [_box(placed[0], placed[1], seed=1)]) is dup
 
 
-def test_duplicate_rule_chamfer(engine: SuggestionEngine) -> None:
+def test_duplicate_rule_chamfer(engine: SuggestionEngine, settings: Settings) -> None:
     """Same samples moved by less than the Chamfer threshold: a duplicate even when centres differ."""
-    s = engine.settings
+    s = settings
     a = _box([-.4, -.02, -.4], [.4, .02, .4], n=2000)
     shift = np.array([0.6 * s.assemble_duplicate_distance, 0.0, 0.0])
     moved = _Placed(a.points + shift, a.surface, 1.0, a.lo + shift, a.hi + shift)
-    assert Assembler(engine)._duplicate(moved, [a])
+    assert Assembler(engine, settings)._duplicate(moved, [a])
 
 
-def test_redundant_part_on_placed_surface(engine: SuggestionEngine) -> None:
+def test_redundant_part_on_placed_surface(engine: SuggestionEngine, settings: Settings) -> None:
     """A plate just above a placed plate (within the cover distance) adds no new surface."""
-    s = engine.settings
+    s = settings
     seat = _box([-.4, -.02, -.4], [.4, .02, .4], n=2000)
     lift = s.assemble_cover_distance / 2
     above = _box([-.4, .02 + lift, -.3], [.4, .04 + lift, .5], n=2000, seed=2)
-    asm = Assembler(engine)
+    asm = Assembler(engine, settings)
     assert not asm._duplicate(above, [seat])  # not the same spot...
     assert asm._redundant(above, _State([seat], frozenset()))      # ...but lying on placed surface
     far = _box([-.4, .5, -.4], [.4, .54, .4], n=2000, seed=3)
     assert not asm._redundant(far, _State([seat], frozenset()))
 
 
-def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog) -> None:
+def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog, settings: Settings) -> None:
     """The same catalog part a little beside itself does the job of the placed one (g cannot
     tell them apart); the same part far away, or a part g tells apart, does not."""
-    asm = Assembler(engine)
+    asm = Assembler(engine, settings)
     sigma = np.full(catalog.embeddings.shape[1], float(np.std(catalog.embeddings)))
     i = 0
     t = catalog.translations[i].astype(np.float64)
@@ -130,10 +131,11 @@ def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog) -> None:
     assert not asm._same_job(asm._catalog_part(other, t), placed, sigma)
 
 
-def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, catalog: Catalog) -> None:
+def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, catalog: Catalog,
+                                                  settings: Settings) -> None:
     """A part lifted past contact_max_offset (but within contact_reach) off the part it touches
     is brought back into contact by the second, longer search."""
-    s = engine.settings
+    s = settings
     rows = np.flatnonzero(catalog.shape_of == catalog.shape_of[0])
     surfaces = {int(r): engine.contacts.part_surface(catalog, int(r)).moved(catalog.translations[r])
                 for r in rows}
@@ -169,52 +171,49 @@ def test_estimate_area() -> None:
 
 
 @pytest.fixture(scope="module")
-def permissive(engine: SuggestionEngine, artifacts: Path) -> SuggestionEngine:
-    """The test engine with the likelihood rule off, so chains grow whatever the model's calibration."""
-    return SuggestionEngine(engine.artifacts, make_settings(
-        artifacts, assemble_max_distance=1e9, assemble_min_mode_weight=0.0))
+def permissive(artifacts: Path) -> Settings:
+    """The test settings with the likelihood rule off, so chains grow whatever the model's calibration."""
+    return make_settings(artifacts, assemble_max_distance=1e9, assemble_min_mode_weight=0.0)
 
 
 def test_unlikely_candidates_stop_the_chain(engine: SuggestionEngine, artifacts: Path) -> None:
-    strict = SuggestionEngine(engine.artifacts, make_settings(artifacts, assemble_max_distance=1e-9))
-    result = Assembler(strict).assemble(Start(kind="part", part_index=0), AssembleOptions(max_parts=3))
+    strict = make_settings(artifacts, assemble_max_distance=1e-9)
+    result = Assembler(engine, strict).assemble(Start(kind="part", part_index=0),
+                                                AssembleOptions(max_parts=3))
     assert result.steps == [] and result.stop_reason == "unlikely"
 
 
-def test_chain_from_a_part(permissive: SuggestionEngine, catalog: Catalog) -> None:
-    engine = permissive
+def test_chain_from_a_part(engine: SuggestionEngine, permissive: Settings, catalog: Catalog) -> None:
     start = Start(kind="part", part_index=0)
-    result = Assembler(engine).assemble(start, AssembleOptions(max_parts=4))
+    result = Assembler(engine, permissive).assemble(start, AssembleOptions(max_parts=4))
     _chain_ok(result, 4)
     assert result.category == catalog.records[0]["category"]
     assert result.nodes == result.steps
     # A part the bounded search leaves floating gets a second search reaching contact_reach.
-    bound = max(engine.settings.contact_max_offset, engine.settings.contact_reach)
+    bound = max(engine.config.contact_max_offset, engine.config.contact_reach)
     for n in result.steps:
         assert n.suggestion.category == result.category
         assert np.linalg.norm(n.contact_offset) <= bound + 1e-9
         np.testing.assert_allclose(n.translation, np.asarray(n.suggestion.translation) + n.contact_offset)
     np.testing.assert_allclose(result.start_translation, catalog.translations[0])
     # The same request gives the same assembly.
-    again = Assembler(engine).assemble(start, AssembleOptions(max_parts=4))
+    again = Assembler(engine, permissive).assemble(start, AssembleOptions(max_parts=4))
     assert [n.suggestion.part_id for n in again.steps] == [n.suggestion.part_id for n in result.steps]
     # Without refinement, parts sit where h put them.
-    raw = Assembler(engine).assemble(start, AssembleOptions(max_parts=4, refine_contact=False))
+    raw = Assembler(engine, permissive).assemble(start, AssembleOptions(max_parts=4, refine_contact=False))
     assert all(not np.any(n.contact_offset) for n in raw.steps)
 
 
-def test_sampling_is_seeded(permissive: SuggestionEngine) -> None:
-    engine = permissive
+def test_sampling_is_seeded(engine: SuggestionEngine, permissive: Settings) -> None:
     start = Start(kind="part", part_index=0)
-    runs = [[n.suggestion.part_id for n in Assembler(engine).assemble(
+    runs = [[n.suggestion.part_id for n in Assembler(engine, permissive).assemble(
         start, AssembleOptions(max_parts=4, strategy="sample", seed=s)).steps] for s in (1, 1, 2)]
     assert runs[0] == runs[1]
 
 
-def test_tree(permissive: SuggestionEngine) -> None:
-    engine = permissive
-    settings = engine.settings
-    result = Assembler(engine).assemble(Start(kind="part", part_index=0),
+def test_tree(engine: SuggestionEngine, permissive: Settings) -> None:
+    settings = permissive
+    result = Assembler(engine, permissive).assemble(Start(kind="part", part_index=0),
                                         AssembleOptions(max_parts=3, branching=2))
     assert 1 <= len(result.nodes) <= settings.assemble_max_nodes
     children = Counter(n.parent for n in result.nodes)
@@ -246,17 +245,18 @@ def test_tree(permissive: SuggestionEngine) -> None:
 
 
 def test_tree_node_budget(engine: SuggestionEngine, artifacts: Path) -> None:
-    small = SuggestionEngine(engine.artifacts, make_settings(artifacts, assemble_max_nodes=5))
-    result = Assembler(small).assemble(Start(kind="part", part_index=0),
+    small = make_settings(artifacts, assemble_max_nodes=5)
+    result = Assembler(engine, small).assemble(Start(kind="part", part_index=0),
                                         AssembleOptions(max_parts=6, branching=3))
     assert len(result.nodes) <= 5
 
 
-def test_points_start_locks_the_first_category(permissive: SuggestionEngine, catalog: Catalog) -> None:
-    engine = permissive
+def test_points_start_locks_the_first_category(engine: SuggestionEngine, permissive: Settings,
+                                               catalog: Catalog) -> None:
     rows = np.flatnonzero(catalog.shape_of == catalog.shape_of[0])
     pts = np.concatenate([catalog.part_points(int(i)) + catalog.translations[i] for i in rows])
-    result = Assembler(engine).assemble(Start(kind="points", points=pts), AssembleOptions(max_parts=3))
+    result = Assembler(engine, permissive).assemble(Start(kind="points", points=pts),
+                                                    AssembleOptions(max_parts=3))
     _chain_ok(result, 3)
     if result.steps:
         assert result.category == result.steps[0].suggestion.category
@@ -271,15 +271,15 @@ def test_points_start_locks_the_first_category(permissive: SuggestionEngine, cat
     (AssembleOptions(temperature=0.0), "bad_temperature"),
     (AssembleOptions(categories=("no-such-category",)), "unknown_category"),
 ])
-def test_refusals(engine: SuggestionEngine, options: AssembleOptions, code: str) -> None:
+def test_refusals(engine: SuggestionEngine, options: AssembleOptions, code: str, settings: Settings) -> None:
     with pytest.raises(ServiceError) as err:
-        Assembler(engine).assemble(Start(kind="part", part_index=0), options)
+        Assembler(engine, settings).assemble(Start(kind="part", part_index=0), options)
     assert err.value.code == code
 
 
-def test_too_few_start_points(engine: SuggestionEngine) -> None:
+def test_too_few_start_points(engine: SuggestionEngine, settings: Settings) -> None:
     with pytest.raises(InputError) as err:
-        Assembler(engine).assemble(Start(kind="points", points=np.zeros((3, 3), np.float32)))
+        Assembler(engine, settings).assemble(Start(kind="points", points=np.zeros((3, 3), np.float32)))
     assert err.value.code == "too_few_points"
 
 
@@ -380,16 +380,21 @@ def shipped_engine() -> SuggestionEngine:
     return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
 
 
+@pytest.fixture(scope="module")
+def shipped_settings() -> Settings:
+    return Settings(artifacts=DEFAULT_ARTIFACTS)
+
+
 QualityRuns = tuple[dict[str, float], list[tuple[str, str, Strategy, str]]]
 
 
 @pytest.fixture(scope="module")
-def quality_runs(shipped_engine: SuggestionEngine) -> QualityRuns:
+def quality_runs(shipped_engine: SuggestionEngine, shipped_settings: Settings) -> QualityRuns:
     """Random start parts of each category, greedy and sampled, seeded: the share of runs per
     category with every essential part, and the pairs of same-label parts placed within 0.05."""
     engine, cat = shipped_engine, shipped_engine.catalog
     rng = np.random.default_rng(0)
-    asm = Assembler(engine)
+    asm = Assembler(engine, shipped_settings)
     complete: dict[str, list[bool]] = {}
     close_pairs = []
     for c in sorted(ESSENTIAL):

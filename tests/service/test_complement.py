@@ -6,6 +6,7 @@ import numpy as np
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.geometry.frames import Frame
+from service.settings import Settings
 from service.suggest.complement import covered_share, demote_covered
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 
@@ -41,7 +42,7 @@ def test_demote_covered_keeps_order_within_each_side() -> None:
 
 
 def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> np.ndarray:
-    s, cat = engine.settings, engine.catalog
+    s, cat = engine.config, engine.catalog
     pts = engine.prepare(query.points, Frame())
     idx = np.array([x.part_index for x in result.suggestions])
     tr = np.stack([x.translation for x in result.suggestions]).astype(np.float32)  # canonical frame
@@ -49,16 +50,17 @@ def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> 
                          s.complement_cover_distance)
 
 
-def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, settings: Settings, query: AssemblyQuery
+                                           ) -> None:
     k = 20
     # A shortlist within max_k, so that the plain ranking below can hold all of it.
-    engine = SuggestionEngine(engine.artifacts, engine.settings.model_copy(
-        update={"complement_candidates": min(40, engine.settings.max_k)}))
+    engine = SuggestionEngine(engine.artifacts, settings.model_copy(
+        update={"complement_candidates": min(40, settings.max_k)}))
     checked = engine.suggest(query.points, SuggestOptions(k=k, complement_check=True))
-    plain = engine.suggest(query.points, SuggestOptions(k=engine.settings.complement_candidates,
+    plain = engine.suggest(query.points, SuggestOptions(k=engine.config.complement_candidates,
                                                         complement_check=False))
     share = _canonical_share(engine, query, checked)
-    covered = share >= engine.settings.complement_cover_share
+    covered = share >= engine.config.complement_cover_share
     # No covered part ahead of an uncovered one, and the checked list is drawn from the plain
     # top candidates in their likelihood order on each side.
     assert not np.any(covered[:-1] & ~covered[1:])

@@ -14,6 +14,7 @@ from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
+from service.settings import Settings
 from service.suggest.contact import (
     Assembly,
     ContactParams,
@@ -228,7 +229,7 @@ def test_engine_offsets_are_bounded_and_added(engine: SuggestionEngine, query: A
     on = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True))
     off = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=False))
     assert [s.part_id for s in on.suggestions] == [s.part_id for s in off.suggestions]
-    bound = engine.settings.contact_max_offset
+    bound = engine.config.contact_max_offset
     for a, b in zip(on.suggestions, off.suggestions, strict=True):
         assert np.all(b.contact_offset == 0)
         assert np.linalg.norm(a.contact_offset) <= bound + 1e-6
@@ -240,7 +241,7 @@ def test_engine_refined_parts_touch_the_query(engine: SuggestionEngine, query: A
     """Every refined placement touches the query by the service's own sampled measure."""
     result = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True))
     asm = engine.contacts.assembly_from_points(query.points)
-    tol = engine.settings.contact_tolerance
+    tol = engine.config.contact_tolerance
     for s in result.suggestions:
         if np.any(s.contact_offset != 0):
             part = engine.contacts.part_surface(engine.catalog, s.part_index)
@@ -276,8 +277,8 @@ def test_api_reports_contact_offset(client: TestClient, query: AssemblyQuery) ->
     assert bad.status_code == 422 and bad.json()["error"]["code"] == "validation_error"
 
 
-def test_suggest_refines_only_when_asked_or_configured(engine: SuggestionEngine, client: TestClient,
-                                                       query: AssemblyQuery) -> None:
+def test_suggest_refines_only_when_asked_or_configured(engine: SuggestionEngine, settings: Settings,
+                                                       client: TestClient, query: AssemblyQuery) -> None:
     """Refinement of suggestions is opt-in (it costs ten times the rest); the setting flips it."""
     pts = query.points.tolist()
     k = 20  # enough suggestions that some are not in contact as h places them
@@ -287,7 +288,7 @@ def test_suggest_refines_only_when_asked_or_configured(engine: SuggestionEngine,
     assert any(s["contact_offset"] != [0.0, 0.0, 0.0] for s in asked["suggestions"])
     default = engine.suggest(query.points, SuggestOptions(k=k))
     assert all(np.all(s.contact_offset == 0) for s in default.suggestions)
-    on_by_default = SuggestionEngine(engine.artifacts, engine.settings.model_copy(
+    on_by_default = SuggestionEngine(engine.artifacts, settings.model_copy(
         update={"suggest_refine_contact": True}))
     refined = on_by_default.suggest(query.points, SuggestOptions(k=k))
     np.testing.assert_allclose([s.contact_offset for s in refined.suggestions],

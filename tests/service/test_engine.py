@@ -75,7 +75,7 @@ def test_filters_equal_brute_force(exhaustive: SuggestionEngine, query: Assembly
 def test_faiss_candidates_are_a_subset_ranked_the_same(engine: SuggestionEngine, exhaustive: SuggestionEngine,
                                                        query: AssemblyQuery) -> None:
     result = engine.suggest(query.points, SuggestOptions(k=10))
-    K, nn = engine.artifacts.n_modes, min(engine.settings.neighbours_per_mode, len(engine.catalog))
+    K, nn = engine.artifacts.n_modes, min(engine.config.neighbours_per_mode, len(engine.catalog))
     assert 0 < result.candidates <= K * nn
     # Scores are exact: a part's score does not depend on how it became a candidate.
     everything = SuggestOptions(k=len(engine.catalog), collapse_duplicates=False)
@@ -116,13 +116,14 @@ def test_batch_isolates_bad_items(engine: SuggestionEngine, query: AssemblyQuery
     assert isinstance(out[3], NotFoundError) and out[3].code == "unknown_part"
 
 
-def test_a_filter_that_leaves_nothing(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+def test_a_filter_that_leaves_nothing(engine: SuggestionEngine, settings: Settings,
+                                      query: AssemblyQuery) -> None:
     cat = engine.catalog
     first = cat.categories[0]
     shapes = tuple(sorted({r["shape_id"] for r in cat.records if r["category"] == first}))
     # A real catalog has more shapes per category than the test limit on exclusions.
     roomy = SuggestionEngine(engine.artifacts,
-                             engine.settings.model_copy(update={"max_exclude": max(len(shapes), 1)}))
+                             settings.model_copy(update={"max_exclude": max(len(shapes), 1)}))
     result = roomy.suggest(query.points, SuggestOptions(categories=(first,), exclude_shapes=shapes))
     assert result.suggestions == [] and result.candidates == 0
 

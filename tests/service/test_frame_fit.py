@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 
 from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
+from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
 
@@ -80,11 +81,11 @@ def _obj_bytes(mesh: trimesh.Trimesh) -> bytes:
     return text.encode()
 
 
-def test_fit_recovers_the_example_frame(engine: SuggestionEngine) -> None:
+def test_fit_recovers_the_example_frame(engine: SuggestionEngine, settings: Settings) -> None:
     """The chair without legs in millimetres and z up: up axis, centre and radius recovered."""
     mesh = _example_mesh()
     pts = np.asarray(trimesh.sample.sample_surface(mesh, 2000, seed=0)[0])
-    fit = fit_frame(engine, pts, SuggestOptions(categories=("chair",)))
+    fit = fit_frame(engine, settings, pts, SuggestOptions(categories=("chair",)))
     assert fit.frame.up_axis == "z"
     assert 0.7 * MM <= fit.frame.radius <= 1.4 * MM
     # Measured on the shipped model: radius 392 mm (true 450), centre 165 mm above the true one.

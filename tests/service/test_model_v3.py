@@ -136,7 +136,7 @@ def test_fitting_scales_the_placed_box_and_can_be_turned_off(engine: SuggestionE
     ids = [s.part_id for s in engine.suggest(points, SuggestOptions(k=10)).suggestions]
     on = engine.place(points, ids, refine_contact=False, fit_scale=True).placements
     off = engine.place(points, ids, refine_contact=False, fit_scale=False).placements
-    s = engine.settings
+    s = engine.config
     for a, b in zip(on, off, strict=True):
         i = catalog.lookup(a.part_id)
         extent = (catalog.bbox_max[i] - catalog.bbox_min[i]).astype(np.float64)

@@ -207,11 +207,12 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
     t0 = time.monotonic()
     artifacts = load_artifacts(Path(s.artifacts))
     # The service's defaults, as shipped (only the artifact folder differs).
-    engine = SuggestionEngine(artifacts, Settings().model_copy(update={"artifacts": Path(s.artifacts)}))
+    settings = Settings().model_copy(update={"artifacts": Path(s.artifacts)})
+    engine = SuggestionEngine(artifacts, settings)
     index = ShapeIndex(artifacts.catalog, dense_points=s.contact_samples, seed=s.seed)
     essentials = essential_labels(index)
     starts = start_parts(index, s.starts_per_category, s.seed)
-    assembler = Assembler(engine)
+    assembler = Assembler(engine, settings)
     cat = artifacts.catalog
     runs: list[dict[str, Any]] = []
     for category, row in tqdm(starts, desc="assembly", disable=not s.progress):

@@ -43,7 +43,7 @@ class EngineMethod:
         self.catalog = engine.catalog
         version = engine.model_version
         check = (", then the complement check (parts h places mostly onto the query's own points go last)"
-                 if engine.settings.suggest_complement_check else
+                 if engine.config.suggest_complement_check else
                  ", without the complement check (the paper's ranking)")
         self.description = (f"the shipped joint model (artifact {version}) through the service's suggestion "
                             "engine: g in onnxruntime, FAISS shortlist of each mode's neighbours, exact "
@@ -62,7 +62,7 @@ class EngineMethod:
         if len(pool) == 0:
             return pool
         own = self.catalog.shape_code(query.shape_id)
-        max_k = self.engine.settings.max_k
+        max_k = self.engine.config.max_k
         if np.any(self.catalog.shape_of[pool] == own):
             options = SuggestOptions(k=max_k, categories=self._categories(pool), collapse_duplicates=False)
         else:

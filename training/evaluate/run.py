@@ -260,8 +260,8 @@ class _Benchmark:
         with self._timed("load"):
             self.artifacts = load_artifacts(Path(s.artifacts))
             # The service's defaults, as shipped (only the artifact folder differs).
-            self.engine = SuggestionEngine(self.artifacts,
-                                           Settings().model_copy(update={"artifacts": Path(s.artifacts)}))
+            self.service_settings = Settings().model_copy(update={"artifacts": Path(s.artifacts)})
+            self.engine = SuggestionEngine(self.artifacts, self.service_settings)
             self.index = ShapeIndex(self.artifacts.catalog, dense_points=s.dense_points, seed=s.seed)
             self.n_points = s.n_points or self.artifacts.n_points
 
@@ -302,7 +302,7 @@ class _Benchmark:
             m, self.fixed_info = _build_fixed(s, self.artifacts, self.index)
             return m
         if key == "likelihood":
-            return EngineMethod(SuggestionEngine(self.artifacts, self.engine.settings.model_copy(
+            return EngineMethod(SuggestionEngine(self.artifacts, self.service_settings.model_copy(
                 update={"suggest_complement_check": False})), name=METHOD_NAMES[key])
         return self.ours
 
@@ -398,8 +398,8 @@ class _Benchmark:
             "fixed_embedding": self.fixed_info,
             "notes": s.notes,
             # The service's contact refinement, as the "contact-refined" rows ran it.
-            "service_contact": {"contact_max_offset": self.engine.settings.contact_max_offset,
-                                "contact_tolerance": self.engine.settings.contact_tolerance},
+            "service_contact": {"contact_max_offset": self.engine.config.contact_max_offset,
+                                "contact_tolerance": self.engine.config.contact_tolerance},
         }
         self.timing["total"] = round(time.monotonic() - self.t_all, 2)
         results["timing_seconds"] = self.timing

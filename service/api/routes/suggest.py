@@ -92,7 +92,7 @@ async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, fr
     """The options with the frame estimated from the partial (``service.suggest.frame_fit``): every
     hypothesis scored in one batch. ``framed``: the caller gave a frame, whose up axis is kept."""
     up_axes = up_axes_for(options.frame if framed else None)
-    frames, queries = fit_queries(served.engine, points, options, up_axes)
+    frames, queries = fit_queries(served.settings, points, options, up_axes)
     if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
     answers = await served.suggest_many(queries, ticket, deadline)
