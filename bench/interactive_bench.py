@@ -140,26 +140,30 @@ def mesh_files(mesh: trimesh.Trimesh, folder: Path) -> dict[str, bytes]:
 def time_mesh_stages(data: bytes, fmt: str, reps: int, settings: Any, n: int) -> dict[str, Any]:
     """Parse and sample ``data`` with the service's own functions, as ``MeshUploads.sample`` does.
 
-    ``parse``: ``load_mesh_bytes`` with the settings' limits; ``sample``: ``triangle_areas`` and
-    ``sample_surface``; ``collect``: the full garbage collection ``MeshUploads.sample`` runs after an
-    upload over ``MeshUploads.COLLECT_BYTES`` (it depends on how many objects the process holds:
-    here the bench's engine); ``upload_sample``: the whole ``MeshUploads.sample``.
+    ``parse``: ``load_mesh_surface`` with the settings' limits (the triangles' areas included);
+    ``sample``: ``sample_surface``; ``collect``: the full garbage collection ``MeshUploads.sample``
+    runs after an upload over ``MeshUploads.COLLECT_BYTES``; ``upload_sample``: the whole
+    ``MeshUploads.sample``. The collection's cost depends on how many objects it walks: the server
+    freezes what it loaded at start-up (``gc.freeze`` in ``service.api.app``), and so does this
+    process first (unfrozen, the bench's engine made it 130 ms where the server pays about 0.1 ms).
     """
     import gc
 
     from service.geometry.inputs import MeshUploads
-    from service.geometry.mesh import load_mesh_bytes, sample_surface, triangle_areas
+    from service.geometry.mesh import load_mesh_surface, sample_surface
+
+    gc.collect()
+    gc.freeze()
 
     uploads = MeshUploads(settings)
     stages: dict[str, list[float]] = {"parse": [], "sample": [], "collect": [], "upload_sample": []}
     for _ in range(reps):
         t0 = time.perf_counter()
-        mesh = load_mesh_bytes(data, fmt, name=f"query.{fmt}", max_vertices=settings.max_mesh_vertices,
-                               max_faces=settings.max_mesh_faces, ignore_obj_materials=True,
-                               max_nodes=settings.max_mesh_nodes, max_nesting=settings.max_mesh_nesting)
+        mesh = load_mesh_surface(data, fmt, name=f"query.{fmt}", max_vertices=settings.max_mesh_vertices,
+                                 max_faces=settings.max_mesh_faces, ignore_obj_materials=True,
+                                 max_nodes=settings.max_mesh_nodes, max_nesting=settings.max_mesh_nesting)
         t1 = time.perf_counter()
-        areas = triangle_areas(mesh.vertices, mesh.faces)
-        sample_surface(mesh.vertices, mesh.faces, n, settings.seed, areas=areas)
+        sample_surface(mesh.vertices, mesh.faces, n, settings.seed, areas=mesh.areas)
         t2 = time.perf_counter()
         del mesh
         gc.collect()

@@ -434,8 +434,8 @@ def _interactive(data: dict[str, Any]) -> list[str]:
         name = f"suggest_mesh_{fmt}"
         if fmt in mesh_stages:
             lines.append(f"| {INTERACTIVE_LABELS[name]} | {_p50s(mesh_stages[fmt])} | in process "
-                         "(`load_mesh_bytes`; `triangle_areas` + `sample_surface`; `gc.collect`; the "
-                         "whole `MeshUploads.sample`) |")
+                         "(`load_mesh_surface`, areas included; `sample_surface`; `gc.collect` after "
+                         "`gc.freeze` as in the server; the whole `MeshUploads.sample`) |")
         if name in r["paths"]:
             stages = _server_stages(r["paths"][name]["server_metrics"])
             lines.append(f"| {INTERACTIVE_LABELS[name]} | {stages} | /metrics |")

@@ -27,7 +27,7 @@ from service.errors import (
     ServiceError,
     UnsupportedMediaError,
 )
-from service.geometry.mesh import MESH_FORMATS, MeshError, load_mesh_bytes, sample_surface, triangle_areas
+from service.geometry.mesh import MESH_FORMATS, MeshError, load_mesh_surface, sample_surface
 from service.settings import Settings, check_point_count
 
 # Mesh error codes that are the caller's format or size choice rather than a broken file.
@@ -175,7 +175,7 @@ def points_from_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: st
                      max_vertices: int, max_faces: int, **limits: int) -> np.ndarray:
     """Load an uploaded mesh and sample ``n`` points on its surface, area-weighted and seeded.
 
-    ``limits``: ``max_nodes`` and ``max_nesting`` of ``service.geometry.mesh.load_mesh_bytes``.
+    ``limits``: ``max_nodes`` and ``max_nesting`` of ``service.geometry.mesh.load_mesh_surface``.
 
     Shapes:
         returns (n, 3) float32, in the mesh's own frame.
@@ -188,10 +188,9 @@ def _sample_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str, m
                  max_faces: int, **limits: int) -> tuple[np.ndarray, float]:
     """``n`` surface samples (as ``points_from_mesh``) and the mesh's total area."""
     try:
-        mesh = load_mesh_bytes(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
-                               ignore_obj_materials=True, **limits)
-        areas = triangle_areas(mesh.vertices, mesh.faces)
-        return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=areas), float(areas.sum())
+        mesh = load_mesh_surface(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
+                                 ignore_obj_materials=True, **limits)
+        return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=mesh.areas), float(mesh.areas.sum())
     except MeshError as exc:
         raise upload_error(exc) from None
 

