@@ -145,7 +145,8 @@ def time_mesh_stages(data: bytes, fmt: str, reps: int, settings: Any, n: int) ->
     runs after an upload over ``MeshUploads.COLLECT_BYTES``; ``upload_sample``: the whole
     ``MeshUploads.sample``. The collection's cost depends on how many objects it walks: the server
     freezes what it loaded at start-up (``gc.freeze`` in ``service.api.app``), and so does this
-    process first (unfrozen, the bench's engine made it 130 ms where the server pays about 0.1 ms).
+    process first (unfrozen, the bench's engine made it 130 ms; frozen, 0.1 ms in a bare process
+    after one upload, and 5-50 ms measured in a serving process, which holds more young objects).
     """
     import gc
 
