@@ -40,7 +40,8 @@ def evaluate_command(
                                                   "placed and checked for contact."),
     methods: str = typer.Option("random,ck10,fixed,likelihood,ours", "--methods",
                                 help="Comma-separated subset of random, ck10, fixed, likelihood (Ours "
-                                     "without the complement check), ours."),
+                                     "without the complement check), ours, share (Ours with "
+                                     "COMPLEMENTME_SUGGEST_ORDER=share)."),
     pool: str = typer.Option("category", "--pool", help="Candidate pool: 'category' (other shapes of the "
                                                          "query's category) or 'all' (other shapes)."),
     collapse_duplicates: bool = typer.Option(True, "--collapse-duplicates/--keep-duplicates",

@@ -177,8 +177,9 @@ def summary_lines(results: dict[str, Any], ours: str = "Ours") -> list[str]:
     lines = ["| Metric | Ours | Paper (Ours, Joint) | Target | Best baseline |", "|---|---|---|---|---|"]
 
     def baselines(rows: dict[str, Any]) -> dict[str, Any]:
-        # Every other method but Ours' own ablation without the complement check.
-        return {m: r for m, r in rows.items() if m != ours and not m.startswith(f"{ours} (likelihood")}
+        # Every other method but Ours' own variants (without the complement check, share order).
+        return {m: r for m, r in rows.items()
+                if m != ours and not m.startswith((f"{ours} (likelihood", f"{ours} (share"))}
 
     for key, title, higher in SUMMARY_METRICS:
         rows = tables.get(key)
