@@ -8,8 +8,9 @@ artifacts, on loopback:
 * ``gunicorn``: gunicorn's arbiter with two uvicorn workers (the ``uvicorn-worker`` package)
   on its shared listening socket;
 * ``uvicorn``: ``uvicorn --workers 2``, uvicorn's own supervisor, on its shared socket;
-* ``haproxy``: Debian's HAProxy in front of two one-worker ``complementme serve`` processes
-  (``http`` mode, ``leastconn``, one thread: ``haproxy_config``).
+* ``haproxy``: Debian's HAProxy in front of two one-worker ``complementme serve`` processes,
+  with the shipped configuration (``docker/haproxy/haproxy.cfg``: ``http`` mode, ``leastconn``,
+  one thread), started by ``bench.server.our_servers``.
 
 Every process is configured the same way: the same ``COMPLEMENTME_*`` environment (one ONNX,
 FAISS and BLAS thread each by the settings' defaults), the service's uvicorn HTTP protocol
@@ -45,7 +46,7 @@ from typing import Any
 
 from bench.http_bench import check_answer, write_bodies
 from bench.query import REPO, BenchQuery
-from bench.server import complementme_command, free_port, running_server
+from bench.server import complementme_command, free_port, missing_haproxy, our_servers, running_server
 from bench.wrk import LoadSettings, run_wrk
 from service.api.metrics import MULTIPROC_ENV
 from service.serve.workers import APP_FACTORY, GRACEFUL_SECONDS, HTTP_PROTOCOL
@@ -140,33 +141,6 @@ def gunicorn_command(port: int, workers: int, log_level: str, start_timeout: flo
             "--graceful-timeout", str(GRACEFUL_SECONDS), "--timeout", str(round(start_timeout))]
 
 
-def haproxy_config(port: int, backends: list[int], *, mode: str = "http", balance: str = "leastconn",
-                   threads: int = 1, timeout: float = 30.0) -> str:
-    """HAProxy's configuration: ``127.0.0.1:port`` spread over ``backends`` (loopback ports).
-
-    No logging (the other set-ups log no access either); keep-alive on both sides, which in
-    ``http`` mode balances every request on its own.
-    """
-    servers = "".join(f"    server w{i} 127.0.0.1:{p}\n" for i, p in enumerate(backends))
-    seconds = f"{max(1, round(timeout))}s"
-    return (
-        "global\n"
-        f"    nbthread {threads}\n"
-        "    maxconn 4096\n"
-        "defaults\n"
-        f"    mode {mode}\n"
-        "    timeout connect 5s\n"
-        f"    timeout client {seconds}\n"
-        f"    timeout server {seconds}\n"
-        "frontend bench\n"
-        f"    bind 127.0.0.1:{port}\n"
-        "    default_backend workers\n"
-        "backend workers\n"
-        f"    balance {balance}\n"
-        f"{servers}"
-    )
-
-
 def missing_tools(setups: tuple[str, ...]) -> list[str]:
     """What the chosen set-ups need and this environment lacks, each with how to get it."""
     out = []
@@ -176,8 +150,8 @@ def missing_tools(setups: tuple[str, ...]) -> list[str]:
         for module, package in (("gunicorn", "gunicorn"), ("uvicorn_worker", "uvicorn-worker")):
             if importlib.util.find_spec(module) is None:
                 out.append(f"{package} (pip install -c docker/constraints.txt -e '.[bench]')")
-    if "haproxy" in setups and shutil.which("haproxy") is None:
-        out.append("haproxy (Debian: apt-get install haproxy)")
+    if "haproxy" in setups and (haproxy := missing_haproxy()):
+        out.append(haproxy)
     return out
 
 
@@ -231,14 +205,11 @@ def running_setup(name: str, cfg: BalancerBenchConfig, cache: Path) -> Iterator[
             cmd = gunicorn_command(port, cfg.processes, cfg.log_level, cfg.start_timeout)
             roots = [start(cmd, port, "gunicorn.log", signal.SIGTERM)]  # gunicorn's graceful stop
         elif name == "haproxy":
-            backends = [free_port() for _ in range(cfg.processes)]
-            roots = [start(serve_command(p, 1), p, f"haproxy-backend-{i}.log")
-                     for i, p in enumerate(backends)]
-            conf = cache / "haproxy.cfg"
-            conf.write_text(haproxy_config(port, backends, mode=cfg.haproxy_mode, balance=cfg.haproxy_balance,
-                                           threads=cfg.haproxy_threads, timeout=cfg.load.timeout + 30))
-            haproxy = shutil.which("haproxy") or "haproxy"
-            roots.append(start([haproxy, "-f", str(conf), "-db"], port, "haproxy.log"))
+            served = stack.enter_context(our_servers(
+                cfg.processes, logs, env=env, proxy=True, log_name="haproxy-backend",
+                start_timeout=cfg.start_timeout, mode=cfg.haproxy_mode, balance=cfg.haproxy_balance,
+                threads=cfg.haproxy_threads, timeout=cfg.load.timeout + 30))
+            port, roots = int(served.url.rsplit(":", 1)[1]), served.roots
         else:
             raise ValueError(f"unknown set-up {name!r}; expected one of {', '.join(SETUPS)}")
         yield RunningSetup(url=f"http://127.0.0.1:{port}", roots=roots)

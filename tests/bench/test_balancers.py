@@ -1,5 +1,6 @@
 """The balancer benchmark: its round order, its CPU accounting from /proc, its summary and report,
-and one quick run of all four set-ups end to end."""
+and one quick run of all four set-ups end to end. The HAProxy configuration it starts (the shipped
+one): tests/deploy/test_haproxy.py."""
 
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ from bench.balancer_bench import (
     SETUPS,
     BalancerBenchConfig,
     cpu_split,
-    haproxy_config,
     parse_stat,
     round_order,
     summarize,
@@ -80,13 +80,6 @@ def test_cpu_split_names_a_replaced_worker() -> None:
     before = {"1 supervisor": 1.0, "2 worker": 5.0, "3 worker": 5.0}
     after = {"1 supervisor": 1.0, "2 worker": 9.0, "4 worker": 2.0}
     assert cpu_split(before, after, processes=2, seconds=10.0)["changed"] == ["3 worker", "4 worker"]
-
-
-def test_haproxy_config_lists_every_backend() -> None:
-    text = haproxy_config(9000, [9001, 9002], mode="tcp", balance="roundrobin", threads=1, timeout=60)
-    assert "bind 127.0.0.1:9000" in text and "mode tcp" in text and "balance roundrobin" in text
-    assert "server w0 127.0.0.1:9001" in text and "server w1 127.0.0.1:9002" in text
-    assert "nbthread 1" in text and "timeout server 60s" in text
 
 
 def _run(setup: str, round_: int, rps: float, p50: float, p99: float, share: float) -> dict[str, Any]:
