@@ -28,6 +28,9 @@ ResultsOpt = typer.Option(RESULTS_DIR, "--results-dir", help="Where the JSON res
 QuickOpt = typer.Option(False, "--quick", help="Tiny counts and durations, for development only.")
 QueryOpt = typer.Option(EXAMPLE, "--query", help="JSON file with the query's points.")
 CacheOpt = typer.Option(CACHE_DIR, "--cache-dir", help="Built indexes, request bodies and server logs.")
+ProcessesOpt = typer.Option(None, "--processes", min=1, help=(
+    "Processes of our server, behind HAProxy (docker/haproxy/haproxy.cfg) when more than one "
+    "(default: the usable cores)."))
 
 
 @app.callback()
@@ -98,12 +101,18 @@ def do_engine(results_dir: Path, query: Path, quick: bool, reps: int | None, war
           lambda: run_engine_bench(engine, settings, _query(query), cfg))
 
 
+def _processes(processes: int | None) -> int:
+    from bench.machine import usable_cores
+
+    return processes or usable_cores()
+
+
 def do_http(results_dir: Path, query: Path, quick: bool, cache: Path, concurrency: str, load: Any,
-            server_env: list[str] | None) -> None:
+            server_env: list[str] | None, processes: int | None = None) -> None:
     from bench.http_bench import HttpBenchConfig, run_http_bench
 
     cfg = HttpBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load,
-                          server_env=_env_pairs(server_env))
+                          processes=_processes(processes), server_env=_env_pairs(server_env))
     _save(results_dir, "http", cfg.as_dict(), lambda: run_http_bench(_query(query), cfg, cache))
 
 
@@ -127,12 +136,13 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
 
 
 def do_peer(results_dir: Path, query: Path, cache: Path, concurrency: str, load: Any,
-            server_env: list[str] | None) -> None:
+            server_env: list[str] | None, processes: int | None = None) -> None:
     from bench.peer_bench import PeerBenchConfig, run_peer_bench
     from service.settings import get_settings
 
     cfg = PeerBenchConfig(concurrency=_ints(concurrency, "--concurrency"), load=load,
-                          artifacts=get_settings().artifacts, server_env=_env_pairs(server_env))
+                          artifacts=get_settings().artifacts, processes=_processes(processes),
+                          server_env=_env_pairs(server_env))
     _save(results_dir, "peer", cfg.as_dict(), lambda: run_peer_bench(_query(query), cfg, cache))
 
 
@@ -154,13 +164,14 @@ def do_framework(results_dir: Path, query: Path, cache: Path, frameworks: str, c
 
 
 def do_interactive(results_dir: Path, query: Path, quick: bool, cache: Path, requests: int | None,
-                   warmup: int | None, target_faces: int, server_env: list[str] | None) -> None:
+                   warmup: int | None, target_faces: int, server_env: list[str] | None,
+                   processes: int | None = None) -> None:
     from bench.interactive_bench import InteractiveBenchConfig, run_interactive_bench
 
     cfg = InteractiveBenchConfig(requests=requests or (3 if quick else 20),
                                  warmup=warmup if warmup is not None else (1 if quick else 2),
                                  parse_reps=2 if quick else 5, target_faces=target_faces,
-                                 server_env=_env_pairs(server_env))
+                                 processes=_processes(processes), server_env=_env_pairs(server_env))
     _save(results_dir, "interactive", cfg.as_dict(), lambda: run_interactive_bench(_query(query), cfg, cache))
 
 
@@ -211,10 +222,11 @@ def http(
     wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
     timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
     server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for the server (repeatable)."),
+    processes: int | None = ProcessesOpt,
 ) -> None:
-    """b. HTTP load with wrk against `complementme serve` (JSON and base64 bodies)."""
+    """b. HTTP load with wrk against `complementme serve` per core behind HAProxy (JSON, base64 bodies)."""
     do_http(results_dir, query, quick, cache_dir, concurrency,
-            _load(quick, duration, warmup_seconds, wrk_threads, timeout), server_env)
+            _load(quick, duration, warmup_seconds, wrk_threads, timeout), server_env, processes)
 
 
 @app.command()
@@ -244,10 +256,11 @@ def peer(
     wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
     timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
     server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for our server (repeatable)."),
+    processes: int | None = ProcessesOpt,
 ) -> None:
     """d. The peer baseline (torch eager, plain FastAPI) against our service, same load, same run."""
     load = _load(quick, duration, warmup_seconds, wrk_threads, timeout)
-    do_peer(results_dir, query, cache_dir, concurrency, load, server_env)
+    do_peer(results_dir, query, cache_dir, concurrency, load, server_env, processes)
 
 
 @app.command()
@@ -284,9 +297,11 @@ def interactive(
     warmup: int | None = typer.Option(None, min=0, help="Untimed requests per path first (default 2)."),
     target_faces: int = typer.Option(100_000, min=1, help="Triangles of the uploaded query mesh."),
     server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for the server (repeatable)."),
+    processes: int | None = ProcessesOpt,
 ) -> None:
     """e. Interactive paths at concurrency 1: mesh upload (GLB, OBJ), /place, contact, /assemble."""
-    do_interactive(results_dir, query, quick, cache_dir, requests, warmup, target_faces, server_env)
+    do_interactive(results_dir, query, quick, cache_dir, requests, warmup, target_faces, server_env,
+                   processes)
 
 
 @app.command()

@@ -2,11 +2,12 @@
 
 The framework peer (``bench/framework/``) serves the exported ONNX graphs, FAISS index and
 catalog through BentoML's adaptive batching or LitServe's batching, as each documents, with
-the numbers of our settings (``peer_config``) and one worker process per core, like our server
-here (``COMPLEMENTME_WORKERS``). Each peer, then our ``complementme serve``, runs alone on
-loopback under the same wrk load (JSON body, every concurrency level); before the load, each
-answers the benchmark query once and its top-k part ids and translations are compared with
-ours. Ratios as in benchmark d: throughput ours / peer, latency peer / ours (above 1 favours us).
+the numbers of our settings (``peer_config``) and one worker process per core, like our service
+here (one ``complementme serve`` per core behind HAProxy, as the HTTP benchmark starts it). Each
+peer, then our service, runs alone on loopback under the same wrk load (JSON body, every
+concurrency level); before the load, each answers the benchmark query once and its top-k part
+ids and translations are compared with ours. Ratios as in benchmark d: throughput ours / peer,
+latency peer / ours (above 1 favours us).
 """
 
 from __future__ import annotations
@@ -169,10 +170,10 @@ def run_framework_bench(query: BenchQuery, cfg: FrameworkBenchConfig, cache: Pat
             answer = check_answer(peer.url + "/suggest", body, timeout=cfg.load.timeout)
             levels = load_levels(peer.url + "/suggest", bodies, cfg.concurrency, cfg.load)
         peers[framework] = {"answer": answer, "levels": levels}
-    with our_service(cache, dict(cfg.server_env)) as ours:
+    with our_service(cache, dict(cfg.server_env), cfg.workers) as ours:
         our_answer = check_answer(ours.url + "/suggest", body, timeout=cfg.load.timeout)
         our_levels = load_levels(ours.url + "/suggest", bodies, cfg.concurrency, cfg.load,
-                                 metrics_url=ours.url + "/metrics")
+                                 metrics_urls=ours.metrics_urls)
     versions = installed_versions(ensure_venv())
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},

@@ -1,17 +1,18 @@
-"""Benchmark b: HTTP load on loopback against ``complementme serve`` started as a subprocess.
+"""Benchmark b: HTTP load on loopback against our service started as subprocesses.
 
 For each body kind (JSON list of points, base64 float32) and each concurrency level, wrk keeps
 that many connections busy for a fixed time after a warm-up: throughput, p50, p99 and errors.
-The server runs with the service's defaults plus the environment given in ``server_env``: by
-default one worker process per usable core (how the service is meant to be run on a machine of
-its own; ``service/serve/workers.py``) and access logging off (it would be the bench measuring its log
-file).
+The service runs as it is meant to run on a machine of its own: one ``complementme serve`` per
+usable core (``processes``) behind HAProxy with the shipped configuration
+(``bench.server.our_servers``, ``docker/haproxy/haproxy.cfg``), with the service's defaults plus
+the environment given in ``server_env``: by default access logging off (it would be the bench
+measuring its log file).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,12 +22,12 @@ import httpx
 
 from bench.machine import usable_cores
 from bench.query import BODY_KINDS, BenchQuery
-from bench.server import Server, complementme_command, free_port, running_server
+from bench.server import OurServers, our_servers
 from bench.wrk import LoadSettings, run_wrk
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SERVER_ENV = {"COMPLEMENTME_LOG_LEVEL": "warning", "COMPLEMENTME_WORKERS": str(usable_cores())}
+DEFAULT_SERVER_ENV = {"COMPLEMENTME_LOG_LEVEL": "warning"}
 
 
 @dataclass(frozen=True)
@@ -36,11 +37,12 @@ class HttpBenchConfig:
     concurrency: tuple[int, ...] = (1, 8, 32, 64)
     bodies: tuple[str, ...] = BODY_KINDS
     load: LoadSettings = field(default_factory=LoadSettings)
+    processes: int = field(default_factory=usable_cores)  # server processes, behind HAProxy if several
     server_env: tuple[tuple[str, str], ...] = tuple(DEFAULT_SERVER_ENV.items())
 
     def as_dict(self) -> dict[str, Any]:
         return {"concurrency": list(self.concurrency), "bodies": list(self.bodies),
-                "load": self.load.as_dict(), "server_env": dict(self.server_env)}
+                "load": self.load.as_dict(), "processes": self.processes, "server_env": dict(self.server_env)}
 
 
 def write_bodies(query: BenchQuery, folder: Path, kinds: tuple[str, ...]) -> dict[str, Path]:
@@ -55,13 +57,12 @@ def write_bodies(query: BenchQuery, folder: Path, kinds: tuple[str, ...]) -> dic
 
 
 @contextmanager
-def our_service(cache: Path, server_env: dict[str, str], start_timeout: float = 180.0) -> Iterator[Server]:
-    """``complementme serve`` on a free port, ready (``/readyz``) when the block starts."""
-    port = free_port()
-    cmd = [*complementme_command(), "serve", "--host", "127.0.0.1", "--port", str(port)]
-    with running_server(cmd, port=port, ready_path="/readyz", log_path=cache / "serve.log",
-                        env=server_env, start_timeout=start_timeout) as server:
-        yield server
+def our_service(cache: Path, server_env: dict[str, str], processes: int = 1,
+                start_timeout: float = 180.0) -> Iterator[OurServers]:
+    """``processes`` ``complementme serve`` on free ports, behind HAProxy when there are several;
+    ready (``/readyz``) when the block starts."""
+    with our_servers(processes, cache, env=server_env, start_timeout=start_timeout) as served:
+        yield served
 
 
 def check_answer(url: str, body: bytes, timeout: float = 30.0) -> dict[str, Any]:
@@ -75,13 +76,19 @@ def check_answer(url: str, body: bytes, timeout: float = 30.0) -> dict[str, Any]
 BATCH_PREFIX = "complementme_batch"  # the service's micro-batching histograms in /metrics
 
 
-def batch_counters(metrics_url: str) -> dict[str, float]:
-    """Sums and counts of the service's ``complementme_batch*`` histograms ({} without /metrics)."""
-    try:
-        r = httpx.get(metrics_url, timeout=10.0)
-    except httpx.HTTPError:
-        return {}
-    return parse_batch_counters(r.text) if r.status_code == 200 else {}
+def batch_counters(metrics_urls: Sequence[str]) -> dict[str, float]:
+    """Sums and counts of the service's ``complementme_batch*`` histograms, summed over the server
+    processes' ``/metrics`` (one that does not answer adds nothing)."""
+    out: dict[str, float] = {}
+    for url in metrics_urls:
+        try:
+            r = httpx.get(url, timeout=10.0)
+        except httpx.HTTPError:
+            continue
+        if r.status_code == 200:
+            for name, value in parse_batch_counters(r.text).items():
+                out[name] = out.get(name, 0.0) + value
+    return out
 
 
 def parse_batch_counters(text: str) -> dict[str, float]:
@@ -117,14 +124,15 @@ def batch_means(deltas: dict[str, float]) -> dict[str, float]:
 
 
 def load_levels(url: str, bodies: dict[str, Path], concurrency: tuple[int, ...], load: LoadSettings,
-                metrics_url: str | None = None) -> list[dict[str, Any]]:
+                metrics_urls: Sequence[str] = ()) -> list[dict[str, Any]]:
     """wrk at every (body kind, concurrency) pair against ``url``.
 
     After every wrk run one more request is sent and awaited: it is answered once the requests
     wrk abandoned have left the server's queue (the gate is first come, first served). With
-    ``metrics_url``, the mean micro-batch size and queue wait of each measured run are recorded.
+    ``metrics_urls`` (every server process's /metrics), the mean micro-batch size and queue wait
+    of each measured run are recorded.
     """
-    probe = (lambda: batch_counters(metrics_url)) if metrics_url else None
+    probe = (lambda: batch_counters(metrics_urls)) if metrics_urls else None
     rows = []
     for kind, path in bodies.items():
         body = path.read_bytes()
@@ -145,10 +153,10 @@ def load_levels(url: str, bodies: dict[str, Path], concurrency: tuple[int, ...],
 def run_http_bench(query: BenchQuery, cfg: HttpBenchConfig, cache: Path) -> dict[str, Any]:
     """Start our service, check one answer, then run every load level."""
     bodies = write_bodies(query, cache, cfg.bodies)
-    with our_service(cache, dict(cfg.server_env)) as server:
+    with our_service(cache, dict(cfg.server_env), cfg.processes) as server:
         answer = check_answer(server.url + "/suggest", bodies[cfg.bodies[0]].read_bytes())
         levels = load_levels(server.url + "/suggest", bodies, cfg.concurrency, cfg.load,
-                             metrics_url=server.url + "/metrics")
+                             metrics_urls=server.metrics_urls)
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},
         "top_part": answer["suggestions"][0]["part_id"] if answer["suggestions"] else None,

@@ -1,8 +1,9 @@
 """Benchmark e: the interactive paths a designer waits on, one request at a time (issue 20, item 2).
 
-Against ``complementme serve`` on the shipped artifacts (started as the HTTP benchmark starts it),
-at concurrency 1, each path is requested ``requests`` times after ``warmup`` untimed requests,
-and the client's wall time per request is summarised (count, p50, p99):
+Against our service on the shipped artifacts, started as the HTTP benchmark starts it (one
+``complementme serve`` per usable core behind HAProxy), at concurrency 1, each path is requested
+``requests`` times after ``warmup`` untimed requests, and the client's wall time per request is
+summarised (count, p50, p99):
 
 - ``suggest_mesh_glb`` / ``suggest_mesh_obj``: ``/suggest/mesh`` with one ~100k-triangle mesh,
   as GLB and as OBJ (k = 10);
@@ -32,8 +33,8 @@ import logging
 import os
 import time
 from collections import defaultdict
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,7 @@ import numpy as np
 import trimesh
 
 from bench.http_bench import DEFAULT_SERVER_ENV, our_service
+from bench.machine import usable_cores
 from bench.query import BenchQuery
 from bench.stats import summarize_seconds
 from service.artifacts.catalog import Catalog
@@ -51,6 +53,8 @@ log = logging.getLogger(__name__)
 PATHS = ("suggest_mesh_glb", "suggest_mesh_obj", "place_5", "suggest_contact_off", "suggest_contact_on",
          "assemble")
 METRIC_PREFIX = "complementme_"
+# Requests that are not the timed path's: the snapshots' own, and HAProxy's health checks.
+PROBE_ROUTES = ("/metrics", "/readyz", "/healthz")
 
 
 @dataclass(frozen=True)
@@ -64,12 +68,13 @@ class InteractiveBenchConfig:
     place_parts: int = 5
     k: int = 10
     timeout: float = 120.0      # seconds before one request counts as failed
+    processes: int = field(default_factory=usable_cores)  # server processes, behind HAProxy if several
     server_env: tuple[tuple[str, str], ...] = tuple(DEFAULT_SERVER_ENV.items())
 
     def as_dict(self) -> dict[str, Any]:
         return {"requests": self.requests, "warmup": self.warmup, "parse_reps": self.parse_reps,
                 "target_faces": self.target_faces, "place_parts": self.place_parts, "k": self.k,
-                "timeout": self.timeout, "server_env": dict(self.server_env)}
+                "timeout": self.timeout, "processes": self.processes, "server_env": dict(self.server_env)}
 
 
 # --- the query mesh ------------------------------------------------------------------------------
@@ -200,7 +205,7 @@ def time_engine_contact(engine: Any, bodies: dict[str, bytes], reps: int, warmup
 
 def histogram_totals(text: str, prefix: str = METRIC_PREFIX) -> dict[str, float]:
     """``_sum`` and ``_count`` samples of the service's histograms in Prometheus text, by name and
-    labels (``name{label=value,...}``), summed over the workers' copies."""
+    labels (``name{label=value,...}``; a ``pid`` label is left out and its samples summed)."""
     from prometheus_client.parser import text_string_to_metric_families
 
     out: dict[str, float] = {}
@@ -213,6 +218,10 @@ def histogram_totals(text: str, prefix: str = METRIC_PREFIX) -> dict[str, float]
     return out
 
 
+def _probe(key: str) -> bool:
+    return any(f"route={route}" in key for route in PROBE_ROUTES)
+
+
 def histogram_means(before: dict[str, float], after: dict[str, float]) -> dict[str, dict[str, float]]:
     """Per histogram (and labels) observed between two snapshots: count and mean (ms for seconds)."""
     out: dict[str, dict[str, float]] = {}
@@ -222,7 +231,7 @@ def histogram_means(before: dict[str, float], after: dict[str, float]) -> dict[s
             continue
         base = name[: -len("_count")]
         count = total - before.get(key, 0.0)
-        if count <= 0 or "route=/metrics" in labels:  # the snapshots' own requests
+        if count <= 0 or _probe(labels):  # the snapshots' own requests, health checks
             continue
         sum_key = base + "_sum" + ("{" + labels if labels else "")
         dsum = after.get(sum_key, 0.0) - before.get(sum_key, 0.0)
@@ -236,18 +245,24 @@ def histogram_means(before: dict[str, float], after: dict[str, float]) -> dict[s
     return out
 
 
-def metric_snapshot(client: httpx.Client, settle: float = 0.05, tries: int = 40) -> dict[str, float]:
-    """The service's histogram totals once they stop changing (the /metrics route's own left out).
+def metric_snapshot(client: httpx.Client, metrics_urls: Sequence[str], settle: float = 0.05, tries: int = 40
+                    ) -> dict[str, float]:
+    """The service's histogram totals, summed over its server processes' ``metrics_urls``, once they
+    stop changing (the probes' routes left out: the scrapes' own, HAProxy's health checks).
 
-    The server records a request's duration after its answer has gone out, and with several
-    workers the next scrape may be answered by another one: a snapshot taken right after the last
-    answer can miss it (seen: the warm-up request counted among the timed ones). So the scrape is
-    repeated until two in a row agree (at most ``tries`` times, ``settle`` seconds apart).
+    The server records a request's duration after its answer has gone out: a snapshot taken right
+    after the last answer can miss it (seen: the warm-up request counted among the timed ones). So
+    the scrape is repeated until two in a row agree (at most ``tries`` times, ``settle`` seconds apart).
     """
     def scrape() -> dict[str, float]:
-        r = client.get("/metrics", timeout=30.0)
-        totals = histogram_totals(r.text) if r.status_code == 200 else {}
-        return {k: v for k, v in totals.items() if "route=/metrics" not in k}
+        out: dict[str, float] = {}
+        for url in metrics_urls:
+            r = client.get(url, timeout=30.0)
+            totals = histogram_totals(r.text) if r.status_code == 200 else {}
+            for k, v in totals.items():
+                if not _probe(k):
+                    out[k] = out.get(k, 0.0) + v
+        return out
 
     last = scrape()
     for _ in range(tries):
@@ -262,12 +277,13 @@ def metric_snapshot(client: httpx.Client, settle: float = 0.05, tries: int = 40)
 # --- the timed paths -----------------------------------------------------------------------------
 
 def time_path(client: httpx.Client, make: Callable[[], httpx.Request], requests: int, warmup: int,
-              check: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+              metrics_urls: Sequence[str], check: Callable[[dict[str, Any]], None] | None = None
+              ) -> dict[str, Any]:
     """``warmup`` then ``requests`` sequential requests (concurrency 1): wall times, statuses, answers'
     per-request ``timings`` when they have them, and the /metrics histograms over the timed ones."""
     for _ in range(warmup):
         client.send(make())
-    before = metric_snapshot(client)
+    before = metric_snapshot(client, metrics_urls)
     seconds: list[float] = []
     statuses: dict[str, int] = defaultdict(int)
     answer_timings: dict[str, list[float]] = defaultdict(list)
@@ -289,7 +305,7 @@ def time_path(client: httpx.Client, make: Callable[[], httpx.Request], requests:
             answer_timings[k].append(float(v))
         if check is not None:
             check(last)
-    after = metric_snapshot(client)
+    after = metric_snapshot(client, metrics_urls)
     return {"latency": summarize_seconds(seconds), "statuses": dict(statuses), "errors": errors,
             "answer_timings": {k: summarize_seconds(v) for k, v in answer_timings.items()},
             "server_metrics": histogram_means(before, after), "last_answer": last}
@@ -345,7 +361,7 @@ def run_interactive_bench(query: BenchQuery, cfg: InteractiveBenchConfig, cache:
     del engine  # the server loads its own
 
     paths: dict[str, dict[str, Any]] = {}
-    with our_service(cache, dict(cfg.server_env)) as server, \
+    with our_service(cache, dict(cfg.server_env), cfg.processes) as server, \
             httpx.Client(base_url=server.url, timeout=cfg.timeout) as client:
         first = client.post("/suggest", content=suggest_bodies["suggest_contact_off"],
                             headers={"Content-Type": "application/json"})
@@ -364,7 +380,7 @@ def run_interactive_bench(query: BenchQuery, cfg: InteractiveBenchConfig, cache:
         }
         for name in PATHS:
             log.info("timing %s (%d requests)", name, cfg.requests)
-            row = time_path(client, makers[name], cfg.requests, cfg.warmup)
+            row = time_path(client, makers[name], cfg.requests, cfg.warmup, server.metrics_urls)
             row["answer"] = _summary(row.pop("last_answer"), name)
             paths[name] = row
     return {

@@ -1,11 +1,13 @@
 """Benchmark d: our service against the peer baseline (``bench.peer.app``), in the same run.
 
-Both servers run one uvicorn worker on loopback, one after the other (never at the same time:
-on two cores they would share the CPU), under the same wrk load with the JSON body (the peer
-knows no base64). Reported: each side's throughput and latency, and ours as ratios to the peer's
-(throughput ours / peer; latency peer / ours, so larger is better for us in both). Before the
-load, both answer the benchmark query once: the top part should be the same (a sanity check
-that both serve the same model).
+The peer runs as such an app is started, one uvicorn process (torch itself uses every core for
+its operators); ours as the HTTP benchmark starts it, one ``complementme serve`` per usable core
+behind HAProxy. One after the other on loopback (never at the same time: on two cores they would
+share the CPU), under the same wrk load with the JSON body (the peer knows no base64). Reported:
+each side's throughput and latency, and ours as ratios to the peer's (throughput ours / peer;
+latency peer / ours, so larger is better for us in both). Before the load, both answer the
+benchmark query once: the top part should be the same (a sanity check that both serve the same
+model).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.http_bench import DEFAULT_SERVER_ENV, check_answer, load_levels, our_service, write_bodies
+from bench.machine import usable_cores
 from bench.query import REPO, BenchQuery
 from bench.server import Server, free_port, running_server
 from bench.wrk import LoadSettings
@@ -33,11 +36,12 @@ class PeerBenchConfig:
     concurrency: tuple[int, ...] = (1, 32)
     load: LoadSettings = field(default_factory=LoadSettings)
     artifacts: Path = REPO / "exported"             # the model (graphs) and catalog both serve
+    processes: int = field(default_factory=usable_cores)  # ours: server processes, behind HAProxy if several
     server_env: tuple[tuple[str, str], ...] = tuple(DEFAULT_SERVER_ENV.items())
 
     def as_dict(self) -> dict[str, Any]:
         return {"concurrency": list(self.concurrency), "load": self.load.as_dict(),
-                "artifacts": str(self.artifacts),
+                "artifacts": str(self.artifacts), "processes": self.processes,
                 "server_env": dict(self.server_env), "body": "json"}
 
 
@@ -85,10 +89,10 @@ def run_peer_bench(query: BenchQuery, cfg: PeerBenchConfig, cache: Path) -> dict
     with peer_service(cache, cfg.artifacts) as peer:
         peer_answer = check_answer(peer.url + "/suggest", body, timeout=cfg.load.timeout)
         peer_levels = load_levels(peer.url + "/suggest", bodies, cfg.concurrency, cfg.load)
-    with our_service(cache, dict(cfg.server_env)) as ours:
+    with our_service(cache, dict(cfg.server_env), cfg.processes) as ours:
         our_answer = check_answer(ours.url + "/suggest", body, timeout=cfg.load.timeout)
         our_levels = load_levels(ours.url + "/suggest", bodies, cfg.concurrency, cfg.load,
-                                 metrics_url=ours.url + "/metrics")
+                                 metrics_urls=ours.metrics_urls)
     peer_top = [s["part_id"] for s in peer_answer["suggestions"]]
     our_top = [s["part_id"] for s in our_answer["suggestions"]]
     return {

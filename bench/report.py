@@ -191,12 +191,21 @@ def _engine(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+def our_processes(cfg: dict[str, Any]) -> str:
+    """How a benchmark ran our service: ``processes`` servers behind HAProxy, or, in results from
+    before the benchmarks started HAProxy, the worker processes of ``complementme serve --workers``."""
+    if "processes" not in cfg:
+        workers = (cfg.get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
+        return f"`complementme serve` ({workers} worker processes)"
+    n = cfg["processes"]
+    return f"{n} x `complementme serve` behind HAProxy" if n > 1 else "`complementme serve` (one process)"
+
+
 def _http(data: dict[str, Any]) -> list[str]:
     r = data["results"]
     load = data["config"]["load"]
-    workers = (data["config"].get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
     lines = [
-        f"wrk on loopback against `complementme serve` ({workers} worker processes), "
+        f"wrk on loopback against {our_processes(data['config'])}, "
         f"{load['duration']:.0f} s per row after "
         f"{load['warmup']:.0f} s of warm-up, {load['threads']} wrk thread; server environment "
         f"`{data['config'].get('server_env')}`. req/s counts 2xx answers; latency percentiles are over "
@@ -394,7 +403,6 @@ def _interactive(data: dict[str, Any]) -> list[str]:
     cfg = data["config"]
     mesh = r["mesh"]
     load = r.get("load_average") or {}
-    workers = (cfg.get("server_env") or {}).get("COMPLEMENTME_WORKERS", "1")
     fmt_load = ", ".join(str(x) for x in load.get("start") or []) or "-"
     fmt_end = ", ".join(str(x) for x in load.get("end") or []) or "-"
     m = data["machine"]
@@ -403,7 +411,7 @@ def _interactive(data: dict[str, Any]) -> list[str]:
         f"cores ({m['usable_cores']} usable); it may differ from the machine above, which is the first "
         "result file's.",
         "",
-        f"One request at a time against `complementme serve` ({workers} worker processes) on loopback, "
+        f"One request at a time against {our_processes(cfg)} on loopback, "
         f"{cfg['requests']} timed requests per path after {cfg['warmup']} untimed; client wall time. "
         f"Query mesh: the parts of `{mesh['shape_id']}` but its last, refined to {mesh['faces']:,} "
         f"triangles ({mesh['vertices']:,} vertices; GLB {mesh['bytes']['glb']:,} bytes, OBJ "

@@ -122,6 +122,16 @@ def test_rendered_tables_hold_the_numbers() -> None:
     assert "| Stage | json, contact default (off) |" in text
 
 
+def test_http_section_says_how_our_service_ran() -> None:
+    res = _results()
+    res["http"]["config"]["server_env"] = {"COMPLEMENTME_WORKERS": "2"}  # results from before issue 17
+    assert "against `complementme serve` (2 worker processes)," in render_results(res)
+    res["http"]["config"]["processes"] = 2  # since: one process per core behind HAProxy
+    assert "against 2 x `complementme serve` behind HAProxy," in render_results(res)
+    res["http"]["config"]["processes"] = 1
+    assert "against `complementme serve` (one process)," in render_results(res)
+
+
 def test_framework_section_judges_against_the_strongest_peer() -> None:
     res = _results()
     _, measured, ok = framework_target(res["framework"])
