@@ -100,6 +100,48 @@ def _block(outline_xy: np.ndarray, width: float, bevel: float) -> Mesh:
     return extrude(chaikin(outline_xy, 1), width, bevel)
 
 
+def _hood(
+    b: ShapeBuilder,
+    L: float,
+    W: float,
+    yb: float,
+    hh: float,
+    x_ws: float,
+    nose: tuple[float, float, float],
+    inset: float = 0.04,
+    bevel: float = 0.02,
+) -> None:
+    """Hood block on the lower body (top at ``yb``), from the front back to the windscreen foot at
+    ``x_ws``, where it stands ``hh`` high.
+
+    ``nose``: how far its foot and its top front corner stand back from the car's front, and that
+    corner's height as a share of ``hh``; ``inset``: how much narrower than the body (``W``) it is.
+    """
+    foot, top, rise = nose
+    outline = np.array(
+        [[L / 2 - foot, yb - 0.03], [L / 2 - top, yb + rise * hh], [x_ws, yb + hh], [x_ws, yb - 0.03]]
+    )
+    b.add(_block(outline, W - inset, bevel), "hood")
+
+
+def _cabin(
+    b: ShapeBuilder,
+    W: float,
+    yb: float,
+    ch: float,
+    x_ws: float,
+    roof: tuple[float, float],
+    back: float,
+    inset: float,
+    bevel: float,
+) -> None:
+    """Cabin block (label roof) on the lower body (top at ``yb``): from the windscreen foot at ``x_ws``
+    up to a flat roof ``ch`` high between the x of ``roof`` (front, back), down to its rear foot at
+    ``back``; ``inset`` narrower than the body (``W``)."""
+    outline = np.array([[x_ws + 0.02, yb - 0.02], [roof[0], yb + ch], [roof[1], yb + ch], [back, yb - 0.02]])
+    b.add(_block(outline, W - inset, bevel), "roof")
+
+
 def _lights(b: ShapeBuilder, x: float, y: float, z: float) -> None:
     b.add(ellipsoid(0.02, 0.03, 0.06, 10, 4), "body", [translation(x, y, z), translation(x, y, -z)])
 
@@ -113,27 +155,10 @@ def sedan(rng: np.random.Generator, b: ShapeBuilder) -> None:
     body = _side_profile(L, 0.45 * rw, yb, [xf, xr], rw + 0.02, rw, 0.08, 0.06)
     b.add(extrude(chaikin(body, 1), W, 0.03), "body")
     hh, x_ws = _u(rng, 0.085, 0.12), _u(rng, 0.1, 0.25)
-    b.add(
-        _block(
-            np.array(
-                [[L / 2 - 0.03, yb - 0.03], [L / 2 - 0.06, yb + 0.6 * hh], [x_ws, yb + hh], [x_ws, yb - 0.03]]
-            ),
-            W - 0.04,
-            0.02,
-        ),
-        "hood",
-    )
+    _hood(b, L, W, yb, hh, x_ws, (0.03, 0.06, 0.6))
     ch, cl = _u(rng, 0.24, 0.32), _u(rng, 0.75, 0.95)
     x_rear = x_ws - cl
-    cabin = np.array(
-        [
-            [x_ws + 0.02, yb - 0.02],
-            [x_ws - 0.22, yb + ch],
-            [x_rear + 0.2, yb + ch],
-            [x_rear - 0.02, yb - 0.02],
-        ]
-    )
-    b.add(_block(cabin, W - 0.08, 0.06), "roof")
+    _cabin(b, W, yb, ch, x_ws, (x_ws - 0.22, x_rear + 0.2), x_rear - 0.02, 0.08, 0.06)
     win = np.array(
         [
             [x_ws - 0.06, yb + 0.04],
@@ -176,22 +201,10 @@ def suv(rng: np.random.Generator, b: ShapeBuilder) -> None:
     body = _side_profile(L, 0.55 * rw, yb, [xf, xr], rw + 0.025, rw, 0.06, 0.03)
     b.add(extrude(chaikin(body, 1), W, 0.03), "body")
     hh, x_ws = _u(rng, 0.085, 0.12), L / 2 - _u(rng, 0.4, 0.5)
-    b.add(
-        _block(
-            np.array(
-                [[L / 2 - 0.03, yb - 0.03], [L / 2 - 0.04, yb + 0.7 * hh], [x_ws, yb + hh], [x_ws, yb - 0.03]]
-            ),
-            W - 0.04,
-            0.02,
-        ),
-        "hood",
-    )
+    _hood(b, L, W, yb, hh, x_ws, (0.03, 0.04, 0.7))
     ch = _u(rng, 0.3, 0.4)
     x_rear = -L / 2 + 0.02
-    cabin = np.array(
-        [[x_ws + 0.02, yb - 0.02], [x_ws - 0.18, yb + ch], [x_rear + 0.04, yb + ch], [x_rear, yb - 0.02]]
-    )
-    b.add(_block(cabin, W - 0.06, 0.05), "roof")
+    _cabin(b, W, yb, ch, x_ws, (x_ws - 0.18, x_rear + 0.04), x_rear, 0.06, 0.05)
     rail = box(L * 0.55, 0.025, 0.03)
     y_rail = yb + ch + 0.045
     b.add(rail, "roof", [translation(x_ws - 0.18 - L * 0.3, y_rail, sz * (W / 2 - 0.12)) for sz in (1, -1)])
@@ -223,22 +236,10 @@ def sports(rng: np.random.Generator, b: ShapeBuilder) -> None:
     body = _side_profile(L, 0.4 * rw, yb, [xf, xr], rw + 0.02, rw, 0.12, 0.04)
     b.add(extrude(chaikin(body, 1), W, 0.04), "body")
     hh, x_ws = _u(rng, 0.085, 0.11), _u(rng, -0.05, 0.1)
-    b.add(
-        _block(
-            np.array(
-                [[L / 2 - 0.05, yb - 0.03], [L / 2 - 0.1, yb + 0.3 * hh], [x_ws, yb + hh], [x_ws, yb - 0.03]]
-            ),
-            W - 0.06,
-            0.025,
-        ),
-        "hood",
-    )
+    _hood(b, L, W, yb, hh, x_ws, (0.05, 0.1, 0.3), inset=0.06, bevel=0.025)
     ch, cl = _u(rng, 0.18, 0.24), _u(rng, 0.8, 1.0)
     x_rear = x_ws - cl
-    cabin = np.array(
-        [[x_ws + 0.02, yb - 0.02], [x_ws - 0.3, yb + ch], [x_ws - 0.5, yb + ch], [x_rear, yb - 0.02]]
-    )
-    b.add(_block(cabin, W - 0.14, 0.07), "roof")
+    _cabin(b, W, yb, ch, x_ws, (x_ws - 0.3, x_ws - 0.5), x_rear, 0.14, 0.07)
     sp_y = yb + _u(rng, 0.12, 0.18)
     sp_x = -L / 2 + 0.12
     b.add(plate(rounded_rect(0.16, W - 0.04, 0.02), 0.025, 0.006), "body", [translation(sp_x, sp_y, 0)])
@@ -257,22 +258,10 @@ def pickup(rng: np.random.Generator, b: ShapeBuilder) -> None:
     body = _side_profile(L, 0.5 * rw, yb, [xf, xr], rw + 0.025, rw, 0.06, 0.02)
     b.add(extrude(chaikin(body, 1), W, 0.03), "body")
     hh, x_ws = _u(rng, 0.085, 0.12), L / 2 - _u(rng, 0.45, 0.55)
-    b.add(
-        _block(
-            np.array(
-                [[L / 2 - 0.03, yb - 0.03], [L / 2 - 0.04, yb + 0.7 * hh], [x_ws, yb + hh], [x_ws, yb - 0.03]]
-            ),
-            W - 0.04,
-            0.02,
-        ),
-        "hood",
-    )
+    _hood(b, L, W, yb, hh, x_ws, (0.03, 0.04, 0.7))
     ch, cl = _u(rng, 0.28, 0.36), _u(rng, 0.45, 0.6)
     x_rear = x_ws - cl
-    cab = np.array(
-        [[x_ws + 0.02, yb - 0.02], [x_ws - 0.15, yb + ch], [x_rear + 0.03, yb + ch], [x_rear, yb - 0.02]]
-    )
-    b.add(_block(cab, W - 0.06, 0.04), "roof")
+    _cabin(b, W, yb, ch, x_ws, (x_ws - 0.15, x_rear + 0.03), x_rear, 0.06, 0.04)
     bed_l, wall_h, wall_t = x_rear - (-L / 2) - 0.02, _u(rng, 0.14, 0.22), _u(rng, 0.03, 0.05)
     x_bed = (x_rear - L / 2) / 2
     b.add(
