@@ -81,6 +81,24 @@ def _deck_outline(xs: np.ndarray, half: np.ndarray, inset: float) -> np.ndarray:
     return ccw(np.concatenate([right, left]))
 
 
+def _decked_hull(
+    b: ShapeBuilder,
+    length: float,
+    beam: np.ndarray,
+    depth: np.ndarray,
+    sheer: np.ndarray,
+    vee: float,
+    wall: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Adds a ``hull_shell`` (arguments as there) and a flush deck plate inside its gunwale; returns the
+    station x coordinates and the inner half-width at each station."""
+    hull, xs, inner = hull_shell(length, beam, depth, sheer, vee, wall)
+    b.add(hull, "hull")
+    dt = 0.025
+    b.add(plate(_deck_outline(xs, inner, 0.0), dt), "deck", [translation(0, -dt / 2 - 0.005, 0)])
+    return xs, inner
+
+
 def _profile(m: int, stern: float, mid: float, bow: float, power: float = 1.5) -> np.ndarray:
     """A smooth fore-aft profile: ``stern`` at the stern, ``mid`` around 40 %, ``bow`` at the bow."""
     s = np.linspace(0.0, 1.0, m)
@@ -96,10 +114,7 @@ def sailboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     beam = _profile(m, 0.75 * W, W, 0.02)
     depth = _profile(m, 0.6 * D, D, 0.35 * D)
     sheer = np.linspace(0.0, 0.04, m)
-    hull, xs, inner = hull_shell(L, beam, depth, sheer, 1.2, 0.12)
-    b.add(hull, "hull")
-    dt = 0.025
-    b.add(plate(_deck_outline(xs, inner, 0.0), dt), "deck", [translation(0, -dt / 2 - 0.005, 0)])
+    xs, inner = _decked_hull(b, L, beam, depth, sheer, 1.2, 0.12)
     kl, kd = _u(rng, 0.3, 0.45), _u(rng, 0.3, 0.45)
     keel = chaikin(np.array([[kl / 2, 0.05], [-kl / 2, 0.05], [-kl / 3, -kd], [kl / 3, -kd]]), 1)
     b.add(extrude(keel, 0.03, 0.005), "hull", [translation(_u(rng, -0.05, 0.1), -0.9 * D, 0)])
@@ -140,10 +155,7 @@ def motorboat(rng: np.random.Generator, b: ShapeBuilder) -> None:
     beam = _profile(m, 0.9 * W, W, 0.03, 2.0)
     depth = _profile(m, 0.8 * D, D, 0.5 * D)
     sheer = np.linspace(0.0, 0.08, m)
-    hull, xs, inner = hull_shell(L, beam, depth, sheer, 0.7, 0.1)
-    b.add(hull, "hull")
-    dt = 0.025
-    b.add(plate(_deck_outline(xs, inner, 0.0), dt), "deck", [translation(0, -dt / 2 - 0.005, 0)])
+    xs, inner = _decked_hull(b, L, beam, depth, sheer, 0.7, 0.1)
     cl, ch = _u(rng, 0.5, 0.75), _u(rng, 0.18, 0.26)
     xc = _u(rng, -0.25, -0.05)
     side = chaikin(
@@ -194,10 +206,7 @@ def ship(rng: np.random.Generator, b: ShapeBuilder) -> None:
     beam = _profile(m, 0.95 * W, W, 0.05, 4.0)
     depth = _profile(m, 0.9 * D, D, 0.7 * D, 4.0)
     sheer = np.concatenate([np.zeros(m - 2), [0.02, 0.05]])
-    hull, xs, inner = hull_shell(L, beam, depth, sheer, 3.0, 0.08)
-    b.add(hull, "hull")
-    dt = 0.025
-    b.add(plate(_deck_outline(xs, inner, 0.0), dt), "deck", [translation(0, -dt / 2 - 0.005, 0)])
+    _, inner = _decked_hull(b, L, beam, depth, sheer, 3.0, 0.08)
     # Bridge at the stern, in two tiers.
     xb, bl = -L / 2 + _u(rng, 0.15, 0.22), _u(rng, 0.18, 0.26)
     t1, t2 = _u(rng, 0.14, 0.2), _u(rng, 0.1, 0.14)
