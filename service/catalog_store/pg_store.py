@@ -450,14 +450,8 @@ class PgCatalogStore:
         return seq
 
     def update_embeddings(self, updates: list[tuple[int, np.ndarray, np.ndarray]], model_version: str) -> int:
-        """Store embeddings and part features of ``model_version`` (other versions' stay).
-
-        Args:
-            updates: (parts.id, embedding (D,), part_feature (Fp,)) per part.
-
-        Returns:
-            the change's sequence number.
-        """
+        """``CatalogStore.update_embeddings`` (same arguments and result), but only ``model_version``'s
+        embeddings and part features are replaced: other versions' stay, for replicas still on them."""
         with self.transaction() as conn:
             seq = self._next_seq(conn, "reembed", None)
             with conn.cursor() as cur:
