@@ -10,10 +10,10 @@ import asyncio
 import re
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Awaitable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pytest
@@ -27,6 +27,7 @@ from service.geometry.inputs import points_to_base64
 from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
 
 Query = tuple[np.ndarray, SuggestOptions]
+T = TypeVar("T")
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +66,14 @@ class Gated:
         assert self.hold.wait(60), "the test never released the batch"
         return self.engine.suggest_batch(items, deadlines)
 
+    async def holding(self, submission: Awaitable[T]) -> asyncio.Future[T]:
+        """Start ``submission`` with the batch held; return once the worker is inside its engine call
+        (a batch of its own), so that what is submitted next queues until ``hold.set()``."""
+        self.hold.clear()
+        job = asyncio.ensure_future(submission)
+        await asyncio.to_thread(self.entered.wait, 60)
+        return job
+
 
 def test_queries_queued_during_a_batch_run_together_and_equal_the_engine(
         engine: SuggestionEngine, queries: list[AssemblyQuery]) -> None:
@@ -75,9 +84,7 @@ def test_queries_queued_during_a_batch_run_together_and_equal_the_engine(
     items = [(q.points, opts[i % len(opts)]) for i, q in enumerate(queries)]
 
     async def main() -> list[SuggestResult]:
-        run.hold.clear()
-        first = asyncio.ensure_future(batcher.submit(items[0]))
-        await asyncio.to_thread(run.entered.wait, 60)  # the worker now holds a batch of one
+        first = await run.holding(batcher.submit(items[0]))  # the worker now holds a batch of one
         rest = [asyncio.ensure_future(batcher.submit(it)) for it in items[1:]]
         await asyncio.sleep(0)  # let them all queue
         run.hold.set()
@@ -97,9 +104,7 @@ def test_a_bad_query_fails_only_its_own_request(engine: SuggestionEngine, query:
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=32, max_wait=0.0)
 
     async def main() -> list[Any]:
-        run.hold.clear()
-        warm = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=2))))
-        await asyncio.to_thread(run.entered.wait, 60)
+        warm = await run.holding(batcher.submit((query.points, SuggestOptions(k=2))))
         jobs = [batcher.submit((query.points, SuggestOptions(k=4))),
                 batcher.submit((query.points[:3], SuggestOptions())),                 # too few points
                 batcher.submit((query.points, SuggestOptions(categories=("spaceship",)))),
@@ -188,9 +193,7 @@ def test_a_cancelled_request_is_skipped(engine: SuggestionEngine, query: Assembl
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=32, max_wait=0.0)
 
     async def main() -> SuggestResult:
-        run.hold.clear()
-        first = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=2))))
-        await asyncio.to_thread(run.entered.wait, 60)
+        first = await run.holding(batcher.submit((query.points, SuggestOptions(k=2))))
         gone = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=9))))
         kept = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=4))))
         await asyncio.sleep(0)
@@ -212,9 +215,7 @@ def test_a_job_past_its_deadline_is_not_run(engine: SuggestionEngine, query: Ass
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=32, max_wait=0.0)
 
     async def main() -> list[Any]:
-        run.hold.clear()
-        first = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=2))))
-        await asyncio.to_thread(run.entered.wait, 60)
+        first = await run.holding(batcher.submit((query.points, SuggestOptions(k=2))))
         past = time.monotonic() - 1.0  # already expired when the worker gets to it
         late = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=3)), deadline=past))
         fine = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=4)),
@@ -337,9 +338,7 @@ def test_a_large_job_runs_in_chunks_and_others_go_between(engine: SuggestionEngi
     large = [(query.points, SuggestOptions(k=k)) for k in range(1, 7)]
 
     async def main() -> tuple[list[Any], Any]:
-        run.hold.clear()
-        first = asyncio.ensure_future(batcher.submit_many(large))
-        await asyncio.to_thread(run.entered.wait, 60)
+        first = await run.holding(batcher.submit_many(large))
         small = asyncio.ensure_future(batcher.submit((query.points, SuggestOptions(k=9))))
         await asyncio.sleep(0)
         run.hold.set()
@@ -360,10 +359,8 @@ def test_a_deadline_stops_a_large_job_between_its_chunks(engine: SuggestionEngin
     batcher: MicroBatcher[Query, SuggestResult] = MicroBatcher(run, max_size=2, max_wait=0.0)
 
     async def main() -> Any:
-        run.hold.clear()
-        job = asyncio.ensure_future(batcher.submit_many([(query.points, SuggestOptions(k=2))] * 6,
-                                                        deadline=time.monotonic() + 0.3))
-        await asyncio.to_thread(run.entered.wait, 60)
+        job = await run.holding(batcher.submit_many([(query.points, SuggestOptions(k=2))] * 6,
+                                                    deadline=time.monotonic() + 0.3))
         await asyncio.sleep(0.4)  # past the deadline while the first chunk runs
         run.hold.set()
         return (await asyncio.gather(job, return_exceptions=True))[0]
