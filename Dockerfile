@@ -4,9 +4,9 @@
 #   docker build -t complementme:0.1.0 .
 #   docker run --rm -p 8000:8000 complementme:0.1.0
 #
-# Settings are COMPLEMENTME_* environment variables (docs/settings.md). Keep
-# COMPLEMENTME_WORKERS x COMPLEMENTME_ONNX_THREADS (and x COMPLEMENTME_FAISS_THREADS) at or
-# below the CPU cores the container may use (docs/deploy.md).
+# Settings are COMPLEMENTME_* environment variables (docs/settings.md). The container runs one
+# server process; keep COMPLEMENTME_ONNX_THREADS (and COMPLEMENTME_FAISS_THREADS) at or below
+# the CPU cores it may use, and scale by containers (docs/deploy.md).
 #
 # tests/deploy/test_image_steps.py runs this file's RUN steps and its CMD in a fresh virtual
 # environment (no container engine is needed): keep every RUN step free of absolute paths
@@ -50,7 +50,6 @@ ENV VIRTUAL_ENV=/opt/venv \
     COMPLEMENTME_DATA_DIR=/data \
     COMPLEMENTME_HOST=0.0.0.0 \
     COMPLEMENTME_PORT=8000 \
-    COMPLEMENTME_WORKERS=1 \
     COMPLEMENTME_ONNX_THREADS=1 \
     COMPLEMENTME_FAISS_THREADS=1
 RUN groupadd --system --gid 10001 app \

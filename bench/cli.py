@@ -180,10 +180,7 @@ def do_balancers(results_dir: Path, query: Path, quick: bool, cache: Path, setup
                  server_env: list[str] | None) -> None:
     from bench.balancer_bench import DEFAULT_SERVER_ENV, BalancerBenchConfig, run_balancer_bench
 
-    env = dict(DEFAULT_SERVER_ENV)
-    for key, value in _env_pairs(server_env):
-        if key != "COMPLEMENTME_WORKERS":  # every set-up runs its own count of processes
-            env[key] = value
+    env = {**DEFAULT_SERVER_ENV, **dict(_env_pairs(server_env))}
     try:
         cfg = BalancerBenchConfig(setups=tuple(s.strip() for s in setups.split(",") if s.strip()),
                                   rounds=rounds or (1 if quick else 3), connections=connections, load=load,
@@ -308,7 +305,7 @@ def interactive(
 def balancers(
     results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
     cache_dir: Path = CacheOpt,
-    setups: str = typer.Option("ours,gunicorn,uvicorn,haproxy", help="Set-ups to compare, in the first "
+    setups: str = typer.Option("gunicorn,uvicorn,haproxy", help="Set-ups to compare, in the first "
                                "round's order."),
     rounds: int | None = typer.Option(None, min=1, help="Runs of every set-up, interleaved (default 3)."),
     connections: int = typer.Option(32, min=1, help="wrk connections."),
@@ -321,7 +318,7 @@ def balancers(
     haproxy_balance: str = typer.Option("leastconn", help="HAProxy's balance algorithm."),
     server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for every server (repeatable)."),
 ) -> None:
-    """f. Two server processes behind each of four balancers, c = 32, interleaved rounds (issue 17)."""
+    """g. Two server processes behind one port three ways, c = 32, interleaved rounds (issue 17)."""
     if warmup_seconds is None and not quick:
         warmup_seconds = 5.0
     load = _load(quick, duration or (None if quick else 20.0), warmup_seconds, wrk_threads, timeout)

@@ -3,7 +3,7 @@
 ``uvicorn-worker``'s ``UvicornWorker`` runs uvicorn inside a gunicorn worker process with
 uvicorn's automatic choices (uvloop, httptools). The service is served with its own httptools
 protocol, which answers what the parser refuses with the JSON error body
-(``service.serve.workers.HTTP_PROTOCOL``); this class makes gunicorn's workers use it too, so that
+(``service.serve.cli.HTTP_PROTOCOL``); this class makes gunicorn's workers use it too, so that
 all set-ups of ``bench/balancer_bench.py`` serve the same code.
 """
 
@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 
 from uvicorn_worker import UvicornWorker
 
-from service.serve.workers import HTTP_PROTOCOL
+from service.serve.cli import HTTP_PROTOCOL
 
 
 class JsonErrorUvicornWorker(UvicornWorker):

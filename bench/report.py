@@ -472,12 +472,13 @@ def _setup_label(name: str, data: dict[str, Any]) -> str:
     cfg, v = data["config"], data["results"].get("versions", {})
     n, hp = cfg["processes"], cfg.get("haproxy", {})
     labels = {
-        "ours": f"ours: `complementme serve --workers {n}`",
+        # The supervisor of the first run, removed by issue 17's rule (docs/performance.md).
+        "ours": f"ours (since removed): `complementme serve --workers {n}`",
         "gunicorn": f"gunicorn {v.get('gunicorn')}, {n} uvicorn workers "
                     f"(uvicorn-worker {v.get('uvicorn-worker')})",
         "uvicorn": f"`uvicorn --workers {n}`",
         "haproxy": f"HAProxy {v.get('haproxy')} ({hp.get('mode')}, {hp.get('balance')}) + {n} x "
-                   "`complementme serve --workers 1`",
+                   "`complementme serve`",
     }
     return labels.get(name, name)
 
@@ -493,6 +494,8 @@ def _share(x: float | None) -> str:
 def _balancers(data: dict[str, Any]) -> list[str]:
     cfg, r = data["config"], data["results"]
     load = cfg["load"]
+    # The first run compared every set-up with ours (``vs_ours``); later ones with the reference.
+    ref = next((row["reference"] for row in r["summary"] if "reference" in row), "ours")
     lines = [
         f"{cfg['processes']} server processes per set-up on loopback, started fresh for every run; wrk "
         f"with {cfg['connections']} connections posting the {cfg['body']} body, {load['duration']:.0f} s "
@@ -500,14 +503,15 @@ def _balancers(data: dict[str, Any]) -> list[str]:
         f"next set-up; server environment `{cfg.get('server_env')}`. Median over the rounds (range). "
         "Busiest worker: its share of the server processes' CPU during the measured run (50 % is an even "
         "split of two); front: the CPU of everything else in the set-up (supervisor, arbiter or proxy), "
-        "in cores. Against ours: throughput this / ours, latency ours / this (above 1: better than ours).",
+        f"in cores. Against {ref}: throughput this / {ref}, latency {ref} / this (above 1: better than "
+        f"{ref}).",
         "",
         "| Set-up | req/s | p50 ms | p99 ms | Errors | Busiest worker | Front (cores) "
-        "| Against ours: req/s, p50, p99 |",
+        f"| Against {ref}: req/s, p50, p99 |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for row in r["summary"]:
-        vs = row.get("vs_ours") or {}
+        vs = row.get("vs_reference", row.get("vs_ours")) or {}
         ratios = [vs.get(k) for k in ("throughput", "p50", "p99")]
         against = ", ".join("-" if v is None else f"{v:.2f}" for v in ratios) if vs else "-"
         front = "-" if row["front_cores"] is None else f"{row['front_cores']:.2f}"

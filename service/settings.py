@@ -38,15 +38,6 @@ class Settings(BaseSettings):
     host: str = Field(default="127.0.0.1", description="Address `complementme serve` binds to.")
     port: int = Field(default=8000, ge=0, le=65535, description=(
         "Port `complementme serve` listens on (0: any free port)."))
-    workers: int = Field(default=1, ge=1, le=64, description=(
-        "Server processes of `complementme serve`; each loads its own copy of the artifacts (about "
-        "280 MB). With more than one, a supervisor accepts the connections and deals them to the "
-        "workers in turn. One per core for throughput (`service/serve/workers.py`); `/metrics` sums them "
-        "all."))
-    worker_max_pending: int = Field(default=64, ge=1, le=100_000, description=(
-        "With several workers: most connections the supervisor hands to a worker that has not yet "
-        "taken them (its event loop is busy or stuck). A worker past it gets no more until it "
-        "catches up; when every worker is past it, new connections wait in the listen backlog."))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", description="Log level of the server.")
     verify_checksums: bool = Field(default=True, description=(
@@ -59,7 +50,7 @@ class Settings(BaseSettings):
     faiss_threads: int = Field(default=1, ge=1, le=64, description="OpenMP threads FAISS searches with.")
     blas_threads: int = Field(default=1, ge=1, le=64, description=(
         "Threads numpy's BLAS may use (the brute-force search's matrix products). Its default of "
-        "one per core made two workers fight over both cores and halved their throughput."))
+        "one per core made two server processes fight over both cores and halved their throughput."))
     faiss_blas_threshold: int = Field(default=20, ge=1, description=(
         "Batches of at least this many queries take FAISS's BLAS path (faster for batched "
         "searches; FAISS's own default of 128000 never takes it)."))
@@ -106,7 +97,7 @@ class Settings(BaseSettings):
         "Allocations between the garbage collector's youngest-generation passes (Python's "
         "default: 700). A JSON request holds about 1000 lists of coordinates until it is "
         "answered, so at 700 the collector ran more than once per request and walked the lists "
-        "of every request in flight: concurrency 32, JSON bodies, two workers: 345-379 req/s at "
+        "of every request in flight: concurrency 32, JSON bodies, two server processes: 345-379 req/s at "
         "700, 470-523 at 50,000."))
     seed: int = Field(default=0, description=(
         "Seed of the deterministic resampling of inputs to the model's point count and of "
@@ -316,7 +307,7 @@ class Settings(BaseSettings):
         "Deepest nesting of an uploaded glTF's JSON and of its node tree, checked before either is "
         "read: a 4 KB glTF nested 2,000 deep crashed the JSON reader, a 40k-deep node chain took 34 s."))
     max_concurrent_uploads: int = Field(default=2, ge=1, description=(
-        "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per worker process; more "
+        "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per server process; more "
         "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "
         "so this bounds the memory uploads can take."))
     max_body_points: int = Field(default=100_000, ge=1, description=(
@@ -346,7 +337,7 @@ class Settings(BaseSettings):
         "sent without its `frame`."))
     catalog_poll_seconds: float = Field(default=2.0, ge=0, description=(
         "How often the server looks for additions made by other processes on the same data folder "
-        "(other workers, `complementme catalog add --data-dir`), or, with the `postgres` backend, "
+        "(other server processes, `complementme catalog add --data-dir`), or, with the `postgres` backend, "
         "asks the database for changes it was not notified of (LISTEN/NOTIFY brings them at once; "
         "this is the fallback); 0: never (with `postgres`: notifications alone)."))
     catalog_backend: Literal["sqlite", "postgres"] = Field(default="sqlite", description=(
@@ -395,14 +386,14 @@ class Settings(BaseSettings):
         "Seconds a request refused with 503 `overloaded` (or 429 `too_many_errors`) waits (on no "
         "CPU) before its answer. "
         "Clients that retry at once, ignoring Retry-After, then come back a few times a second "
-        "each instead of hundreds: 128 such clients of `/suggest` on one worker made 840 refusals a "
+        "each instead of hundreds: 128 such clients of `/suggest` on one server process made 840 refusals a "
         "second without it and cut goodput to 60% of that at concurrency 32."))
     client_error_burst: int = Field(default=100, ge=0, description=(
         "Error answers (4xx) one client (address) may get in a row before its requests are "
         "refused with 429 `too_many_errors` (before their body is read; `Retry-After`, held "
         "`overload_refusal_delay` like a 503); the budget refills at `client_error_rate`. So a "
         "flood of cheap invalid requests cannot starve other clients (docs/catalog.md, "
-        "\"Overload\"). Per worker process; the probes are never refused. Behind a proxy, clients "
+        "\"Overload\"). Per server process; the probes are never refused. Behind a proxy, clients "
         "are told apart only "
         "by `X-Forwarded-For` from an address in uvicorn's `FORWARDED_ALLOW_IPS`. 0: no limit."))
     client_error_rate: float = Field(default=20.0, gt=0, description=(

@@ -12,7 +12,6 @@ catalog writer, all held by one ``Served`` (``service.api.served``) that routes 
 
 from __future__ import annotations
 
-import asyncio
 import gc
 import logging
 from collections.abc import AsyncIterator
@@ -86,16 +85,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     # default threshold the collector ran more than once per request and walked the lists of
     # every request in flight (see the gc_threshold setting).
     gc.set_threshold(settings.gc_threshold, *gc.get_threshold()[1:])
-    metrics: Metrics = app.state.metrics
-    refresher = asyncio.create_task(metrics.refresh_live_forever()) if metrics.multiprocess else None
     app.state.served = served
     app.state.ready = True
     try:
         yield
     finally:
         app.state.ready = False
-        if refresher is not None:
-            refresher.cancel()
         # Requests still queued for a batch are answered; later ones get 503 shutting_down.
         await anyio.to_thread.run_sync(served.close, settings.request_timeout)
         app.state.served = None

@@ -10,7 +10,7 @@ The hook is uvicorn's ``send_400_response``, through which its httptools protoco
 parser error. It is not public API: ``tests/service/test_http_protocol.py`` pins
 it on a real uvicorn server, so an upgrade that moves it fails there rather than silently
 bringing the plain-text answer back. ``complementme serve`` runs uvicorn with this protocol
-(``service.serve.workers.HTTP_PROTOCOL``); with uvicorn's own command line, pass it as ``--http
+(``service.serve.cli.HTTP_PROTOCOL``); with uvicorn's own command line, pass it as ``--http
 service.api.http_protocol:JsonErrorProtocol``.
 """
 

@@ -1,18 +1,12 @@
 """Prometheus metrics of the server, in a registry of its own.
 
 A registry per app (not prometheus-client's global one) lets tests build many apps in one
-process. With several worker processes (``service/serve/workers.py``) prometheus-client runs in its
-multiprocess mode: the supervisor sets ``PROMETHEUS_MULTIPROC_DIR`` before the workers start, each
-worker writes its samples to files there, and a scrape of any worker sums them all (counters and
-histograms over every worker that ever ran, gauges over the live ones). Gauges read from a
-function (queue lengths) cannot be shared that way; in multiprocess mode each worker copies them
-into its files every ``LIVE_REFRESH_SECONDS`` and before it answers a scrape.
+process. Each server process reports its own: where several run behind a proxy (one per core,
+docs/deploy.md), Prometheus scrapes each of them, and sums over them are taken in the queries.
 """
 
 from __future__ import annotations
 
-import asyncio
-import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -26,7 +20,6 @@ from prometheus_client import (
     generate_latest,
 )
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
-from prometheus_client.multiprocess import MultiProcessCollector
 
 from service.errors import ServiceError
 
@@ -36,8 +29,6 @@ _STAGE_BUCKETS = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05,
 _SIZE_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
-MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
-LIVE_REFRESH_SECONDS = 1.0
 
 # The *_created series double the output for no use on a scrape target like this one.
 disable_created_metrics()
@@ -47,11 +38,7 @@ class Metrics:
     """The service's counters, histograms and gauges."""
 
     def __init__(self) -> None:
-        # prometheus-client picks its value store when first imported; the supervisor sets the
-        # variable before any worker imports it.
-        self.multiprocess = bool(os.environ.get(MULTIPROC_ENV))
         self.registry = CollectorRegistry(auto_describe=True)
-        self._live: list[tuple[Gauge, Callable[[], float]]] = []
         self._model_version: str | None = None
         r = self.registry
         # process_resident_memory_bytes and friends: memory that uploads leave behind shows here.
@@ -77,40 +64,35 @@ class Metrics:
                                     "Seconds a request's queries waited in the micro-batcher's queue.",
                                     buckets=_STAGE_BUCKETS, registry=r)
         self.queued = Gauge("complementme_batch_queued_queries",
-                            "Queries waiting in the micro-batcher's queue now.", multiprocess_mode="livesum",
-                            registry=r)
+                            "Queries waiting in the micro-batcher's queue now.", registry=r)
         self.candidates = Histogram("complementme_candidates", "Catalog parts re-scored per query.",
                                     buckets=_SIZE_BUCKETS, registry=r)
-        self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.",
-                                   multiprocess_mode="livemostrecent", registry=r)
+        self.catalog_parts = Gauge("complementme_catalog_parts", "Parts in the loaded catalog.", registry=r)
         self.model_info = Gauge("complementme_model_info", "The loaded model version (value 1).",
-                                ["model_version"], multiprocess_mode="livemax", registry=r)
+                                ["model_version"], registry=r)
         # The overload gate's (service/api/overload.py).
         self.rejections = Counter("complementme_overload_rejections", "Requests refused by the overload "
                                   "gate or cut at their deadline, by reason.", ["reason"], registry=r)
         self.inflight_requests = Gauge("complementme_inflight_requests", "Gated requests running now.",
-                                       multiprocess_mode="livesum", registry=r)
+                                       registry=r)
         self.queued_requests = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
-                                     multiprocess_mode="livesum", registry=r)
+                                     registry=r)
 
     def watch_replication(self, replication: Callable[[], dict[str, Any] | None]) -> None:
         """Gauges of a postgres-backed replica's place in the database's changes (registered only
-        then: a SQLite server has no such place). With several workers, the most behind one counts."""
+        then: a SQLite server has no such place)."""
         r = self.registry
         gauges = {
             "applied_change": Gauge("complementme_catalog_applied_change", "The last catalog database "
-                                    "change this replica's served catalog includes.",
-                                    multiprocess_mode="livemin", registry=r),
+                                    "change this replica's served catalog includes.", registry=r),
             "database_change": Gauge("complementme_catalog_database_change", "The latest catalog database "
-                                     "change this replica knows of.", multiprocess_mode="livemax",
-                                     registry=r),
+                                     "change this replica knows of.", registry=r),
             "lag_changes": Gauge("complementme_catalog_lag_changes", "Catalog database changes known but not "
-                                 "yet applied.", multiprocess_mode="livemax", registry=r),
+                                 "yet applied.", registry=r),
             "lag_seconds": Gauge("complementme_catalog_lag_seconds", "How long this replica has known of a "
-                                 "change it has not applied (0: up to date).", multiprocess_mode="livemax",
-                                 registry=r),
+                                 "change it has not applied (0: up to date).", registry=r),
             "database": Gauge("complementme_catalog_database_up", "1 while the catalog database is "
-                              "reachable, 0 while it is not.", multiprocess_mode="livemin", registry=r),
+                              "reachable, 0 while it is not.", registry=r),
         }
 
         def reader(key: str) -> Callable[[], float]:
@@ -124,24 +106,8 @@ class Metrics:
             self.watch(gauge, reader(key))
 
     def watch(self, gauge: Gauge, read: Callable[[], float]) -> None:
-        """Report ``read()`` as the gauge's value: at each scrape, or (multiprocess mode) as of the
-        last ``refresh_live``."""
-        if self.multiprocess:
-            self._live.append((gauge, read))
-            gauge.set(read())
-        else:
-            gauge.set_function(read)
-
-    async def refresh_live_forever(self) -> None:
-        """``refresh_live`` every ``LIVE_REFRESH_SECONDS`` (a task of each worker's lifespan)."""
-        while True:
-            self.refresh_live()
-            await asyncio.sleep(LIVE_REFRESH_SECONDS)
-
-    def refresh_live(self) -> None:
-        """Copy the watched gauges' current values into this process's multiprocess files."""
-        for gauge, read in self._live:
-            gauge.set(read())
+        """Report ``read()`` as the gauge's value at each scrape."""
+        gauge.set_function(read)
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         labels = (method, route, str(status))
@@ -171,21 +137,11 @@ class Metrics:
 
     def set_model(self, model_version: str, parts: int) -> None:
         self.catalog_parts.set(parts)
-        # A multiprocess file keeps every label it was given: an old version is set to 0 before it
-        # is dropped, so that it reads as "not loaded" there too.
         if self._model_version not in (None, model_version):
-            self.model_info.labels(self._model_version).set(0)
-            if not self.multiprocess:  # prometheus-client cannot drop a label from its files
-                self.model_info.remove(self._model_version)
+            self.model_info.remove(self._model_version)
         self.model_info.labels(model_version).set(1)
         self._model_version = model_version
 
     def render(self) -> bytes:
-        """The text exposition of this process, or of every worker in multiprocess mode."""
-        if not self.multiprocess:
-            return generate_latest(self.registry)
-        self.refresh_live()
-        merged = CollectorRegistry()
-        MultiProcessCollector(merged)
-        ProcessCollector(registry=merged)  # this worker's own RSS, CPU and open files
-        return generate_latest(merged)
+        """The text exposition of this process's metrics."""
+        return generate_latest(self.registry)

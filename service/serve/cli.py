@@ -22,6 +22,10 @@ from service.serve.logs import LOG_FORMAT, quiet_libraries
 
 log = logging.getLogger(__name__)
 
+APP_FACTORY = "service.api.app:create_app"  # what uvicorn serves (the benchmarks' set-ups serve it too)
+# uvicorn's httptools protocol answering parser errors with the JSON error body (its ``http``).
+HTTP_PROTOCOL = "service.api.http_protocol:JsonErrorProtocol"
+GRACEFUL_SECONDS = 10  # uvicorn's grace for requests in flight at a stop
 
 
 def _frame_options(up_axis: str | None, center: str | None, radius: float | None) -> dict[str, Any] | None:
@@ -93,19 +97,22 @@ def register_service_commands(app: typer.Typer) -> None:
                                               "or exported/ at the repository root)."),
         host: str | None = typer.Option(None, help="Bind address (default: COMPLEMENTME_HOST)."),
         port: int | None = typer.Option(None, help="Port (default: COMPLEMENTME_PORT)."),
-        workers: int | None = typer.Option(None, help="Worker processes (default: COMPLEMENTME_WORKERS)."),
     ) -> None:
-        """Serve the suggestion API with uvicorn on the exported artifacts."""
+        """Serve the suggestion API with uvicorn on the exported artifacts: one server process.
+
+        For more cores, run one process per core on ports of their own behind a proxy
+        (docker/haproxy/haproxy.cfg, docs/deploy.md).
+        """
         import uvicorn
         from pydantic import ValidationError
 
         quiet_libraries()
         from service.settings import ENV_PREFIX, get_settings
 
-        # Options become environment settings so that every worker process reads the same ones.
+        # Options become environment settings: the app factory reads its settings from there.
         if artifacts is not None:
             os.environ[ENV_PREFIX + "ARTIFACTS"] = str(artifacts.resolve())
-        for name, value in (("HOST", host), ("PORT", port), ("WORKERS", workers)):
+        for name, value in (("HOST", host), ("PORT", port)):
             if value is not None:
                 os.environ[ENV_PREFIX + name] = str(value)
         get_settings.cache_clear()
@@ -125,21 +132,9 @@ def register_service_commands(app: typer.Typer) -> None:
             except StoreError as exc:
                 typer.echo(f"error: {exc}", err=True)
                 raise typer.Exit(1) from None
-        log.info("serving %s on http://%s:%d with %d worker(s)", s.artifacts, s.host, s.port, s.workers)
-        from service.serve.workers import APP_FACTORY, GRACEFUL_SECONDS, HTTP_PROTOCOL, Supervisor
-
-        if s.workers == 1:
-            uvicorn.run(APP_FACTORY, factory=True, http=HTTP_PROTOCOL, host=s.host, port=s.port,
-                        log_level=s.log_level, timeout_graceful_shutdown=GRACEFUL_SECONDS)
-            return
-
-        try:
-            status = Supervisor(s.host, s.port, s.workers, log_level=s.log_level,
-                                max_pending=s.worker_max_pending).run()
-        except OSError as exc:
-            typer.echo(f"error: cannot listen on {s.host}:{s.port}: {exc}", err=True)
-            raise typer.Exit(1) from None
-        raise typer.Exit(status)
+        log.info("serving %s on http://%s:%d", s.artifacts, s.host, s.port)
+        uvicorn.run(APP_FACTORY, factory=True, http=HTTP_PROTOCOL, host=s.host, port=s.port,
+                    log_level=s.log_level, timeout_graceful_shutdown=GRACEFUL_SECONDS)
 
     @app.command()
     def suggest(

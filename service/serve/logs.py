@@ -1,8 +1,4 @@
-"""Log format and library log levels shared by the CLI and the worker processes.
-
-Its own module so that ``service.serve.cli`` and ``service.serve.workers`` both read it without importing
-each other.
-"""
+"""Log format and library log levels of the ``complementme`` command line (``service.serve.cli``)."""
 
 from __future__ import annotations
 

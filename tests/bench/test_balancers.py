@@ -1,6 +1,6 @@
-"""The balancer benchmark: its round order, its CPU accounting from /proc, its summary and report,
-and one quick run of all four set-ups end to end. The HAProxy configuration it starts (the shipped
-one): tests/deploy/test_haproxy.py."""
+"""The balancer benchmark: its round order, its CPU accounting from /proc, its summary and report
+(of new runs, and of the committed first run, which still had our own supervisor), and one quick
+run of all three set-ups end to end. The shipped HAProxy set-up alone: tests/deploy/test_haproxy.py."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from bench.balancer_bench import (
+    REFERENCE,
     SETUPS,
     BalancerBenchConfig,
     cpu_split,
@@ -23,7 +24,7 @@ from bench.balancer_bench import (
 )
 from bench.query import REPO
 from bench.report import render_results
-from bench.results import load_results
+from bench.results import RESULTS_DIR, load_results
 
 ARTIFACTS = REPO / "exported"
 
@@ -32,12 +33,14 @@ def test_every_round_runs_every_set_up_and_starts_at_the_next() -> None:
     orders = [round_order(SETUPS, r) for r in range(len(SETUPS) + 1)]
     assert all(sorted(o) == sorted(SETUPS) for o in orders)
     assert [o[0] for o in orders] == [*SETUPS, SETUPS[0]]
-    assert round_order(("ours",), 3) == ["ours"]
+    assert round_order(("haproxy",), 3) == ["haproxy"]
 
 
 def test_config_refuses_unknown_set_ups() -> None:
     with pytest.raises(ValueError, match="nginx"):
-        BalancerBenchConfig(setups=("ours", "nginx"))
+        BalancerBenchConfig(setups=("haproxy", "nginx"))
+    with pytest.raises(ValueError, match="ours"):  # the supervisor it measured is gone
+        BalancerBenchConfig(setups=("ours", "haproxy"))
     with pytest.raises(ValueError, match="haproxy_mode"):
         BalancerBenchConfig(haproxy_mode="udp")
 
@@ -91,12 +94,13 @@ def _run(setup: str, round_: int, rps: float, p50: float, p99: float, share: flo
 
 
 def _balancers_result() -> dict[str, Any]:
-    runs = [_run("ours", 0, 700, 40.0, 70.0, 0.5), _run("haproxy", 0, 600, 45.0, 60.0, 0.51),
-            _run("ours", 1, 600, 50.0, 90.0, 0.5), _run("haproxy", 1, 660, 48.0, 66.0, 0.5),
-            _run("ours", 2, 650, 44.0, 80.0, 0.52), _run("haproxy", 2, 500, 60.0, 100.0, 0.49)]
-    cfg = BalancerBenchConfig(setups=("ours", "haproxy"))
+    runs = [_run("gunicorn", 0, 700, 40.0, 70.0, 0.5), _run("haproxy", 0, 600, 45.0, 60.0, 0.51),
+            _run("gunicorn", 1, 600, 50.0, 90.0, 0.5), _run("haproxy", 1, 660, 48.0, 66.0, 0.5),
+            _run("gunicorn", 2, 650, 44.0, 80.0, 0.52), _run("haproxy", 2, 500, 60.0, 100.0, 0.49)]
+    cfg = BalancerBenchConfig(setups=("gunicorn", "haproxy"))
     results = {"query": {"source": "x", "points": 1000, "k": 10},
-               "versions": {"haproxy": "2.6.12-1+deb12u4"}, "same_top_part": True, "runs": runs,
+               "versions": {"haproxy": "2.6.12-1+deb12u4", "gunicorn": "23.0.0", "uvicorn-worker": "0.3.0"},
+               "same_top_part": True, "runs": runs,
                "summary": summarize(runs, cfg.setups)}
     machine = {"cpu_model": "Test CPU", "cpu_flags": [], "cores": 2, "usable_cores": 2, "ram_gib": 1.0,
                "kernel": "6", "python": "3.11", "load_average_at_start": [0.1, 0.1, 0.1], "packages": {},
@@ -104,27 +108,29 @@ def _balancers_result() -> dict[str, Any]:
     return {"benchmark": "balancers", "machine": machine, "config": cfg.as_dict(), "results": results}
 
 
-def test_summary_takes_medians_over_rounds_and_compares_with_ours() -> None:
+def test_summary_takes_medians_over_rounds_and_compares_with_haproxy() -> None:
+    assert REFERENCE == "haproxy"  # the shipped set-up
     summary = {row["setup"]: row for row in _balancers_result()["results"]["summary"]}
-    ours, haproxy = summary["ours"], summary["haproxy"]
-    assert (ours["runs"], ours["throughput_rps"], ours["p99_ms"]) == (3, 650, 80.0)
-    assert ours["throughput_range"] == [600, 700] and ours["p99_range"] == [70.0, 90.0]
+    gunicorn, haproxy = summary["gunicorn"], summary["haproxy"]
+    assert (gunicorn["runs"], gunicorn["throughput_rps"], gunicorn["p99_ms"]) == (3, 650, 80.0)
+    assert gunicorn["throughput_range"] == [600, 700] and gunicorn["p99_range"] == [70.0, 90.0]
     assert (haproxy["throughput_rps"], haproxy["p50_ms"], haproxy["p99_ms"]) == (600, 48.0, 66.0)
-    assert haproxy["vs_ours"]["throughput"] == pytest.approx(600 / 650)
-    assert haproxy["vs_ours"]["p99"] == pytest.approx(80 / 66)  # above 1: a lower p99 than ours
-    assert ours["vs_ours"] == {"throughput": 1.0, "p50": 1.0, "p99": 1.0}
-    assert summarize(_balancers_result()["results"]["runs"], ("haproxy",))[0]["vs_ours"] is None
+    assert gunicorn["vs_reference"]["throughput"] == pytest.approx(650 / 600)
+    assert gunicorn["vs_reference"]["p99"] == pytest.approx(66 / 80)  # below 1: a higher p99 than HAProxy's
+    assert haproxy["vs_reference"] == {"throughput": 1.0, "p50": 1.0, "p99": 1.0}
+    assert {row["reference"] for row in summary.values()} == {"haproxy"}
+    assert summarize(_balancers_result()["results"]["runs"], ("gunicorn",))[0]["vs_reference"] is None
 
 
 def test_report_renders_the_summary_and_every_run() -> None:
     text = render_results({"balancers": _balancers_result()})
     assert "### g. Balancers: two processes behind one port (issue 17)" in text
-    assert ("| ours: `complementme serve --workers 2` | 650 (600-700) | 44.00 | 80.00 (70.00-90.00) | 0 "
-            "| 50 % |") in text
-    assert ("| HAProxy 2.6.12-1+deb12u4 (http, leastconn) + 2 x `complementme serve --workers 1` "
-            "| 600 (500-660) |") in text
+    assert ("| gunicorn 23.0.0, 2 uvicorn workers (uvicorn-worker 0.3.0) | 650 (600-700) | 44.00 | 80.00 "
+            "(70.00-90.00) | 0 | 50 % |") in text
+    assert "| HAProxy 2.6.12-1+deb12u4 (http, leastconn) + 2 x `complementme serve` | 600 (500-660) |" in text
+    assert "| Against haproxy: req/s, p50, p99 |" in text and "ours" not in text
     assert "replaced" not in text
-    assert "| 0.92, 0.92, 1.21 |" in text  # haproxy against ours: req/s, p50, p99
+    assert "| 1.08, 1.09, 0.82 |" in text  # gunicorn against haproxy: req/s, p50, p99
     assert text.count("| haproxy | ") == 3 and "| 3 | haproxy | 500 | 60.00 | 100 | 0 | 49 % |" in text
     data = _balancers_result()
     data["results"]["runs"][1]["cpu"]["changed"] = ["18351 python", "18569 python"]
@@ -132,7 +138,15 @@ def test_report_renders_the_summary_and_every_run() -> None:
         in render_results({"balancers": data})
 
 
-def test_quick_run_of_all_four_set_ups_writes_the_results(tmp_path: Path) -> None:
+def test_the_committed_first_run_still_renders_with_our_removed_supervisor() -> None:
+    data = load_results(RESULTS_DIR)["balancers"]
+    text = render_results({"balancers": data})
+    assert "| Against ours: req/s, p50, p99 |" in text
+    assert "| ours (since removed): `complementme serve --workers 2` | 565 (490-576) |" in text
+    assert "+ 2 x `complementme serve` | 551 (540-563) |" in text
+
+
+def test_quick_run_of_all_three_set_ups_writes_the_results(tmp_path: Path) -> None:
     if not (ARTIFACTS / "manifest.json").is_file():
         pytest.skip(f"the benchmark serves the shipped model: no artifact folder at {ARTIFACTS}")
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
@@ -146,7 +160,7 @@ def test_quick_run_of_all_four_set_ups_writes_the_results(tmp_path: Path) -> Non
     assert [run["setup"] for run in r["runs"]] == list(SETUPS)
     for run in r["runs"]:
         assert run["requests"] > 0 and run["errors"] == 0 and set(run["statuses"]) == {"200"}, run
-        # Two server processes and at least one more (supervisor, arbiter, proxy) in every set-up.
+        # Two server processes and at least one more (arbiter, supervisor, proxy) in every set-up.
         assert len(run["cpu"]["processes"]) >= 3 and len(run["cpu"]["servers_cores"]) == 2, run["cpu"]
     assert r["same_top_part"]
     assert r["versions"]["gunicorn"] and r["versions"]["uvicorn-worker"] and r["versions"]["haproxy"]

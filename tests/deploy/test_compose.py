@@ -91,9 +91,8 @@ def test_environment_names_real_settings_within_the_cpu_budget() -> None:
         assert not unknown, f"not settings of service/settings.py: {unknown}"
         Settings.model_validate({k[len(ENV_PREFIX):].lower(): v for k, v in env.items()
                                  if k != f"{ENV_PREFIX}API_KEY"})
-        workers = int(env.get("COMPLEMENTME_WORKERS", "1"))
-        for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):
-            assert workers * int(env.get(threads, "1")) <= float(api["cpus"]), threads
+        for threads in ("COMPLEMENTME_ONNX_THREADS", "COMPLEMENTME_FAISS_THREADS"):  # one process each
+            assert int(env.get(threads, "1")) <= float(api["cpus"]), threads
 
 
 def test_image_tag_is_the_project_version() -> None:

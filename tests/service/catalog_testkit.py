@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 from service_testkit import make_settings
 
-from service.serve.workers import HTTP_PROTOCOL
+from service.serve.cli import HTTP_PROTOCOL
 from service.settings import Settings
 
 KEY = "test-key-0123456789abcdef"

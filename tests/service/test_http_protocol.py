@@ -18,7 +18,7 @@ import uvicorn
 from catalog_testkit import free_port
 from starlette.types import Receive, Scope, Send
 
-from service.serve.workers import HTTP_PROTOCOL
+from service.serve.cli import HTTP_PROTOCOL
 
 
 async def _hello(scope: Scope, receive: Receive, send: Send) -> None:

@@ -84,8 +84,8 @@ def test_serve_makes_no_outbound_connection(artifacts: Path, query: AssemblyQuer
                 "COMPLEMENTME_LOG_LEVEL": "warning"})
     proc = subprocess.Popen(
         ["strace", "-f", "-qq", "-e", "trace=connect,sendto,sendmsg", "-o", str(log),
-         sys.executable, "-m", "training", "serve", "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1"], env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+         sys.executable, "-m", "training", "serve", "--host", "127.0.0.1", "--port", str(port)],
+        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     url = f"http://127.0.0.1:{port}"
     try:
         with httpx.Client(base_url=url, timeout=30) as http:
