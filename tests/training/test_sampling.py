@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import trimesh
@@ -10,6 +12,7 @@ from service.geometry.mesh import points_to_mesh_distance
 from training.data.preprocess import Kept, PreprocessConfig, ShapeRecord, assemble, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.sampling import (
+    Triplet,
     TripletSampler,
     component_descriptors,
     lookalike_components,
@@ -76,12 +79,16 @@ def _connected_within(nodes: list[int], adj: list[set[int]]) -> bool:
     return seen == set(nodes)
 
 
+def _triplets(sampler: TripletSampler, n: int, seed: int) -> Iterator[Triplet]:
+    """``n`` triplets of ``sampler``, drawn with ``np.random.default_rng(seed)``."""
+    rng = np.random.default_rng(seed)
+    return (sampler.sample_triplet(rng) for _ in range(n))
+
+
 def test_triplets_respect_the_contact_graph(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=64)
     adj = dataset.adjacency()
-    rng = np.random.default_rng(1)
-    for _ in range(300):
-        t = sampler.sample_triplet(rng)
+    for t in _triplets(sampler, 300, seed=1):
         comps = set(dataset.components_of(t.shape).tolist())
         assert set(t.query) <= comps and 1 <= len(t.query) <= len(comps) - 1
         assert len(set(t.query)) == len(t.query)
@@ -95,10 +102,8 @@ def test_triplets_respect_the_contact_graph(dataset: ProcessedDataset) -> None:
 def test_query_negatives_come_from_the_query_at_the_asked_share(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=64, query_negative_fraction=0.4)
     adj = dataset.adjacency()
-    rng = np.random.default_rng(5)
     from_query = 0
-    for _ in range(1000):
-        t = sampler.sample_triplet(rng)
+    for t in _triplets(sampler, 1000, seed=5):
         assert t.negative != t.positive
         if t.negative in t.query:
             from_query += 1
@@ -127,9 +132,7 @@ def test_lookalikes_are_the_nearest_components_of_other_shapes_of_the_category(
 
 def test_lookalike_negatives_come_from_other_shapes_of_the_category(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=32, lookalike_negative_fraction=1.0, lookalike_neighbours=2)
-    rng = np.random.default_rng(6)
-    for _ in range(200):
-        t = sampler.sample_triplet(rng)
+    for t in _triplets(sampler, 200, seed=6):
         neg_shape = int(dataset.shape_of[t.negative])
         assert neg_shape != t.shape
         assert dataset.shapes[neg_shape]["category"] == dataset.shapes[t.shape]["category"]
@@ -144,10 +147,8 @@ def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset)
 def test_removal_queries_are_a_shape_minus_a_connected_group(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=32, removal_query_fraction=1.0)
     adj = dataset.adjacency()
-    rng = np.random.default_rng(8)
     disconnected = 0
-    for _ in range(300):
-        t = sampler.sample_triplet(rng)
+    for t in _triplets(sampler, 300, seed=8):
         comps = set(dataset.components_of(t.shape).tolist())
         removed = sorted(comps - set(t.query))
         assert removed and t.query and _connected_within(removed, adj)
