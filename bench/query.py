@@ -15,6 +15,9 @@ from typing import Any
 import numpy as np
 import orjson
 
+# The framework peer's decoded request owns a query's fields; it cannot import this module instead
+# (the peer's own venv has no orjson, nor the service's settings).
+from bench.framework.pipeline import Query
 from service.geometry.inputs import points_to_base64
 from service.geometry.mesh import resample_points
 
@@ -24,15 +27,10 @@ BODY_KINDS = ("json", "base64")
 
 
 @dataclass(frozen=True)
-class BenchQuery:
-    """The points and k of the benchmark's request.
+class BenchQuery(Query):
+    """The benchmark's request: its points and k, as the framework peer decodes a request (``Query``),
+    and the file they came from."""
 
-    Shapes:
-        points: (n_points, 3) float32, canonical frame.
-    """
-
-    points: np.ndarray
-    k: int
     source: str
 
     def body(self, kind: str, **options: Any) -> bytes:
