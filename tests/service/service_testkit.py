@@ -1,4 +1,5 @@
-"""Helpers shared by the service tests: test limits, settings, catalog-built queries.
+"""Helpers shared by the service tests: test limits, settings, catalog-built queries, background
+threads.
 
 Queries are built from the catalog itself: a catalog shape minus one of its parts
 (``assembly_query``), the setting of the paper's retrieval benchmark, so quality assertions
@@ -10,6 +11,8 @@ from __future__ import annotations
 import json
 import os
 import struct
+import threading
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -50,6 +53,14 @@ def make_settings(folder: Path, **overrides: object) -> Settings:
     values = {"artifacts": folder, "onnx_threads": 1, "faiss_threads": 1, "seed": 0, "warmup": True,
               "verify_checksums": True, **TEST_LIMITS, **overrides}
     return Settings(**values)  # type: ignore[arg-type]
+
+
+def stop_and_join(stop: threading.Event, threads: Iterable[threading.Thread], timeout: float) -> None:
+    """Set ``stop`` (the threads' signal to finish) and join each thread, waiting at most ``timeout``
+    seconds for each."""
+    stop.set()
+    for t in threads:
+        t.join(timeout=timeout)
 
 
 @dataclass

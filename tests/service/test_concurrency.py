@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from catalog_testkit import AUTH, LiveServer, part_mesh
-from service_testkit import AssemblyQuery
+from service_testkit import AssemblyQuery, stop_and_join
 
 from service.geometry.inputs import points_to_base64
 
@@ -63,9 +63,7 @@ def test_many_writers_and_readers(artifacts: Path, tmp_path: Path, query: Assemb
             t.start()
         for t in writers:
             t.join(timeout=600)
-        writers_done.set()
-        for t in readers:
-            t.join(timeout=120)
+        stop_and_join(writers_done, readers, 120)
         wall = time.perf_counter() - t0
         assert not errors, errors[:5]
         assert len(added) == len(set(added)) == WRITERS * ADDS_EACH

@@ -23,6 +23,8 @@ import statistics
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +34,7 @@ import psycopg
 import trimesh
 from catalog_testkit import AUTH, LiveServer, part_mesh
 from pg_testkit import PostgresCluster, wait_until
+from service_testkit import stop_and_join
 
 from service.geometry.inputs import points_to_base64
 
@@ -71,6 +74,18 @@ def start_all(servers: list[LiveServer]) -> None:
         t.join()
     if errors:
         raise errors[0]
+
+
+@contextmanager
+def started(servers: dict[str, LiveServer]) -> Iterator[dict[str, LiveServer]]:
+    """Start ``servers`` together; on the way out stop every server then in the dict (the test may
+    put a restarted or a late replica in it)."""
+    try:
+        start_all(list(servers.values()))
+        yield servers
+    finally:
+        for s in servers.values():
+            s.stop()
 
 
 @functools.cache
@@ -224,9 +239,7 @@ class AppliedWatch:
                 self._stop.wait(self.period)
 
     def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=60)
+        stop_and_join(self._stop, self._threads, 60)
 
     def lags(self, name: str, acks: list[Ack], seq_of: dict[str, int]) -> list[float]:
         samples = self.samples[name]
@@ -272,10 +285,8 @@ def test_two_replicas_take_writes_and_a_late_third_catches_up(artifacts: Path, t
     # follows by LISTEN/NOTIFY. How fast is measured and printed, not asserted (a loaded host
     # must not fail the suite): docs/deploy.md records the figures against issue 21's 1 s.
     a, b = (replica(artifacts, tmp_path / n, url, poll_seconds=0) for n in ("a", "b"))
-    servers = {"a": a, "b": b}
     log = Log()
-    try:
-        start_all([a, b])
+    with started({"a": a, "b": b}) as servers:
         watch = AppliedWatch({n: s.url for n, s in servers.items()})
         stop = threading.Event()
         query = shipped_query()
@@ -289,9 +300,7 @@ def test_two_replicas_take_writes_and_a_late_third_catches_up(artifacts: Path, t
         for t in writers:
             t.join(timeout=600)
         elapsed = time.monotonic() - t0
-        stop.set()
-        for t in readers:
-            t.join(timeout=60)
+        stop_and_join(stop, readers, 60)
         assert not log.errors, log.errors[:10]
         acks = list(log.acks.values())
         total = len(servers) * WRITERS_PER_REPLICA * PARTS_PER_WRITER
@@ -321,9 +330,6 @@ def test_two_replicas_take_writes_and_a_late_third_catches_up(artifacts: Path, t
         assert_serves(c.url, acks, "late replica c")
         ready = httpx.get(c.url + "/readyz").json()
         assert ready["catalog"]["applied_change"] == last and ready["catalog"]["lag_changes"] == 0
-    finally:
-        for s in servers.values():
-            s.stop()
 
 
 # --------------------------------------------------------------------------------------------
@@ -380,11 +386,9 @@ def acked_on(log: Log, round_: int, name: str) -> int:
 def test_replica_killed_mid_writes_loses_no_acknowledged_part(artifacts: Path, tmp_path: Path,
                                                               postgres: PostgresCluster) -> None:
     url = postgres.new_database()
-    servers = two_replicas(artifacts, tmp_path, url)
-    a, b = servers["a"], servers["b"]
     log = Log()
-    try:
-        start_all([a, b])
+    with started(two_replicas(artifacts, tmp_path, url)) as servers:
+        a, b = servers["a"], servers["b"]
         for round_, kill_after in enumerate(KILL_AFTER):
             before = acked_on(log, round_, "b")
             stop, threads = run_writers(servers, 3, log, round_)
@@ -393,9 +397,7 @@ def test_replica_killed_mid_writes_loses_no_acknowledged_part(artifacts: Path, t
             b.kill()  # SIGKILL with adds in flight on b, and a writing on
             killed_at = acked_on(log, round_, "b")
             time.sleep(0.3)
-            stop.set()
-            for t in threads:
-                t.join(timeout=120)
+            stop_and_join(stop, threads, 120)
             b = servers["b"] = replica(artifacts, tmp_path / f"b{round_}", url)
             start_all([b])
             assert not log.errors, log.errors[:10]
@@ -409,20 +411,15 @@ def test_replica_killed_mid_writes_loses_no_acknowledged_part(artifacts: Path, t
                 assert status["added_parts"] == len(in_db) and status["sequence"] == last, status
             print(f"\nkill {round_ + 1}: b killed after {killed_at} acks on it; {len(acks)} acknowledged, "
                   f"{len(in_db) - len(acks)} committed but unacknowledged, change {last}")
-    finally:
-        for s in servers.values():
-            s.stop()
 
 
 def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts: Path, tmp_path: Path,
                                                                        own_postgres: PostgresCluster) -> None:
     url = own_postgres.new_database()
-    servers = two_replicas(artifacts, tmp_path, url)
-    a, b = servers["a"], servers["b"]
     log = Log()
     query = shipped_query()
-    try:
-        start_all([a, b])
+    with started(two_replicas(artifacts, tmp_path, url)) as servers:
+        a, b = servers["a"], servers["b"]
         stop_reads = threading.Event()
         readers = [threading.Thread(target=reader, args=(s.url, n, stop_reads, log, query))
                    for n, s in servers.items() for _ in range(2)]
@@ -462,12 +459,8 @@ def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts
         assert degraded == {"a": True, "b": True}, degraded
         wait_until(lambda: len(log.acks) >= acked_before_outage + 10,
                    f"adds were acknowledged after the restart ({log.errors[:5]})", every=0.05)
-        stop.set()
-        for t in threads:
-            t.join(timeout=120)
-        stop_reads.set()
-        for t in readers:
-            t.join(timeout=60)
+        stop_and_join(stop, threads, 120)
+        stop_and_join(stop_reads, readers, 60)
         assert not log.errors, log.errors[:10]
         last = wait_converged([a.url, b.url], url)
         _, in_db = database_state(url)
@@ -482,6 +475,3 @@ def test_database_outage_reads_serve_writes_503_then_replicas_converge(artifacts
         print(f"\noutage: {acked_before_outage} acks before, {len(acks)} after; probes answered 503 "
               f"{unavailable} times; reads during the run {reads_during}; writes "
               f"{log.statuses.get('write')}; converged at change {last}")
-    finally:
-        for s in servers.values():
-            s.stop()
