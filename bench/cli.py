@@ -28,6 +28,13 @@ ResultsOpt = typer.Option(RESULTS_DIR, "--results-dir", help="Where the JSON res
 QuickOpt = typer.Option(False, "--quick", help="Tiny counts and durations, for development only.")
 QueryOpt = typer.Option(EXAMPLE, "--query", help="JSON file with the query's points.")
 CacheOpt = typer.Option(CACHE_DIR, "--cache-dir", help="Built indexes, request bodies and server logs.")
+# The load options of every wrk-driven command (http, peer, framework; balancers keeps its own
+# defaults for duration and warm-up).
+DurationOpt = typer.Option(None, min=1, help="Measured seconds per level (default 10).")
+WarmupSecondsOpt = typer.Option(None, min=0, help="Warm-up seconds per level (default 3).")
+WrkThreadsOpt = typer.Option(1, min=1, help="wrk threads.")
+WrkTimeoutOpt = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out.")
+ServerEnvOpt = typer.Option(None, help="KEY=VALUE for our server processes (repeatable).")
 ProcessesOpt = typer.Option(None, "--processes", min=1, help=(
     "Processes of our server, behind HAProxy (docker/haproxy/haproxy.cfg) when more than one "
     "(default: the usable cores)."))
@@ -214,11 +221,9 @@ def http(
     results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
     cache_dir: Path = CacheOpt,
     concurrency: str = typer.Option("1,8,32,64", help="Concurrency levels (wrk connections)."),
-    duration: float | None = typer.Option(None, min=1, help="Measured seconds per level (default 10)."),
-    warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per level (default 3)."),
-    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
-    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
-    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for the server (repeatable)."),
+    duration: float | None = DurationOpt, warmup_seconds: float | None = WarmupSecondsOpt,
+    wrk_threads: int = WrkThreadsOpt, timeout: float = WrkTimeoutOpt,
+    server_env: list[str] | None = ServerEnvOpt,
     processes: int | None = ProcessesOpt,
 ) -> None:
     """b. HTTP load with wrk against `complementme serve` per core behind HAProxy (JSON, base64 bodies)."""
@@ -248,11 +253,9 @@ def peer(
     results_dir: Path = ResultsOpt, query: Path = QueryOpt, quick: bool = QuickOpt,
     cache_dir: Path = CacheOpt,
     concurrency: str = typer.Option("1,32", help="Concurrency levels."),
-    duration: float | None = typer.Option(None, min=1, help="Measured seconds per level (default 10)."),
-    warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per level (default 3)."),
-    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
-    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
-    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for our server (repeatable)."),
+    duration: float | None = DurationOpt, warmup_seconds: float | None = WarmupSecondsOpt,
+    wrk_threads: int = WrkThreadsOpt, timeout: float = WrkTimeoutOpt,
+    server_env: list[str] | None = ServerEnvOpt,
     processes: int | None = ProcessesOpt,
 ) -> None:
     """d. The peer baseline (torch eager, plain FastAPI) against our service, same load, same run."""
@@ -266,11 +269,9 @@ def framework(
     cache_dir: Path = CacheOpt,
     frameworks: str = typer.Option("bentoml,litserve", help="Framework peers to run, in order."),
     concurrency: str = typer.Option("1,8,32,64", help="Concurrency levels."),
-    duration: float | None = typer.Option(None, min=1, help="Measured seconds per level (default 10)."),
-    warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per level (default 3)."),
-    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
-    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
-    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for our server (repeatable)."),
+    duration: float | None = DurationOpt, warmup_seconds: float | None = WarmupSecondsOpt,
+    wrk_threads: int = WrkThreadsOpt, timeout: float = WrkTimeoutOpt,
+    server_env: list[str] | None = ServerEnvOpt,
 ) -> None:
     """f. Framework peers (BentoML, LitServe; same graphs and index) against our service, same run."""
     load = _load(quick, duration, warmup_seconds, wrk_threads, timeout)
@@ -293,7 +294,7 @@ def interactive(
     requests: int | None = typer.Option(None, min=1, help="Timed requests per path (default 20)."),
     warmup: int | None = typer.Option(None, min=0, help="Untimed requests per path first (default 2)."),
     target_faces: int = typer.Option(100_000, min=1, help="Triangles of the uploaded query mesh."),
-    server_env: list[str] | None = typer.Option(None, help="KEY=VALUE for the server (repeatable)."),
+    server_env: list[str] | None = ServerEnvOpt,
     processes: int | None = ProcessesOpt,
 ) -> None:
     """e. Interactive paths at concurrency 1: mesh upload (GLB, OBJ), /place, contact, /assemble."""
@@ -311,8 +312,7 @@ def balancers(
     connections: int = typer.Option(32, min=1, help="wrk connections."),
     duration: float | None = typer.Option(None, min=1, help="Measured seconds per run (default 20)."),
     warmup_seconds: float | None = typer.Option(None, min=0, help="Warm-up seconds per run (default 5)."),
-    wrk_threads: int = typer.Option(1, min=1, help="wrk threads."),
-    timeout: float = typer.Option(30.0, min=1, help="Seconds before wrk counts a request as timed out."),
+    wrk_threads: int = WrkThreadsOpt, timeout: float = WrkTimeoutOpt,
     haproxy_mode: str = typer.Option("http", help="HAProxy's mode: http (balances requests) or tcp "
                                      "(balances connections)."),
     haproxy_balance: str = typer.Option("leastconn", help="HAProxy's balance algorithm."),

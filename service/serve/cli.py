@@ -88,6 +88,11 @@ def _table(answer: dict[str, Any]) -> str:
     return "\n".join([f"model {answer['model_version']}", frame, *lines])
 
 
+# The options `suggest` and `batch` share.
+UrlOpt = typer.Option("http://127.0.0.1:8000", help="The service's base URL.")
+CategoryOpt = typer.Option(None, help="Only this category (repeatable).")
+
+
 def register_service_commands(app: typer.Typer) -> None:
     """Add the service's commands to the root CLI (kept here so they need no torch)."""
 
@@ -141,11 +146,11 @@ def register_service_commands(app: typer.Typer) -> None:
         file: Path = typer.Argument(..., exists=True, dir_okay=False, help=(
             "A mesh (.obj .ply .stl .off .glb .gltf), points (.npy; .xyz .pts .txt: x y z per line) "
             "or a saved /suggest request (.json, e.g. examples/chair-without-legs.json).")),
-        url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
+        url: str = UrlOpt,
         k: int | None = typer.Option(None, "--k", "-k", help=(
             "Suggestions to show [default: the request file's k, else the service's "
             "COMPLEMENTME_DEFAULT_K, 10].")),
-        category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
+        category: list[str] | None = CategoryOpt,
         exclude_shape: list[str] | None = typer.Option(None, help="Never parts of this shape (repeatable)."),
         up_axis: str | None = typer.Option(None, help="The file's up axis: y or z."),
         center: str | None = typer.Option(None, help="Centre of the complete object in file units: x,y,z."),
@@ -178,13 +183,13 @@ def register_service_commands(app: typer.Typer) -> None:
         folder: Path = typer.Argument(..., exists=True, file_okay=False, help=(
             "Folder of meshes, point files and .json requests (the files `suggest` takes); "
             "other files and sub-folders are listed as skipped.")),
-        url: str = typer.Option("http://127.0.0.1:8000", help="The service's base URL."),
+        url: str = UrlOpt,
         out: Path = typer.Option(Path("results.jsonl"), help="JSON Lines output, one line per file."),
         concurrency: int = typer.Option(4, min=1, max=256, help="Requests in flight at once."),
         k: int | None = typer.Option(None, "--k", "-k", help=(
             "Suggestions per file [default: a request file's k, else the service's COMPLEMENTME_DEFAULT_K, "
             "10].")),
-        category: list[str] | None = typer.Option(None, help="Only this category (repeatable)."),
+        category: list[str] | None = CategoryOpt,
         up_axis: str | None = typer.Option(None, help="The files' up axis: y or z."),
         timeout: float = typer.Option(60.0, help="Seconds per request."),
     ) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +23,8 @@ from bench.balancer_bench import (
     summarize,
     tree_cpu,
 )
-from bench.query import REPO
 from bench.report import render_results
 from bench.results import RESULTS_DIR, load_results
-
-ARTIFACTS = REPO / "exported"
 
 
 def test_every_round_runs_every_set_up_and_starts_at_the_next() -> None:
@@ -146,16 +144,9 @@ def test_the_committed_first_run_still_renders_with_our_removed_supervisor() -> 
     assert "+ 2 x `complementme serve` | 551 (540-563) |" in text
 
 
-def test_quick_run_of_all_three_set_ups_writes_the_results(tmp_path: Path) -> None:
-    if not (ARTIFACTS / "manifest.json").is_file():
-        pytest.skip(f"the benchmark serves the shipped model: no artifact folder at {ARTIFACTS}")
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    cmd = [sys.executable, "-m", "bench", "balancers", "--quick",
-           "--results-dir", str(tmp_path / "results"), "--cache-dir", str(tmp_path / "cache")]
-    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-
-    data = load_results(tmp_path / "results")["balancers"]
+def test_quick_run_of_all_three_set_ups_writes_the_results(
+        tmp_path: Path, quick_bench_run: Callable[[str, Path], dict[str, Any]]) -> None:
+    data = quick_bench_run("balancers", tmp_path)
     r = data["results"]
     assert [run["setup"] for run in r["runs"]] == list(SETUPS)
     for run in r["runs"]:

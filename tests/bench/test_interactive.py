@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import trimesh
 
 from bench.interactive_bench import PATHS, histogram_means, histogram_totals, refine_to_faces
-from bench.query import REPO
 from bench.report import INTERACTIVE_LABELS, render_results
-from bench.results import load_results
-
-ARTIFACTS = REPO / "exported"
 
 
 def test_refining_reaches_the_face_count_and_keeps_the_surface() -> None:
@@ -64,16 +59,9 @@ def test_histogram_means_over_two_snapshots() -> None:
     assert histogram_means(after, after) == {}
 
 
-def test_quick_run_answers_every_path_and_writes_the_results(tmp_path: Path) -> None:
-    if not (ARTIFACTS / "manifest.json").is_file():
-        pytest.skip(f"the benchmark serves the shipped model: no artifact folder at {ARTIFACTS}")
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    cmd = [sys.executable, "-m", "bench", "interactive", "--quick",
-           "--results-dir", str(tmp_path / "results"), "--cache-dir", str(tmp_path / "cache")]
-    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-
-    data = load_results(tmp_path / "results")["interactive"]
+def test_quick_run_answers_every_path_and_writes_the_results(
+        tmp_path: Path, quick_bench_run: Callable[[str, Path], dict[str, Any]]) -> None:
+    data = quick_bench_run("interactive", tmp_path)
     cfg, r = data["config"], data["results"]
     assert cfg["requests"] == 3 and cfg["target_faces"] == 100_000
     assert cfg["target_faces"] <= r["mesh"]["faces"] <= cfg["target_faces"] + 2

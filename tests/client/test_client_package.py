@@ -9,10 +9,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
-import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import pytest
@@ -20,7 +19,6 @@ import tomllib
 
 warnings.filterwarnings("ignore", message=".*httpx.*starlette.testclient.*")
 
-import uvicorn  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 
 from service.api.app import create_app  # noqa: E402
@@ -69,18 +67,10 @@ def settings() -> Settings:
 
 
 @pytest.fixture(scope="module")
-def live_url(settings: Settings) -> Iterator[str]:
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="warning")
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 120
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{server.servers[0].sockets[0].getsockname()[1]}"
-    server.should_exit = True
-    thread.join(timeout=30)
+def live_url(settings: Settings,
+             serve_in_thread: Callable[..., AbstractContextManager[int]]) -> Iterator[str]:
+    with serve_in_thread(create_app(settings)) as port:
+        yield f"http://127.0.0.1:{port}"
 
 
 def test_client_alone_against_the_service(live_url: str, settings: Settings) -> None:

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import json
-import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import httpx
@@ -13,7 +12,6 @@ import numpy as np
 import pytest
 import trimesh
 import typer
-import uvicorn
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery
 from typer.testing import CliRunner
@@ -26,20 +24,10 @@ from service.settings import Settings
 
 
 @pytest.fixture(scope="module")
-def live_url(settings: Settings) -> Iterator[str]:
-    """A real server on a free port, in a thread of this process."""
-    config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="warning")
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 120
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.05)
-    port = server.servers[0].sockets[0].getsockname()[1]
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=30)
+def live_url(settings: Settings,
+             serve_in_thread: Callable[..., AbstractContextManager[int]]) -> Iterator[str]:
+    with serve_in_thread(create_app(settings)) as port:
+        yield f"http://127.0.0.1:{port}"
 
 
 @pytest.fixture(scope="module")

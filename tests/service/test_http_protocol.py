@@ -8,14 +8,11 @@ app, so the app does not matter here.
 from __future__ import annotations
 
 import socket
-import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 
 import orjson
 import pytest
-import uvicorn
-from catalog_testkit import free_port
 from starlette.types import Receive, Scope, Send
 
 from service.serve.cli import HTTP_PROTOCOL
@@ -29,21 +26,10 @@ async def _hello(scope: Scope, receive: Receive, send: Send) -> None:
 
 
 @pytest.fixture(scope="module")
-def port() -> Iterator[int]:
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(_hello, host="127.0.0.1", port=port, http=HTTP_PROTOCOL,
-                                           log_level="error", lifespan="off"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.05)
-    try:
+def port(serve_in_thread: Callable[..., AbstractContextManager[int]]) -> Iterator[int]:
+    with serve_in_thread(_hello, start_timeout=60, http=HTTP_PROTOCOL, log_level="error",
+                         lifespan="off") as port:
         yield port
-    finally:
-        server.should_exit = True
-        thread.join(timeout=30)
 
 
 def _exchange(port: int, raw: bytes) -> tuple[int, dict[str, str], bytes]:
