@@ -7,11 +7,11 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from bench_testkit import quick_bench_run
 
 from bench.balancer_bench import (
     REFERENCE,
@@ -144,8 +144,7 @@ def test_the_committed_first_run_still_renders_with_our_removed_supervisor() -> 
     assert "+ 2 x `complementme serve` | 551 (540-563) |" in text
 
 
-def test_quick_run_of_all_three_set_ups_writes_the_results(
-        tmp_path: Path, quick_bench_run: Callable[[str, Path], dict[str, Any]]) -> None:
+def test_quick_run_of_all_three_set_ups_writes_the_results(tmp_path: Path) -> None:
     data = quick_bench_run("balancers", tmp_path)
     r = data["results"]
     assert [run["setup"] for run in r["runs"]] == list(SETUPS)

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import trimesh
+from bench_testkit import quick_bench_run
 
 from bench.interactive_bench import PATHS, histogram_means, histogram_totals, refine_to_faces
 from bench.report import INTERACTIVE_LABELS, render_results
@@ -59,8 +58,7 @@ def test_histogram_means_over_two_snapshots() -> None:
     assert histogram_means(after, after) == {}
 
 
-def test_quick_run_answers_every_path_and_writes_the_results(
-        tmp_path: Path, quick_bench_run: Callable[[str, Path], dict[str, Any]]) -> None:
+def test_quick_run_answers_every_path_and_writes_the_results(tmp_path: Path) -> None:
     data = quick_bench_run("interactive", tmp_path)
     cfg, r = data["config"], data["results"]
     assert cfg["requests"] == 3 and cfg["target_faces"] == 100_000

@@ -1,11 +1,10 @@
-"""Fixtures of the benchmark tests."""
+"""What the benchmark tests share: a quick run of one benchmark command."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,7 @@ from bench.results import load_results
 ARTIFACTS = REPO / "exported"
 
 
-def _quick_run(command: str, tmp_path: Path) -> dict[str, Any]:
+def quick_bench_run(command: str, tmp_path: Path) -> dict[str, Any]:
     """``python -m bench <command> --quick`` into ``tmp_path`` (bounded: 15 minutes); its results.
 
     Skips when there is no shipped model to serve.
@@ -30,9 +29,3 @@ def _quick_run(command: str, tmp_path: Path) -> dict[str, Any]:
     done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return load_results(tmp_path / "results")[command]
-
-
-@pytest.fixture(scope="session")
-def quick_bench_run() -> Callable[[str, Path], dict[str, Any]]:
-    """``quick_bench_run("interactive", tmp_path)``: a quick run of one benchmark command."""
-    return _quick_run
