@@ -205,6 +205,7 @@ class Ranked:
     scores: np.ndarray    # log-likelihoods under the (reweighted) mixture
     modes: np.ndarray     # the mode that explains each part best
     scored: int           # distinct candidates scored before ranking
+    weights: np.ndarray | None = None   # (K,) the mode weights the order was dealt by (None: none)
 
     @classmethod
     def empty(cls) -> Ranked:
@@ -614,7 +615,7 @@ class SuggestionEngine:
         placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit)
         if q.region is not None:
             placed = placed.take(self._in_region(q, placed, snap))
-        return placed.take(self._complement_order(q, placed, snap))
+        return placed.take(self._complement_order(q, placed, ranked.weights, snap))
 
     def refine(self, q: Query, placed: Placed, deadline: float | None, snap: CatalogSnapshot) -> np.ndarray:
         """Contact refinement offsets (canonical) of a query's placed parts, zeros when it is off.
@@ -766,7 +767,7 @@ class SuggestionEngine:
         """
         if len(cand) == 0:
             return Ranked.empty()
-        c, cat = self.config, snap.catalog
+        cat = snap.catalog
         prefs = q.options.preferences
         emb = cat.embeddings[cand]
         n_scored = len(cand)
@@ -785,12 +786,23 @@ class SuggestionEngine:
             keep = np.sort(first)
         else:
             keep = np.arange(len(cand))
-        if prefs.diversity:
-            keep = keep[diverse_order(mode[keep], w, c.diversity_min_mode_weight)]
-        elif c.suggest_order == "share":
-            keep = keep[share_order(mode[keep], w, c.share_min_mode_weight)]
+        keep = keep[self._mode_order(q, mode[keep], w)]
         keep = keep[:self._shortlist(q)]
-        return Ranked(cand[keep], ll[keep], mode[keep], n_scored)
+        return Ranked(cand[keep], ll[keep], mode[keep], n_scored, w)
+
+    def _mode_order(self, q: Query, modes: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Positions into ``modes`` (candidates in likelihood order) in the order the query's
+        suggestions are dealt: the diversity round-robin, the share order, or unchanged.
+
+        Shapes:
+            modes: (C,) int64; w: (K,) the (reweighted) mode weights -> (C,) int64.
+        """
+        c = self.config
+        if q.options.preferences.diversity:
+            return diverse_order(modes, w, c.diversity_min_mode_weight)
+        if c.suggest_order == "share":
+            return share_order(modes, w, c.share_min_mode_weight)
+        return np.arange(len(modes))
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
@@ -820,8 +832,14 @@ class SuggestionEngine:
         q.region_report = RegionReport(placed=len(gap), inside=int(inside.sum()), nearest_gap=nearest)
         return inside
 
-    def _complement_order(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
-        """The top k of a query's ranked, placed candidates (indices), covered parts demoted."""
+    def _complement_order(self, q: Query, placed: Placed, weights: np.ndarray | None,
+                          snap: CatalogSnapshot) -> np.ndarray:
+        """The top k of a query's ranked, placed candidates (indices), covered parts demoted.
+
+        When the suggestions are dealt to modes (diversity, share order), each group (uncovered,
+        then covered) is dealt again: demoting a mode's first part must not leave that mode out
+        of the first round while another mode shows its second.
+        """
         idx = placed.rows
         if not self._checks_complement(q.options) or len(idx) == 0:
             return np.arange(min(len(idx), q.k))
@@ -829,7 +847,12 @@ class SuggestionEngine:
         samples = snap.catalog.part_samples(idx, c.complement_part_samples)
         share = covered_share(q.points, samples, placed.translations.astype(np.float32),
                               c.complement_cover_distance)
-        return demote_covered(share, c.complement_cover_share)[:q.k]
+        order = demote_covered(share, c.complement_cover_share)
+        if weights is not None:
+            covered = share[order] >= c.complement_cover_share
+            order = np.concatenate([group[self._mode_order(q, placed.modes[group], weights)]
+                                    for group in (order[~covered], order[covered])])
+        return order[:q.k]
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
