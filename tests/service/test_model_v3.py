@@ -61,14 +61,21 @@ def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query
     result = engine.suggest(query.points, SuggestOptions(k=k, refine_contact=False,  # type: ignore[attr-defined]
                                                          complement_check=False))
     w = result.mode_weights.astype(np.float64)
-    counts = np.bincount([s.mode for s in result.suggestions], minlength=len(w))
-    # Largest-quotient apportionment among the live modes that explain some candidate (a mode
-    # whose mean is nearest to no part gets none): each within one slot of its exact share, and
-    # no light mode ahead of them.
-    live = (w >= settings.share_min_mode_weight) & (counts > 0)
-    exact = k * w[live] / w[live].sum()
-    assert np.all(np.abs(counts[live] - exact) <= 1.0), (counts, w)
-    assert counts[w < settings.share_min_mode_weight].sum() == 0
+    seq = [s.mode for s in result.suggestions]
+    heavy = [m for m in seq if w[m] >= settings.share_min_mode_weight]
+    assert len(set(heavy)) >= 2, (seq, w)       # a multimodal model: several modes get slots
+    # No light mode ahead of a live one.
+    assert seq[:len(heavy)] == heavy, (seq, w)
+    # Largest-quotient apportionment: each slot goes to the mode with the largest
+    # phi_k / (slots_k + 1) among the modes that still have candidates. A mode runs out when few
+    # parts have it as their most responsible mode, so only the modes that show up again later
+    # are known to have candidates left: the one chosen must beat each of them.
+    taken = dict.fromkeys(set(heavy), 0)
+    for p, m in enumerate(heavy):
+        rivals = set(heavy[p:])
+        best = max(rivals, key=lambda x: (w[x] / (taken[x] + 1), -x))
+        assert m == best, (p, heavy, w)
+        taken[m] += 1
 
 
 def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catalog: Catalog) -> None:
@@ -94,11 +101,11 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
     assert named.inferred_category is None and {s.category for s in named.suggestions} == {"chair"}
 
 
-# Known shortfall of model v3 (v3-8k-s8000): the mixture still collapses (issue 15's first
-# point): for a held-out chair's seat g puts 0.999 of its weight on one mode, and the benchmark's
-# one-part queries keep 1.26 modes of weight >= 0.05 (docs/benchmark.md). Strict: the model that
-# fixes it makes this XPASS, and the mark goes.
-@pytest.mark.xfail(reason="one live mode for a seat alone (v3-8k-s8000)", strict=True)
+# Known shortfall of model v3 (v3-ewta-s15-s8000): g keeps 4.5 modes of weight >= 0.05 for one
+# part alone (docs/benchmark.md) and in the share order 4 of these 6 held-out chairs' seats get 2
+# or 3 kinds of part in the top 10 (kinds [2, 1, 3, 1, 3, 3]), but two still get one. Strict: the
+# model that fixes it makes this XPASS, and the mark goes.
+@pytest.mark.xfail(reason="2 of 6 seats alone get one kind of part (v3-ewta-s15-s8000)", strict=True)
 def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
     from service_testkit import make_settings
 

@@ -8,9 +8,11 @@
 #
 # The preset fixes the number of steps (8,000): the same seed gives the same model on any host.
 # Its time guard (max_minutes, 140) only stops a run that is far slower than planned, with a
-# warning in the log (the shipped run took 86 min on a 2-core AVX2 host, beside its twin). The two runs train side by side, one thread each (on 2 cores that is
-# faster than one after the other on both: a step is not twice as fast on two threads, measured
-# 1.64 s against 1.0-1.2 s at N = 512). If one is interrupted,
+# warning in the log (the shipped run took 64 min on a 2-core AVX-512 host, its first 48 beside
+# another training; the model before it 86 min on a 2-core AVX2 host, beside its twin). The two
+# runs train side by side, one thread each (on 2 cores that is faster than one after the other on
+# both: a step is not twice as fast on two threads, measured 1.64 s against 1.0-1.2 s at
+# N = 512). If one is interrupted,
 # `python -m training train --resume --run "$RUN" --threads 1` continues it.
 set -euo pipefail
 
