@@ -165,6 +165,10 @@ class Settings(BaseSettings):
         "completing. A request's `diversity` still asks for the round-robin gallery."))
     share_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
         "In the `share` order, modes lighter than this get slots only after the others ran out."))
+    share_order_head: int = Field(default=0, ge=0, description=(
+        "In the `share` order, the first this many slots keep the likelihood order (the model's "
+        "surest parts first); the slots after them are dealt to the modes, counting the first "
+        "ones as their modes' slots."))
     infer_category: bool = Field(default=True, description=(
         "When a suggestion request names no category and the model has a category head, infer "
         "the category from the partial assembly, report it (`inferred_category`) and keep the "

@@ -801,7 +801,7 @@ class SuggestionEngine:
         if q.options.preferences.diversity:
             return diverse_order(modes, w, c.diversity_min_mode_weight)
         if c.suggest_order == "share":
-            return share_order(modes, w, c.share_min_mode_weight)
+            return share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
         return np.arange(len(modes))
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:

@@ -40,6 +40,7 @@ class EngineSettings(BaseModel):
     category_min_confidence: float
     suggest_order: Literal["share", "likelihood"]
     share_min_mode_weight: float
+    share_order_head: int
     diversity_min_mode_weight: float
     # placement, the complement check and regions
     fit_scale: bool

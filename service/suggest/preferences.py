@@ -103,7 +103,7 @@ def diverse_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> 
     return np.asarray(order, dtype=np.int64)
 
 
-def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> np.ndarray:
+def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float, head: int = 0) -> np.ndarray:
     """Slots dealt to modes in proportion to their weights: positions into ``modes``.
 
     The paper suggests parts sampled from g's mixture: a mode of weight phi_k gives a share
@@ -116,15 +116,19 @@ def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float) -> np
         modes: (C,) each candidate's mode, candidates sorted by likelihood (best first).
         weights: (K,) the (reweighted) mode weights.
         min_weight: modes lighter than this come last.
+        head: the first ``head`` slots keep the likelihood order; they count as their modes'
+            slots when the rest are dealt.
     Returns:
         (C,) int64 positions: the suggestion order.
     """
     modes = np.asarray(modes)
     w = np.asarray(weights, dtype=np.float64)
-    queues = {int(k): np.flatnonzero(modes == k).tolist() for k in np.unique(modes) if w[k] >= min_weight}
+    first = min(max(head, 0), len(modes))
+    queues = {int(k): [int(i) for i in np.flatnonzero(modes == k) if i >= first]
+              for k in np.unique(modes) if w[k] >= min_weight}
     heads = dict.fromkeys(queues, 0)
-    taken = dict.fromkeys(queues, 0)
-    order: list[int] = []
+    taken = {k: int(np.count_nonzero(modes[:first] == k)) for k in queues}
+    order: list[int] = list(range(first))
     while True:
         open_modes = [k for k in queues if heads[k] < len(queues[k])]
         if not open_modes:

@@ -50,6 +50,17 @@ def test_share_order_deals_slots_in_proportion_to_the_weights() -> None:
     assert within == sorted(within)                           # each mode keeps its likelihood order
 
 
+def test_the_share_order_keeps_its_head_in_likelihood_order_and_counts_it() -> None:
+    modes = np.array([0, 0, 0, 1, 0, 2, 1, 0, 2, 1, 0, 2])    # likelihood order: mode 0 surest
+    order = share_order(modes, np.array([0.5, 0.3, 0.2]), min_weight=0.05, head=3)
+    assert order[:3].tolist() == [0, 1, 2]                    # the head as ranked
+    # Mode 0 already has 3 of the slots: the next go to modes 1 and 2 (quotients 0.3 and 0.2
+    # against 0.5 / 4), and mode 0 comes back only after them.
+    assert modes[order[3:6]].tolist() == [1, 2, 1]
+    assert sorted(order.tolist()) == list(range(len(modes)))
+    assert share_order(modes, np.array([0.5, 0.3, 0.2]), 0.05, head=99).tolist() == list(range(12))
+
+
 def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query: object) -> None:
     from service_testkit import make_settings
 
