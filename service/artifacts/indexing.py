@@ -14,6 +14,19 @@ The chosen parameters, and the recall measured with them, come back as a JSON-ab
 the export records in ``manifest.json`` (``"index"``) and that ``configure_search`` applies to
 the loaded index, so the server searches exactly as the export measured.
 
+For millions of parts an IVF-Flat index would hold every float32 vector in memory (2 GB at 10M
+parts). Above ``compressed_min`` parts ``build_index`` builds an IVF index over 8-bit scalar-
+quantised codes (zero-padded to a multiple of 16 dimensions, which FAISS scans with SIMD) inside
+an ``IndexRefineFlat``: the codes give a shortlist of ``rerank`` x k, re-ranked by exact distance,
+and the tuned recall is that after the re-rank. ``read_flags`` reads such a file with its exact
+vectors memory-mapped, so they stay in the page cache, not in the worker's own memory. At 1M
+replicated parts, product quantisation needed a larger shortlist for the same held-out recall
+(8-bit codes: 8 x k for 0.948, as SQ8 at 4 x k; 4-bit fast-scan codes reached only 0.53 at
+16 x k: copies 0.05 std apart are finer than its codes), and 50-D SQ8 without the padding was
+scanned 10x slower. HNSW over compressed vectors was not measured: its graph alone needs 256
+bytes of links per part at M = 32 (2.5 GB at 10M, most of a 3 GB worker), and HNSW-Flat took
+about 100 s per million parts to build on these machines.
+
 Manifest entry: ``{"type": "IndexIVFFlat", "params": {"metric": "l2", "dim": 50, "nlist": 1024,
 "nprobe": 16, "recall": 0.97, "recall_k": 64, ...}}``; ``index_entry`` / ``params_from_entry``
 convert between it and the flat params dict. Older manifests (``IndexFlatL2`` with only metric
@@ -26,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Iterable
 from typing import Any, Literal
 
 import faiss
@@ -33,7 +47,14 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-IndexKind = Literal["auto", "flat", "ivf", "hnsw"]
+Progress = Callable[[Iterable[int]], Iterable[int]]
+
+IndexKind = Literal["auto", "flat", "ivf", "hnsw", "ivf_sq8", "ivf_pq", "ivf_pqfs", "hnsw_sq8"]
+
+# Compressed kinds: an IndexRefineFlat whose base keeps codes, not float32 vectors, and whose
+# shortlist of ``rerank`` x k is re-ranked by exact distances to the vectors of its refine index,
+# which ``read_index`` memory-maps from the file instead of loading.
+COMPRESSED_KINDS = ("ivf_sq8", "ivf_pq", "ivf_pqfs", "hnsw_sq8")
 
 _METRICS = {"l2": faiss.METRIC_L2, "ip": faiss.METRIC_INNER_PRODUCT}
 
@@ -43,14 +64,17 @@ def build_index(embeddings: np.ndarray, *, flat_max: int = 50_000, kind: IndexKi
                 queries: np.ndarray | None = None, tuning_queries: int = 1000, query_jitter: float = 0.5,
                 seed: int = 0,
                 nlist: int | None = None, train_points_per_list: int = 64, hnsw_m: int = 32,
-                ef_construction: int = 80) -> tuple[faiss.Index, dict[str, Any]]:
+                ef_construction: int = 80, compressed_min: int = 2_000_000, rerank: int = 4,
+                pq_m: int = 25, progress: Progress | None = None
+                ) -> tuple[faiss.Index, dict[str, Any]]:
     """An index over ``embeddings`` (row i = catalog part i) and the parameters to search it with.
 
     Args:
         embeddings: the catalog's part embeddings.
         flat_max: catalogs of at most this many parts get an exact flat index (``kind="auto"``).
-        kind: ``"auto"`` (flat up to ``flat_max``, IVF above), or force ``"flat"``, ``"ivf"``,
-            ``"hnsw"``.
+        kind: ``"auto"`` (flat up to ``flat_max``, IVF-Flat up to ``compressed_min``, IVF-SQ8
+            with an exact re-rank above), or force ``"flat"``, ``"ivf"``, ``"hnsw"`` or a
+            compressed kind: ``"ivf_sq8"``, ``"ivf_pq"``, ``"hnsw_sq8"``.
         metric: ``"l2"`` or ``"ip"`` (inner product).
         target_recall: the approximate index's search breadth is raised until recall@``recall_k``
             against exact search reaches this on the tuning queries (or the breadth is exhausted).
@@ -66,10 +90,19 @@ def build_index(embeddings: np.ndarray, *, flat_max: int = 50_000, kind: IndexKi
         nlist: IVF lists (None: about ``4 sqrt(n)``, a power of two).
         train_points_per_list: IVF k-means trains on this many points per list (a subsample).
         hnsw_m, ef_construction: HNSW graph degree and build breadth.
+        compressed_min: ``kind="auto"`` builds a compressed index above this many parts (float32
+            vectors in an IVF-Flat index would take 2 GB of memory at 10M parts).
+        rerank: compressed kinds search ``rerank`` x k neighbours and keep the k nearest by
+            exact distance (IndexRefineFlat's ``k_factor``).
+        pq_m: product quantiser's sub-vectors (``"ivf_pq"``; 8 bits each; must divide d).
+        progress: wraps the iterable of row offsets the vectors are added in (e.g. tqdm).
 
     Returns:
-        ``(index, params)``; ``params`` has ``type``, ``metric``, ``dim``, the type's build and
-        search parameters and, for approximate indexes, the measured ``recall`` at ``recall_k``.
+        ``(index, params)``; ``params`` has ``type`` (the FAISS index type of the file written),
+        ``metric``, ``dim``, the type's build and search parameters (a compressed kind's
+        ``base`` type, ``quantizer`` and ``rerank``) and, for approximate indexes, the measured
+        ``recall`` at ``recall_k`` (after the re-rank). Read a written index back with
+        ``faiss.read_index(path, read_flags(params))``: a compressed kind's vectors are mapped.
 
     Shapes:
         embeddings: (n, d) float32.
@@ -83,7 +116,7 @@ def build_index(embeddings: np.ndarray, *, flat_max: int = 50_000, kind: IndexKi
         raise ValueError(f"metric must be one of {sorted(_METRICS)}, found {metric!r}")
     n, d = x.shape
     if kind == "auto":
-        kind = "flat" if n <= flat_max else "ivf"
+        kind = "flat" if n <= flat_max else "ivf" if n <= compressed_min else "ivf_sq8"
     base: dict[str, Any] = {"metric": metric, "dim": int(d)}
     index: faiss.Index
     if kind == "flat":
@@ -91,12 +124,17 @@ def build_index(embeddings: np.ndarray, *, flat_max: int = 50_000, kind: IndexKi
         index.add(x)
         name = "IndexFlatL2" if metric == "l2" else "IndexFlatIP"
         return index, {"type": name, **base}
-    if kind == "ivf":
-        index, built = _build_ivf(x, metric, nlist, train_points_per_list, seed)
-    elif kind == "hnsw":
-        index, built = _build_hnsw(x, metric, hnsw_m, ef_construction)
+    if kind in ("ivf", "ivf_sq8", "ivf_pq", "ivf_pqfs"):
+        index, built = _build_ivf(x, metric, nlist, train_points_per_list, seed, kind, pq_m)
+    elif kind in ("hnsw", "hnsw_sq8"):
+        index, built = _build_hnsw(x, metric, hnsw_m, ef_construction, kind)
     else:
-        raise ValueError(f"index kind must be auto, flat, ivf or hnsw, found {kind!r}")
+        raise ValueError(f"index kind must be auto, flat, ivf, hnsw, {', '.join(COMPRESSED_KINDS)}; "
+                         f"found {kind!r}")
+    compressed = kind in COMPRESSED_KINDS
+    index = _add_refined(index, x, rerank if compressed else None, progress)
+    if compressed:
+        built = {"type": "IndexRefineFlat", "base": built.pop("type"), **built, "rerank": int(rerank)}
     params = {**base, **built}
     source = "jittered_embeddings" if queries is None else "given"
     queries = (jittered_queries(x, min(tuning_queries, n), query_jitter, seed) if queries is None
@@ -114,9 +152,15 @@ def configure_search(index: faiss.Index, params: dict[str, Any]) -> None:
 
     ``params`` is the flat dict ``build_index`` returned, or a manifest ``"index"`` entry
     (``{"type": ..., "params": {...}}``). Parameters the index does not have are an error
-    naming them; a flat index needs none.
+    naming them; a flat index needs none. An IndexRefine's base is configured, and its
+    ``k_factor`` set from ``rerank``.
     """
     p = params_from_entry(params)
+    if "rerank" in p:
+        if not isinstance(index, faiss.IndexRefine):
+            raise ValueError(f"index parameters give rerank, but the index is {type(index).__name__}, "
+                             "not IndexRefine")
+        index.k_factor = float(p["rerank"])
     ivf = _ivf_of(index)
     hnsw = _hnsw_of(index)
     if "nprobe" in p:
@@ -129,6 +173,17 @@ def configure_search(index: faiss.Index, params: dict[str, Any]) -> None:
             raise ValueError(f"index parameters give efSearch, but the index is {type(index).__name__}, "
                              "not HNSW")
         hnsw.hnsw.efSearch = int(p["efSearch"])
+
+
+def read_flags(params: dict[str, Any] | None) -> int:
+    """``faiss.read_index`` flags for an index file with these params (a manifest entry or flat).
+
+    A compressed kind's file (``IndexRefineFlat``) is memory-mapped (``IO_FLAG_MMAP_IFC``): its
+    float32 vectors for the re-rank (2 GB at 10M parts) stay in the file and the page cache, read
+    a shortlist's rows at a time, not in the process's own memory. Others are read into memory.
+    """
+    p = params_from_entry(params or {})
+    return faiss.IO_FLAG_MMAP_IFC if p.get("type") == "IndexRefineFlat" else 0
 
 
 def index_entry(params: dict[str, Any]) -> dict[str, Any]:
@@ -189,36 +244,104 @@ def recall_at_k(found: np.ndarray, exact: np.ndarray) -> float:
     return hits / exact.size
 
 
-def _build_ivf(x: np.ndarray, metric: str, nlist: int | None, per_list: int,
-               seed: int) -> tuple[faiss.Index, dict[str, Any]]:
+def _build_ivf(x: np.ndarray, metric: str, nlist: int | None, per_list: int, seed: int,
+               kind: str = "ivf", pq_m: int = 25) -> tuple[faiss.Index, dict[str, Any]]:
+    """A trained, empty IVF index (flat, SQ8 or PQ lists) and its build parameters."""
     n, d = x.shape
     if nlist is None:  # about 4 sqrt(n) lists (FAISS's guideline), a power of two
         nlist = 2 ** round(math.log2(max(1.0, 4 * math.sqrt(n))))
     nlist = max(1, min(int(nlist), n // 39))  # k-means wants at least 39 points per centroid
     quantizer = faiss.IndexFlat(d, _METRICS[metric])
-    index = faiss.IndexIVFFlat(quantizer, d, nlist, _METRICS[metric])
-    index.cp.seed = seed
-    index.cp.max_points_per_centroid = per_list  # FAISS would subsample silently; say so here
+    index: Any
+    built: dict[str, Any]
+    if kind == "ivf_sq8":
+        # FAISS scans 8-bit codes with SIMD only when the dimension is a multiple of 16 (AVX-512;
+        # 8 for AVX2): 50-D codes were scanned one by one, 10x slower than the same vectors zero-
+        # padded to 64-D (1M parts, 8 queries, nprobe 8, top 256: 9.6 ms against 0.9 ms).
+        padded = -(-d // 16) * 16
+        quantizer = faiss.IndexFlat(padded, _METRICS[metric])
+        ivf = faiss.IndexIVFScalarQuantizer(quantizer, padded, nlist, faiss.ScalarQuantizer.QT_8bit,
+                                            _METRICS[metric])
+        index = (ivf if padded == d else
+                 faiss.IndexPreTransform(_zero_padding(d, padded), ivf))
+        built = {"type": "IndexIVFScalarQuantizer", "quantizer": "SQ8", "padded_dim": padded}
+    elif kind in ("ivf_pq", "ivf_pqfs"):
+        if d % pq_m:
+            raise ValueError(f"pq_m must divide the dimension {d}, found {pq_m}")
+        if kind == "ivf_pq":
+            index = faiss.IndexIVFPQ(quantizer, d, nlist, pq_m, 8, _METRICS[metric])
+            built = {"type": "IndexIVFPQ", "quantizer": f"PQ{pq_m}x8"}
+        else:  # 4-bit codes scanned in SIMD registers (FAISS's "fast scan")
+            index = faiss.IndexIVFPQFastScan(quantizer, d, nlist, pq_m, 4, _METRICS[metric])
+            built = {"type": "IndexIVFPQFastScan", "quantizer": f"PQ{pq_m}x4fs"}
+    else:
+        index = faiss.IndexIVFFlat(quantizer, d, nlist, _METRICS[metric])
+        built = {"type": "IndexIVFFlat"}
+    ivf_of = faiss.extract_index_ivf(index)
+    ivf_of.cp.seed = seed
+    ivf_of.cp.max_points_per_centroid = per_list  # FAISS would subsample silently; say so here
     rng = np.random.default_rng(seed)
     m = min(n, max(nlist, per_list * nlist))
     train = x if m == n else x[np.sort(rng.choice(n, size=m, replace=False))]
-    index.train(train)
-    index.add(x)  # (faiss's Python wrapper keeps ``quantizer`` alive as long as ``index``)
-    return index, {"type": "IndexIVFFlat", "nlist": nlist, "train_points": m}
+    index.train(np.ascontiguousarray(train))  # (faiss's wrapper keeps ``quantizer`` alive with ``index``)
+    return index, {**built, "nlist": nlist, "train_points": m}
 
 
-def _build_hnsw(x: np.ndarray, metric: str, m: int, ef_construction: int
+def _zero_padding(d: int, padded: int) -> faiss.VectorTransform:
+    """A transform that keeps the ``d`` dimensions and appends ``padded - d`` zeros."""
+    source = np.full(padded, -1, dtype=np.int32)
+    source[:d] = np.arange(d)
+    return faiss.RemapDimensionsTransform(d, padded, faiss.swig_ptr(source))  # (copies the map)
+
+
+def _build_hnsw(x: np.ndarray, metric: str, m: int, ef_construction: int, kind: str = "hnsw"
                 ) -> tuple[faiss.Index, dict[str, Any]]:
-    index = faiss.IndexHNSWFlat(x.shape[1], m, _METRICS[metric])
+    """A trained, empty HNSW index (flat or SQ8 storage) and its build parameters."""
+    index: Any
+    if kind == "hnsw_sq8":
+        index = faiss.index_factory(x.shape[1], f"HNSW{m},SQ8", _METRICS[metric])
+        index.train(np.ascontiguousarray(x[:: max(1, len(x) // 100_000)]))
+        name = "IndexHNSWSQ"
+    else:
+        index = faiss.IndexHNSWFlat(x.shape[1], m, _METRICS[metric])
+        name = "IndexHNSWFlat"
     index.hnsw.efConstruction = ef_construction
-    index.add(x)
-    return index, {"type": "IndexHNSWFlat", "M": m, "efConstruction": ef_construction}
+    built: dict[str, Any] = {"type": name, "M": m, "efConstruction": ef_construction}
+    if kind == "hnsw_sq8":
+        built["quantizer"] = "SQ8"
+    return index, built
 
 
-def _tune(index: faiss.Index, params: dict[str, Any], queries: np.ndarray, exact: np.ndarray, k: int,
-          target: float) -> dict[str, Any]:
+# Vectors are added in blocks of this many rows: a progress bar can follow, and a memory-mapped
+# catalog is read block by block instead of all at once.
+_ADD_BLOCK = 500_000
+
+
+def _add(index: faiss.Index, x: np.ndarray, progress: Progress | None) -> None:
+    starts: Iterable[int] = range(0, len(x), _ADD_BLOCK)
+    for start in (progress(starts) if progress is not None else starts):
+        index.add(np.ascontiguousarray(x[start:start + _ADD_BLOCK]))
+
+
+def _add_refined(index: faiss.Index, x: np.ndarray, rerank: int | None, progress: Progress | None
+                 ) -> faiss.Index:
+    """Add ``x`` to the trained, empty ``index``; with ``rerank``, to an IndexRefineFlat around it
+    (exact re-rank of ``rerank`` x k candidates), which is returned instead."""
+    target = index
+    if rerank is not None:
+        if rerank < 1:
+            raise ValueError(f"rerank must be at least 1, found {rerank}")
+        # An exact flat copy of every vector, for the re-rank (faiss's wrapper keeps ``index`` alive).
+        target = faiss.IndexRefineFlat(index)
+        target.k_factor = float(rerank)
+    _add(target, x, progress)
+    return target
+
+
+def _tune(index: faiss.Index, params: dict[str, Any], queries: np.ndarray,
+          exact: np.ndarray, k: int, target: float) -> dict[str, Any]:
     """The smallest search breadth (doubling, then refined) whose recall@k reaches ``target``."""
-    if params["type"] == "IndexIVFFlat":
+    if "nlist" in params:
         name, lo, hi = "nprobe", 1, int(params["nlist"])
     else:
         name, lo, hi = "efSearch", k, max(k, 4096)
@@ -262,4 +385,6 @@ def _ivf_of(index: faiss.Index) -> Any:
 
 
 def _hnsw_of(index: faiss.Index) -> Any:
+    if isinstance(index, faiss.IndexRefine):
+        index = faiss.downcast_index(index.base_index)
     return index if isinstance(index, faiss.IndexHNSW) else None

@@ -20,7 +20,7 @@ import onnxruntime as ort
 from threadpoolctl import threadpool_limits
 
 from service.artifacts.catalog import Catalog, load_catalog
-from service.artifacts.indexing import configure_search, params_from_entry
+from service.artifacts.indexing import configure_search, params_from_entry, read_flags
 from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_JSON,
@@ -136,7 +136,7 @@ def load_index(path: Path, dim: int, count: int, threads: int, blas_threshold: i
     if not path.is_file():
         raise ArtifactError(f"artifact file missing: {path}")
     try:
-        index = faiss.read_index(str(path))
+        index = faiss.read_index(str(path), read_flags(params))
     except RuntimeError as exc:
         raise ArtifactError(f"{path}: cannot read FAISS index ({str(exc).splitlines()[0]})") from exc
     if index.d != dim:

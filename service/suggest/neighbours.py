@@ -65,8 +65,9 @@ class CatalogSearch:
     """The nearest catalog parts of mixture means, over one catalog's embeddings and index.
 
     numpy brute force (``BruteForceNeighbours``) for a flat index over at most
-    ``brute_force_max_parts`` parts; else FAISS, with a filter as an ID selector, or an exact
-    search over the allowed rows when they are few.
+    ``brute_force_max_parts`` parts; else FAISS (for millions of parts a compressed index whose
+    shortlist is re-ranked exactly, ``service.artifacts.indexing``), with a filter as an ID
+    selector, or an exact search over the allowed rows when they are few.
     """
 
     def __init__(self, embeddings: np.ndarray, index: faiss.Index, brute_force_max_parts: int,
@@ -133,6 +134,23 @@ class CatalogSearch:
 def _search_parameters(index: faiss.Index, sel: faiss.IDSelector) -> faiss.SearchParameters | None:
     """Search parameters carrying an ID selector, of the kind this index type expects."""
     params: Any
+    if isinstance(index, faiss.IndexRefine):  # the selector goes to the base; the re-rank keeps it
+        base = _search_parameters(faiss.downcast_index(index.base_index), sel)
+        if base is None:
+            return None
+        params = faiss.IndexRefineSearchParameters()
+        params.base_index_params = base
+        params.k_factor = index.k_factor
+        params.referenced_objects = [base]  # SWIG keeps a raw pointer: keep ``base`` alive with it
+        return params
+    if isinstance(index, faiss.IndexPreTransform):  # e.g. zero-padding before an SQ8 IVF
+        inner = _search_parameters(faiss.downcast_index(index.index), sel)
+        if inner is None:
+            return None
+        params = faiss.SearchParametersPreTransform()
+        params.index_params = inner
+        params.referenced_objects = [inner]
+        return params
     if isinstance(index, faiss.IndexIVF):
         params = faiss.SearchParametersIVF()
     elif isinstance(index, faiss.IndexHNSW):
