@@ -7,6 +7,7 @@ every count and duration for development (its numbers are not for publishing).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -125,7 +126,7 @@ def do_http(results_dir: Path, query: Path, quick: bool, cache: Path, concurrenc
 
 def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: str | None, noise: float,
                index_kind: str, flat_max: int | None, search_reps: int | None, engine_reps: int | None,
-               recall_queries: int | None) -> None:
+               recall_queries: int | None, mmap_min: int | None = None) -> None:
     from bench.catalog_bench import CatalogBenchConfig, run_catalog_bench
     from bench.engine_bench import load_engine
     from service.settings import get_settings
@@ -135,7 +136,9 @@ def do_catalog(results_dir: Path, query: Path, quick: bool, cache: Path, sizes: 
         index_kind=index_kind, flat_max=flat_max, search_reps=search_reps or (30 if quick else 300),
         engine_reps=engine_reps or (20 if quick else 300),
         recall_queries=recall_queries if recall_queries is not None else (15 if quick else 63),
-        warmup=3 if quick else 20)
+        warmup=3 if quick else 20, worker_reps=20 if quick else 300)
+    if mmap_min is not None:
+        cfg = dataclasses.replace(cfg, mmap_min=mmap_min)
     settings = get_settings()
     engine = load_engine(settings)
     _save(results_dir, "catalog", cfg.as_dict(),
@@ -237,15 +240,20 @@ def catalog(
     cache_dir: Path = CacheOpt,
     sizes: str | None = typer.Option(None, help="Catalog sizes (default 10000,100000,1000000)."),
     noise: float = typer.Option(0.05, min=0, help="Replica noise, fraction of each dimension's std."),
-    index_kind: str = typer.Option("auto", help="build_index kind: auto, flat, ivf or hnsw."),
+    index_kind: str = typer.Option("auto", help="build_index kind: auto, flat, ivf, hnsw, ivf_sq8, "
+                                      "ivf_pq, ivf_pqfs, hnsw_sq8."),
     flat_max: int | None = typer.Option(None, min=1, help="build_index flat_max (default: its own)."),
     search_reps: int | None = typer.Option(None, min=1, help="Timed searches per size (default 300)."),
     engine_reps: int | None = typer.Option(None, min=1, help="Timed /suggest per size (default 300)."),
     recall_queries: int | None = typer.Option(None, min=0, help="Held-out queries for recall (default 63)."),
+    mmap_min: int | None = typer.Option(None, min=1, help="Sizes from this many parts are memory-mapped "
+                                        "from .npy files and measured in a worker process "
+                                        "(default 2000000)."),
 ) -> None:
-    """c. Catalog scaling: index build, search latency, recall@64 and engine latency per size."""
+    """c. Catalog scaling: index build, search latency, recall@64 and engine latency per size
+    (add 10000000 to --sizes for ten million parts: about 8 GB under --cache-dir)."""
     do_catalog(results_dir, query, quick, cache_dir, sizes, noise, index_kind, flat_max, search_reps,
-               engine_reps, recall_queries)
+               engine_reps, recall_queries, mmap_min)
 
 
 @app.command()

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from bench.catalog_bench import recall_at_k, time_calls
-from bench.replicate import ReplicatedCatalog, replicate_embeddings
+from bench.replicate import (
+    REPLICA_ARRAYS,
+    ReplicatedCatalog,
+    open_replica_arrays,
+    replicate_embeddings,
+    write_replica_arrays,
+)
 from service.artifacts.catalog import Catalog, load_catalog
 from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, read_manifest
 from service.settings import DEFAULT_ARTIFACTS
@@ -50,6 +56,16 @@ def test_replicated_embeddings_keep_copy_zero_and_are_seeded() -> None:
     np.testing.assert_array_equal(replicate_embeddings(base, 50, noise=0.1, seed=0), base[:50])
     with pytest.raises(ValueError, match="at least 1"):
         replicate_embeddings(base, 0, noise=0.1, seed=0)
+
+
+def test_replicated_embeddings_are_the_same_made_in_blocks() -> None:
+    # One draw of all the noise (how the rows were first made) against the block-wise rows.
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(100, 8)).astype(np.float32)
+    one_draw = np.tile(base, (3, 1))[:250]
+    one_draw[100:] += (np.random.default_rng(3).standard_normal((150, 8), dtype=np.float32)
+                       * (0.1 * base.std(axis=0)).astype(np.float32))
+    np.testing.assert_array_equal(replicate_embeddings(base, 250, noise=0.1, seed=3), one_draw)
 
 
 def test_time_calls_stops_at_the_count_or_the_time_bound() -> None:
@@ -115,3 +131,29 @@ def test_engines_are_timed_in_interleaved_rounds_each_with_its_own_catalog(shipp
     assert [r["engine"]["suggest"]["n"] for r in rows] == [3, 3]
     assert "~" not in rows[0]["top_part"]  # the shipped catalog has no copies
     assert rows[1]["top_part"] is not None
+
+
+def test_mapped_replica_matches_the_in_memory_one(shipped_catalog: Catalog, tmp_path: Path) -> None:
+    base = shipped_catalog
+    P = len(base)
+    n = 3 * P + 11
+    folder = tmp_path / "replica"
+    with pytest.raises(FileNotFoundError, match=r"replica\.json"):
+        open_replica_arrays(folder)
+    write_replica_arrays(base, n, noise=0.05, seed=0, folder=folder, block_rows=P // 2 + 7)
+    arrays = open_replica_arrays(folder)
+    assert set(arrays) == set(REPLICA_ARRAYS)
+    assert all(isinstance(a, np.memmap) and not a.flags.writeable for a in arrays.values())
+    mapped = ReplicatedCatalog(base, arrays=arrays)
+    memory = ReplicatedCatalog(base, replicate_embeddings(base.embeddings, n, noise=0.05, seed=0))
+    for name in REPLICA_ARRAYS:
+        np.testing.assert_array_equal(getattr(mapped, name), getattr(memory, name), err_msg=name)
+    assert mapped.part_features.dtype == np.float16  # stored as catalog.npz stores it
+    i = 2 * P + 5
+    assert mapped.part_ids[i] == f"{base.part_ids[5]}~2" == memory.part_ids[i]
+    assert mapped.lookup(mapped.part_ids[i]) == i and mapped.lookup(base.part_ids[5]) == 5
+    for bad in (f"{base.part_ids[5]}~0", f"{base.part_ids[P - 1]}~3", f"{base.part_ids[5]}~x", "nope~1"):
+        assert bad not in mapped.index_of
+    assert len(mapped.index_of) == n and list(mapped.index_of)[P] == f"{base.part_ids[0]}~1"
+    with pytest.raises(ValueError, match="either"):
+        ReplicatedCatalog(base)
