@@ -104,14 +104,15 @@ class CatalogSearch:
         """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""
         if allowed is None:
             return self.index.search(x, nn)[1]
-        rows = np.flatnonzero(allowed)
-        if len(rows) <= self.exact_search_max_filtered and (
-                len(rows) < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
+        # Counted, not listed: listing the allowed rows of 10M parts cost 7 ms per request.
+        count = int(np.count_nonzero(allowed))
+        if count <= self.exact_search_max_filtered and (
+                count < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
             # An approximate index probes the lists (or graph nodes) nearest the query, and few of
             # them may hold parts that pass a narrow filter; a flat index with a selector checks
             # every part one by one (1.1 ms for a category of the shipped catalog, against 0.1 ms
             # for the same search over that category's rows): search those parts exactly instead.
-            return self._exact_subset(x, nn, rows)
+            return self._exact_subset(x, nn, np.flatnonzero(allowed))
         packed = np.packbits(allowed, bitorder="little")
         sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
         params = _search_parameters(self.index, sel)
