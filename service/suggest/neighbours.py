@@ -19,10 +19,6 @@ from typing import Any
 import faiss
 import numpy as np
 
-# A filtered search over an approximate index first searches this many times the neighbours
-# wanted, unfiltered, and keeps the allowed ones (``CatalogSearch._post_filtered``).
-POST_FILTER_WIDTH = 2
-
 
 class BruteForceNeighbours:
     """The union of each query's means' ``nn`` nearest parts, over a fixed embedding matrix."""
@@ -108,10 +104,6 @@ class CatalogSearch:
         """FAISS labels (Q, nn) of the nearest parts, restricted to ``allowed`` rows if given."""
         if allowed is None:
             return self.index.search(x, nn)[1]
-        if not isinstance(self.index, faiss.IndexFlat):
-            found = self._post_filtered(x, nn, allowed)
-            if found is not None:
-                return found
         # Counted, not listed: listing the allowed rows of 10M parts cost 7 ms per request.
         count = int(np.count_nonzero(allowed))
         if count <= self.exact_search_max_filtered and (
@@ -127,29 +119,6 @@ class CatalogSearch:
         if params is None:  # an index type without selector support: filter afterwards
             return self.index.search(x, min(len(self.embeddings), 4 * nn))[1]
         return self.index.search(x, nn, params=params)[1]
-
-    def _post_filtered(self, x: np.ndarray, nn: int, allowed: np.ndarray) -> np.ndarray | None:
-        """The ``nn`` nearest allowed rows from an unfiltered search of ``POST_FILTER_WIDTH`` x nn,
-        or None when some query found fewer than ``nn`` allowed rows there.
-
-        The parts nearest a mixture mean mostly pass the query's own filter (its category), so
-        for an approximate index this finds what the ID selector would (the same lists probed,
-        the nearest allowed among them) without the selector's bitmap: packing a 10M-part mask
-        cost more than the search itself. Narrow filters fall through to the selector or the
-        exact subset search.
-        """
-        wide = min(self.index.ntotal, POST_FILTER_WIDTH * nn)
-        labels = self.index.search(x, wide)[1]
-        ok = labels >= 0
-        ok[ok] = allowed[labels[ok]]
-        if int(ok.sum(axis=1).min(initial=nn)) < nn:
-            return None
-        # Each row's first nn allowed labels, in the search's (distance) order.
-        rank = np.cumsum(ok, axis=1) - 1
-        keep = ok & (rank < nn)
-        out = np.full((len(x), nn), -1, dtype=np.int64)
-        out[np.nonzero(keep)[0], rank[keep]] = labels[keep]
-        return out
 
     def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
         """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""
