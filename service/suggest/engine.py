@@ -850,8 +850,11 @@ class SuggestionEngine:
         order = demote_covered(share, c.complement_cover_share)
         if weights is not None:
             covered = share[order] >= c.complement_cover_share
-            order = np.concatenate([group[self._mode_order(q, placed.modes[group], weights)]
-                                    for group in (order[~covered], order[covered])])
+            # Each group back in likelihood order first: the orders deal from a ranked list (the
+            # share order's head keeps its first slots as ranked), and ``order`` is already dealt.
+            groups = [g[np.argsort(-placed.scores[g], kind="stable")]
+                      for g in (order[~covered], order[covered])]
+            order = np.concatenate([g[self._mode_order(q, placed.modes[g], weights)] for g in groups])
         return order[:q.k]
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import trimesh
 from fastapi.testclient import TestClient
-from service_testkit import TEST_LIMITS, AssemblyQuery, assembly_query, multi_part_shapes
+from service_testkit import TEST_LIMITS, AssemblyQuery, assembly_query, make_settings, multi_part_shapes
 
+from service.api.app import create_app
 from service.api.schemas import BatchResponse, PlaceResponse, SuggestResponse
 from service.artifacts.catalog import Catalog
 from service.geometry.inputs import points_to_base64
@@ -38,8 +40,8 @@ def test_suggest_answers_ranked_placed_parts(client: TestClient, query: Assembly
     assert answer.model_version == engine.model_version
     assert answer.input_points == len(query.points)
     assert len(answer.suggestions) == 7 and [s.rank for s in answer.suggestions] == list(range(1, 8))
-    # Each mode's own parts come in likelihood order (in the default likelihood order all do; with
-    # suggest_order "share" the slots are dealt to modes by weight).
+    # Each mode's own parts come in likelihood order (in the default share order the slots after
+    # the first few are dealt to modes by weight; in the likelihood order all parts are ranked).
     for mode in {s.mode for s in answer.suggestions}:
         scores = [s.score for s in answer.suggestions if s.mode == mode]
         assert scores == sorted(scores, reverse=True)
@@ -66,13 +68,16 @@ def test_default_k_and_determinism(client: TestClient, query: AssemblyQuery, set
     assert a == b
 
 
-def test_duplicates_are_collapsed(client: TestClient, query: AssemblyQuery, catalog: Catalog) -> None:
-    # Likelihood order (the complement check reorders each shortlist on its own).
-    collapsed = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"], complement_check=False)
+def test_duplicates_are_collapsed(artifacts: Path, query: AssemblyQuery, catalog: Catalog) -> None:
+    # Likelihood order (the complement check reorders each shortlist on its own, and the share
+    # order deals each list to the modes on its own).
+    with TestClient(create_app(make_settings(artifacts, suggest_order="likelihood"))) as client:
+        collapsed = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"],
+                            complement_check=False)
+        full = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"],
+                       collapse_duplicates=False, complement_check=False)
     groups = [int(catalog.group[catalog.lookup(p)]) for p in ranking(collapsed)]
     assert len(groups) == len(set(groups))
-    full = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"], collapse_duplicates=False,
-                   complement_check=False)
     # Without collapsing, the best member of every group still comes in the same order.
     firsts: dict[int, str] = {}
     for p in ranking(full):

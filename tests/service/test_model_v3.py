@@ -66,7 +66,8 @@ def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query
 
     from service.artifacts.loading import load_served_artifacts
 
-    settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
+    # Every slot dealt (no head in likelihood order): the apportionment itself.
+    settings = make_settings(artifacts, suggest_order="share", share_order_head=0)  # type: ignore[arg-type]
     engine = SuggestionEngine(load_served_artifacts(settings), settings)
     k = 20
     result = engine.suggest(query.points, SuggestOptions(k=k, refine_contact=False,  # type: ignore[attr-defined]
@@ -113,8 +114,9 @@ def test_category_is_inferred_when_none_is_named(engine: SuggestionEngine, catal
 
 
 # Known shortfall of model v3 (v3-ewta-s15-s8000): g keeps 4.5 modes of weight >= 0.05 for one
-# part alone (docs/benchmark.md) and in the share order 4 of these 6 held-out chairs' seats get 2
-# or 3 kinds of part in the top 10 (kinds [2, 1, 3, 1, 3, 3]), but two still get one. Strict: the
+# part alone (docs/benchmark.md) and in the default order (share, its first 5 slots as ranked) 4
+# of these 6 held-out chairs' seats get 2 or 3 kinds of part in the top 10 (kinds [2, 1, 3, 1, 3,
+# 3]), but two still get one. Strict: the
 # model that fixes it makes this XPASS, and the mark goes.
 @pytest.mark.xfail(reason="2 of 6 seats alone get one kind of part (v3-ewta-s15-s8000)", strict=True)
 def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Catalog) -> None:
@@ -122,7 +124,8 @@ def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Cat
 
     from service.artifacts.loading import load_served_artifacts
 
-    settings = make_settings(artifacts, suggest_order="share")  # type: ignore[arg-type]
+    settings = make_settings(artifacts)  # type: ignore[arg-type]
+    assert settings.suggest_order == "share"
     engine = SuggestionEngine(load_served_artifacts(settings), settings)
     _needs_heads(engine)
     kinds = []
@@ -135,6 +138,7 @@ def test_a_seat_alone_gets_several_kinds_of_part(artifacts: object, catalog: Cat
         result = engine.suggest(points, SuggestOptions(k=10, categories=("chair",), exclude_shapes=(sid,)))
         kinds.append(len({s.label for s in result.suggestions}))
         assert int(np.sum(result.mode_weights >= 0.05)) >= 2
+    print(f"\nkinds of part in the top 10 of each seat alone: {kinds}")
     assert kinds and min(kinds) >= 2, kinds
 
 

@@ -39,9 +39,10 @@ def evaluate_command(
                                              help="All-but-one queries per category whose top-1 is "
                                                   "placed and checked for contact."),
     methods: str = typer.Option("random,ck10,fixed,likelihood,ours", "--methods",
-                                help="Comma-separated subset of random, ck10, fixed, likelihood (Ours "
-                                     "without the complement check), ours, share (Ours with "
-                                     "COMPLEMENTME_SUGGEST_ORDER=share)."),
+                                help="Comma-separated subset of random, ck10, fixed, likelihood (the "
+                                     "paper's ranking: Ours without the complement check, in likelihood "
+                                     "order), ranked (Ours with COMPLEMENTME_SUGGEST_ORDER=likelihood), "
+                                     "ours."),
     pool: str = typer.Option("category", "--pool", help="Candidate pool: 'category' (other shapes of the "
                                                          "query's category) or 'all' (other shapes)."),
     collapse_duplicates: bool = typer.Option(True, "--collapse-duplicates/--keep-duplicates",

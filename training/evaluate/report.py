@@ -177,7 +177,7 @@ def summary_lines(results: dict[str, Any], ours: str = "Ours") -> list[str]:
     lines = ["| Metric | Ours | Paper (Ours, Joint) | Target | Best baseline |", "|---|---|---|---|---|"]
 
     def baselines(rows: dict[str, Any]) -> dict[str, Any]:
-        # Every other method but Ours' own variants (without the complement check, share order).
+        # Every other method but Ours' own variants (without the complement check, likelihood order).
         return {m: r for m, r in rows.items()
                 if m != ours and not m.startswith((f"{ours} (likelihood", f"{ours} (share"))}
 
