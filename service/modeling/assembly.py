@@ -387,7 +387,7 @@ class Assembler:
                 box_gap = np.maximum(0, np.maximum(p.lo - cand.hi, cand.lo - p.hi))
                 if np.linalg.norm(box_gap) >= s.assemble_duplicate_distance:
                     continue  # boxes apart: the Chamfer distance cannot be small
-                if _chamfer(cand, p) < s.assemble_duplicate_distance:
+                if _chamfer_below(cand, p, s.assemble_duplicate_distance):
                     return True
         return False
 
@@ -671,11 +671,28 @@ class Assembler:
             parent = child.node
 
 
-def _chamfer(a: _Placed, b: _Placed) -> float:
-    """Symmetric mean nearest-neighbour distance between two placed parts' samples."""
-    d1, _ = b.kdtree().query(a.points, k=1)
+def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:
+    """Whether the symmetric mean nearest-neighbour distance between two placed parts' samples is
+    below ``distance``.
+
+    ``a`` is the candidate (a fresh object each step), ``b`` a placed part (its tree kept): half of
+    the one-sided mean from ``a`` to ``b`` already bounds the symmetric mean from below, and
+    settles most pairs without building ``a``'s tree (two thirds of an assembly's time went to
+    these trees and queries).
+    """
+    # First with the search cut at 4 x distance (a pruned search is fast): a far point then
+    # counts as the cut, which only lowers the mean, so the bound stays a bound.
+    cut = 4.0 * distance
+    d1, _ = b.kdtree().query(a.points, k=1, distance_upper_bound=cut)
+    if 0.5 * float(np.minimum(d1, cut).mean()) >= distance:
+        return False
+    if not np.all(np.isfinite(d1)):
+        d1, _ = b.kdtree().query(a.points, k=1)
+    half = 0.5 * float(d1.mean())
+    if half >= distance:
+        return False
     d2, _ = a.kdtree().query(b.points, k=1)
-    return float(0.5 * (d1.mean() + d2.mean()))
+    return half + 0.5 * float(d2.mean()) < distance
 
 
 def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
@@ -687,4 +704,4 @@ def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
     gap = np.maximum(0, np.maximum(pa.lo - pb.hi, pb.lo - pa.hi))
     if np.linalg.norm(gap) >= distance:
         return False
-    return _chamfer(pa, pb) < distance
+    return _chamfer_below(pa, pb, distance)
