@@ -380,7 +380,7 @@ class SuggestionEngine:
         k = self._checked_k(options)
         allowed: np.ndarray | None = None
         if options.categories:
-            allowed = np.isin(cat.category_of, cat.category_codes(list(options.categories)))
+            allowed = snap.category_mask(cat.category_codes(list(options.categories)))
         if options.exclude_parts:
             groups = cat.group[[cat.lookup(p) for p in options.exclude_parts]]
             keep = ~np.isin(cat.group, groups)
@@ -433,7 +433,7 @@ class SuggestionEngine:
         if q.options.styles:
             return
         if applied:
-            keep = cat.category_of == cat.category_codes([name])[0]
+            keep = snap.category_mask(cat.category_codes([name]))
             q.allowed = keep if q.allowed is None else q.allowed & keep
             q.filter_key = ((name,), *q.filter_key[1:])
         else:

@@ -14,10 +14,14 @@ for an inner-product index the nearest parts are those of largest ``m.x``.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import faiss
 import numpy as np
+
+# Read-only filter masks (one per category of the snapshot) whose FAISS bitmaps are kept.
+FILTERS_KEPT = 64
 
 
 class BruteForceNeighbours:
@@ -79,6 +83,8 @@ class CatalogSearch:
         inner = index.metric_type == faiss.METRIC_INNER_PRODUCT
         self.brute_force = (BruteForceNeighbours(embeddings, inner_product=inner)
                             if small and isinstance(index, faiss.IndexFlat) else None)
+        self._filters: dict[int, tuple[np.ndarray, int, np.ndarray]] = {}  # see _filter
+        self._filters_lock = threading.Lock()
 
     def neighbour_union(self, means: np.ndarray, modes: int, nn: int,
                         allowed: np.ndarray | None = None) -> list[np.ndarray]:
@@ -105,7 +111,7 @@ class CatalogSearch:
         if allowed is None:
             return self.index.search(x, nn)[1]
         # Counted, not listed: listing the allowed rows of 10M parts cost 7 ms per request.
-        count = int(np.count_nonzero(allowed))
+        count, packed = self._filter(allowed)
         if count <= self.exact_search_max_filtered and (
                 count < len(allowed) // 2 or not isinstance(self.index, faiss.IndexFlat)):
             # An approximate index probes the lists (or graph nodes) nearest the query, and few of
@@ -113,12 +119,30 @@ class CatalogSearch:
             # every part one by one (1.1 ms for a category of the shipped catalog, against 0.1 ms
             # for the same search over that category's rows): search those parts exactly instead.
             return self._exact_subset(x, nn, np.flatnonzero(allowed))
-        packed = np.packbits(allowed, bitorder="little")
         sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(packed))
         params = _search_parameters(self.index, sel)
         if params is None:  # an index type without selector support: filter afterwards
             return self.index.search(x, min(len(self.embeddings), 4 * nn))[1]
         return self.index.search(x, nn, params=params)[1]
+
+    def _filter(self, allowed: np.ndarray) -> tuple[int, np.ndarray]:
+        """The allowed rows' count and FAISS bitmap (little-endian bits).
+
+        A read-only mask is one the snapshot keeps (a category's, ``CatalogSnapshot.category_mask``):
+        its count and bitmap are kept beside it, keyed by the array's identity and holding a
+        reference so the identity stays its own (over 10M parts, packing the bitmap cost about
+        2 ms of every filtered request). Other masks are packed per call.
+        """
+        if allowed.flags.writeable:
+            return int(np.count_nonzero(allowed)), np.packbits(allowed, bitorder="little")
+        kept = self._filters.get(id(allowed))
+        if kept is None or kept[0] is not allowed:
+            kept = (allowed, int(np.count_nonzero(allowed)), np.packbits(allowed, bitorder="little"))
+            with self._filters_lock:
+                if len(self._filters) >= FILTERS_KEPT:
+                    self._filters.pop(next(iter(self._filters)))
+                self._filters[id(allowed)] = kept
+        return kept[1], kept[2]
 
     def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
         """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""

@@ -72,3 +72,36 @@ def test_the_engine_suggests_the_same_parts_with_either_search(
         a, b = (e.suggest_batch([(query.points, options)])[0] for e in (engine, with_faiss))
         assert [s.part_id for s in a.suggestions] == [s.part_id for s in b.suggestions]
         assert a.candidates == b.candidates
+
+
+def test_a_kept_category_mask_gives_the_search_what_a_fresh_one_gives() -> None:
+    """A category's mask is made once per snapshot, read-only, and the FAISS search keeps its
+    bitmap: the same parts as the same filter made afresh, and the mask cannot be changed."""
+    from service.suggest.neighbours import CatalogSearch
+
+    rng = np.random.default_rng(3)
+    emb = rng.normal(size=(3000, 16)).astype(np.float32)
+    means = rng.normal(size=(2 * 4, 16)).astype(np.float32)
+    index = faiss.IndexFlatL2(16)
+    index.add(emb)
+    search = CatalogSearch(emb, index, brute_force_max_parts=0, exact_search_max_filtered=0)
+    kept = rng.random(3000) < 0.6
+    kept.setflags(write=False)
+    for _ in range(2):  # the second search reads the kept bitmap
+        got = search.neighbour_union(means, 4, 32, kept)
+        assert [set(g.tolist()) for g in got] == _faiss_union(emb, means, 4, 32, faiss.METRIC_L2, kept)
+    other = ~kept  # a different mask of the same size: its own bitmap
+    got = search.neighbour_union(means, 4, 32, other)
+    assert [set(g.tolist()) for g in got] == _faiss_union(emb, means, 4, 32, faiss.METRIC_L2, other)
+
+
+def test_the_snapshot_keeps_one_read_only_mask_per_category(engine: SuggestionEngine) -> None:
+    snap = engine.shipped
+    cat = snap.catalog
+    chair = snap.category_mask(cat.category_codes(["chair"]))
+    assert chair is snap.category_mask(cat.category_codes(["chair"]))
+    assert not chair.flags.writeable
+    np.testing.assert_array_equal(chair, cat.category_of == cat.category_codes(["chair"])[0])
+    both = snap.category_mask(cat.category_codes(["chair", "table"]))
+    assert both.flags.writeable and int(both.sum()) == int(chair.sum()) + int(
+        (cat.category_of == cat.category_codes(["table"])[0]).sum())
