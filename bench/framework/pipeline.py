@@ -11,8 +11,9 @@ so that the BentoML service (``bench.framework.bentoml_service``) and the LitSer
   (``service.geometry.mesh``), the mixture log-likelihood (``service.suggest.mixture``) and the
   complement check (``service.suggest.complement``);
 - per batch: g and h_query once on all queries, one FAISS search per filter, the exact mixture
-  score, near-duplicates collapsed, h_head once on every kept candidate of the batch, covered
-  parts demoted, the top k returned.
+  score, near-duplicates collapsed, the service's order (``service.suggest.preferences.share_order``
+  by default), h_head once on every kept candidate of the batch, covered parts demoted
+  (``service.suggest.complement.complement_order``), the top k returned.
 
 That is the default ``/suggest`` of the service (no contact refinement, the complement check on,
 the category read from g's head when it has one). None of the service's serving code runs here:
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -38,8 +40,9 @@ import onnxruntime as ort
 from service.artifacts.catalog import Catalog, load_catalog
 from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, GRAPH_FILES, INDEX_FILE, MANIFEST
 from service.geometry.mesh import resample_points
-from service.suggest.complement import covered_share, demote_covered
+from service.suggest.complement import complement_order, covered_share
 from service.suggest.mixture import mixture_log_likelihood
+from service.suggest.preferences import share_order
 
 CONFIG_ENV = "FRAMEWORK_PEER_CONFIG"  # the JSON of a PeerConfig, set by the bench for the peer process
 
@@ -55,6 +58,9 @@ class PeerConfig:
     complement_part_samples: int      # samples per placed part in the complement check
     complement_cover_distance: float  # a sample within this of the query is on its surface
     complement_cover_share: float     # a part with this share of samples on it is demoted
+    suggest_order: str                # "share" (slots after the head dealt to modes) or "likelihood"
+    share_min_mode_weight: float      # lighter modes get slots only after the others ran out
+    share_order_head: int             # first slots kept in likelihood order
     infer_category: bool              # read the category from g's head (when the graph has one)
     category_min_confidence: float    # and keep suggestions in it from this probability on
     faiss_blas_threshold: int         # FAISS switches exact distances to BLAS past this many queries
@@ -165,11 +171,12 @@ class PeerModel:
             "query_feature": np.ascontiguousarray(query_features[rows]),
             "part_feature": np.ascontiguousarray(cat.part_features[parts])})[0]  # (R, 3)
         answers = []
-        for b, (q, (idx, scores)) in enumerate(zip(queries, ranked, strict=True)):
+        for b, (q, (idx, scores, modes)) in enumerate(zip(queries, ranked, strict=True)):
             tr = translations[rows == b]
             share = covered_share(points[b], cat.part_samples(idx, cfg.complement_part_samples),
                                   tr.astype(np.float32), cfg.complement_cover_distance)
-            top = demote_covered(share, cfg.complement_cover_share)[:q.k]
+            deal = self._deal(modes, weights[b])
+            top = complement_order(share, cfg.complement_cover_share, scores, deal)[:q.k]
             answers.append([{"rank": r + 1, "part_id": cat.part_ids[int(idx[j])], "score": float(scores[j]),
                              "translation": tr[j].astype(np.float64).tolist()}
                             for r, j in enumerate(top.tolist())])
@@ -209,17 +216,34 @@ class PeerModel:
         return found
 
     def _rank(self, cand: np.ndarray, weights: np.ndarray, means: np.ndarray, sigmas: np.ndarray,
-              k: int) -> tuple[np.ndarray, np.ndarray]:
+              k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Candidates scored by the mixture, near-duplicates collapsed, the best ones kept.
 
-        Returns kept rows and their log-likelihoods, best first: at most
-        max(k, complement_candidates) of them (the complement check reorders those).
+        Returns kept rows, their log-likelihoods and modes in the service's order (likelihood, or
+        the share order): at most max(k, complement_candidates) of them (the complement check
+        reorders those).
         """
         live = np.flatnonzero(weights > 0)  # as the service: a mode weighted 0 contributes nothing
         emb = self.catalog.embeddings[cand]
-        ll, _ = mixture_log_likelihood(emb, weights[live], means[live], sigmas[live])
+        ll, best = mixture_log_likelihood(emb, weights[live], means[live], sigmas[live])
+        mode = live[best]
         order = np.argsort(-ll, kind="stable")
-        cand, ll = cand[order], ll[order]
+        cand, ll, mode = cand[order], ll[order], mode[order]
         _, first = np.unique(self.catalog.group[cand], return_index=True)
-        keep = np.sort(first)[:max(k, self.cfg.complement_candidates)]
-        return cand[keep], ll[keep]
+        keep = np.sort(first)
+        deal = self._deal(mode[keep], weights)
+        if deal is not None:
+            keep = keep[deal(np.arange(len(keep)))]
+        keep = keep[:max(k, self.cfg.complement_candidates)]
+        return cand[keep], ll[keep], mode[keep]
+
+    def _deal(self, modes: np.ndarray, weights: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
+        """The service's order of suggestions over parts with these modes (None: likelihood order).
+
+        Shapes:
+            modes: (C,) the mode that explains each part best; weights: (K,).
+        """
+        if self.cfg.suggest_order != "share":
+            return None
+        cfg = self.cfg
+        return lambda g: share_order(modes[g], weights, cfg.share_min_mode_weight, cfg.share_order_head)

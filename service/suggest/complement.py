@@ -20,6 +20,8 @@ queries, which the service lowers at start (``faiss_blas_threshold``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import faiss
 import numpy as np
 
@@ -47,3 +49,28 @@ def demote_covered(share: np.ndarray, max_share: float) -> np.ndarray:
     """
     covered = share >= max_share
     return np.concatenate([np.flatnonzero(~covered), np.flatnonzero(covered)])
+
+
+def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
+                     deal: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """The answer's order: covered parts last; each group dealt again when the list is dealt to modes.
+
+    Demoting a mode's first part must not leave that mode out of the first round while another
+    mode shows its second, so when ``deal`` is given each group (uncovered, then covered) is put
+    back in likelihood order (the orders deal from a ranked list: the share order's first slots
+    keep it) and dealt again.
+
+    Args:
+        share, scores: (P,) each placed part's covered share and log-likelihood.
+        deal: positions into a group (indices into the parts, in likelihood order) in the order
+            its parts are dealt (``preferences.share_order`` or ``diverse_order`` over their
+            modes); None keeps the rank order.
+    Returns:
+        (P,) int64 indices into the parts.
+    """
+    order = demote_covered(share, max_share)
+    if deal is None:
+        return order
+    covered = share[order] >= max_share
+    groups = [g[np.argsort(-scores[g], kind="stable")] for g in (order[~covered], order[covered])]
+    return np.concatenate([g[deal(g)] for g in groups]).astype(np.int64)

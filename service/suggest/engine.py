@@ -50,7 +50,7 @@ from service.geometry.frames import Frame
 from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
 from service.settings import Settings
-from service.suggest.complement import covered_share, demote_covered
+from service.suggest.complement import complement_order, covered_share
 from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.mixture import mixture_log_likelihood
@@ -847,15 +847,8 @@ class SuggestionEngine:
         samples = snap.catalog.part_samples(idx, c.complement_part_samples)
         share = covered_share(q.points, samples, placed.translations.astype(np.float32),
                               c.complement_cover_distance)
-        order = demote_covered(share, c.complement_cover_share)
-        if weights is not None:
-            covered = share[order] >= c.complement_cover_share
-            # Each group back in likelihood order first: the orders deal from a ranked list (the
-            # share order's head keeps its first slots as ranked), and ``order`` is already dealt.
-            groups = [g[np.argsort(-placed.scores[g], kind="stable")]
-                      for g in (order[~covered], order[covered])]
-            order = np.concatenate([g[self._mode_order(q, placed.modes[g], weights)] for g in groups])
-        return order[:q.k]
+        deal = None if weights is None else (lambda g: self._mode_order(q, placed.modes[g], weights))
+        return complement_order(share, c.complement_cover_share, placed.scores, deal)[:q.k]
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.

@@ -53,9 +53,10 @@ def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> 
 def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, settings: Settings, query: AssemblyQuery
                                            ) -> None:
     k = 20
-    # A shortlist within max_k, so that the plain ranking below can hold all of it.
+    # A shortlist within max_k, so that the plain ranking below can hold all of it; in likelihood
+    # order (the default share order deals each list to the modes on its own).
     engine = SuggestionEngine(engine.artifacts, settings.model_copy(
-        update={"complement_candidates": min(40, settings.max_k)}))
+        update={"complement_candidates": min(40, settings.max_k), "suggest_order": "likelihood"}))
     checked = engine.suggest(query.points, SuggestOptions(k=k, complement_check=True))
     plain = engine.suggest(query.points, SuggestOptions(k=engine.config.complement_candidates,
                                                         complement_check=False))
@@ -104,3 +105,17 @@ def test_check_changes_some_rankings(engine: SuggestionEngine) -> None:
         off = engine.suggest(q.points, SuggestOptions(k=10, complement_check=False))
         changed += [x.part_id for x in on.suggestions] != [x.part_id for x in off.suggestions]
     assert changed > 0
+
+
+def test_complement_order_deals_each_group_again_from_its_likelihood_order() -> None:
+    from service.suggest.complement import complement_order
+    from service.suggest.preferences import share_order
+
+    share = np.array([0.0, 0.9, 0.0, 0.0, 0.9, 0.0])           # parts 1 and 4 are covered
+    scores = np.array([-1.0, -2.0, -3.0, -4.0, -5.0, -6.0])    # likelihood order
+    modes = np.array([0, 0, 0, 1, 1, 1])
+    weights = np.array([0.5, 0.5])
+    assert complement_order(share, 0.5, scores).tolist() == [0, 2, 3, 5, 1, 4]
+    dealt = complement_order(share, 0.5, scores, lambda g: share_order(modes[g], weights, 0.05))
+    # Uncovered 0, 2, 3, 5 dealt to modes 0 and 1 in turn, then the covered 1 and 4 the same way.
+    assert dealt.tolist() == [0, 3, 2, 5, 1, 4]
