@@ -163,7 +163,8 @@ class Settings(BaseSettings):
         "shipped model (docs/benchmark.md, `Ours` and `Ours (likelihood order)`): for a single "
         "part the top 10 hold 2.3 kinds of part and 67% of the missing labels against 1.25 and "
         "42%, at a functional mAP@5 of 0.788 against 0.793. A request's `diversity` still asks "
-        "for the round-robin gallery."))
+        "for the round-robin gallery; a request's `region` keeps the likelihood order (the spot "
+        "already says what kind of part is wanted)."))
     share_min_mode_weight: float = Field(default=0.05, ge=0, le=1, description=(
         "In the `share` order, modes lighter than this get slots only after the others ran out."))
     share_order_head: int = Field(default=5, ge=0, description=(

@@ -792,7 +792,8 @@ class SuggestionEngine:
 
     def _mode_order(self, q: Query, modes: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Positions into ``modes`` (candidates in likelihood order) in the order the query's
-        suggestions are dealt: the diversity round-robin, the share order, or unchanged.
+        suggestions are dealt: the diversity round-robin, the share order (not for a region
+        query), or unchanged.
 
         Shapes:
             modes: (C,) int64; w: (K,) the (reweighted) mode weights -> (C,) int64.
@@ -800,7 +801,9 @@ class SuggestionEngine:
         c = self.config
         if q.options.preferences.diversity:
             return diverse_order(modes, w, c.diversity_min_mode_weight)
-        if c.suggest_order == "share":
+        # A region already names the kind of part the caller wants (what goes at that spot): its
+        # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
+        if c.suggest_order == "share" and q.region is None:
             return share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
         return np.arange(len(modes))
 
