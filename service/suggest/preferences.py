@@ -121,21 +121,23 @@ def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float, head:
     Returns:
         (C,) int64 positions: the suggestion order.
     """
-    modes = np.asarray(modes)
+    modes = np.asarray(modes, dtype=np.int64)
     w = np.asarray(weights, dtype=np.float64)
-    first = min(max(head, 0), len(modes))
-    queues = {int(k): [int(i) for i in np.flatnonzero(modes == k) if i >= first]
-              for k in np.unique(modes) if w[k] >= min_weight}
-    heads = dict.fromkeys(queues, 0)
-    taken = {k: int(np.count_nonzero(modes[:first] == k)) for k in queues}
-    order: list[int] = list(range(first))
-    while True:
-        open_modes = [k for k in queues if heads[k] < len(queues[k])]
-        if not open_modes:
-            break
-        k = max(open_modes, key=lambda m: (w[m] / (taken[m] + 1), -m))
-        order.append(queues[k][heads[k]])
-        heads[k] += 1
-        taken[k] += 1
-    rest = np.setdiff1d(np.arange(len(modes)), np.asarray(order, dtype=np.int64), assume_unique=True)
-    return np.concatenate([np.asarray(order, dtype=np.int64), rest.astype(np.int64)])
+    n = len(modes)
+    first = min(max(head, 0), n)
+    rest = np.arange(first, n)
+    heavy = w[modes[first:]] >= min_weight
+    dealt, light = rest[heavy], rest[~heavy]
+    m = modes[dealt]
+    # The j-th remaining part of mode k gets the quotient phi_k / (taken_k + j + 1); each mode's
+    # quotients fall with j, so picking the largest quotient slot after slot (ties: the lower
+    # mode) is one sort of all of them (quotient down, then mode, then j). A loop over the slots
+    # cost 0.75 ms of a 3.2 ms request at C = 339 candidates.
+    taken = np.bincount(modes[:first], minlength=len(w))
+    by_mode = np.argsort(m, kind="stable")
+    sorted_m = m[by_mode]
+    j = np.empty(len(m), dtype=np.int64)
+    j[by_mode] = np.arange(len(m)) - np.searchsorted(sorted_m, sorted_m, side="left")
+    quotient = w[m] / (taken[m] + j + 1)
+    dealt = dealt[np.lexsort((j, m, -quotient))]
+    return np.concatenate([np.arange(first, dtype=np.int64), dealt, light]).astype(np.int64)

@@ -207,3 +207,30 @@ def test_export_applies_a_per_axis_scale(client: TestClient, catalog: Catalog) -
         sizes.append(mesh.extents)
     # Per axis of the request's frame (z up): x doubled, y kept, z halved.
     np.testing.assert_allclose(sizes[1] / sizes[0], [2.0, 1.0, 0.5], rtol=1e-3)
+
+
+def _share_order_by_slots(modes: np.ndarray, weights: np.ndarray, min_weight: float, head: int) -> list[int]:
+    """The share order dealt slot by slot, as its definition reads (the test's oracle)."""
+    first = min(head, len(modes))
+    queues = {int(k): [i for i in np.flatnonzero(modes == k).tolist() if i >= first]
+              for k in np.unique(modes) if weights[k] >= min_weight}
+    taken = {k: int(np.count_nonzero(modes[:first] == k)) for k in queues}
+    order, heads = list(range(first)), dict.fromkeys(queues, 0)
+    while open_modes := [k for k in queues if heads[k] < len(queues[k])]:
+        k = max(open_modes, key=lambda m: (weights[m] / (taken[m] + 1), -m))
+        order.append(queues[k][heads[k]])
+        heads[k] += 1
+        taken[k] += 1
+    return order + [i for i in range(len(modes)) if i not in set(order)]
+
+
+def test_the_share_order_equals_dealing_slot_by_slot() -> None:
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        K = int(rng.integers(1, 9))
+        w = rng.dirichlet(np.ones(K) * 0.5)
+        if trial % 5 == 0:
+            w = np.round(w, 1)  # ties between modes, and modes of weight 0
+        modes = rng.integers(0, K, size=int(rng.integers(0, 60)))
+        head, floor = int(rng.integers(0, 8)), float(rng.choice([0.0, 0.05, 0.2]))
+        assert share_order(modes, w, floor, head).tolist() == _share_order_by_slots(modes, w, floor, head)
