@@ -136,3 +136,15 @@ def glb(tree: dict[str, Any], bin_chunk: bytes = b"") -> bytes:
         bin_chunk += b"\0" * (-len(bin_chunk) % 4)
         chunks += struct.pack("<II", len(bin_chunk), 0x004E4942) + bin_chunk
     return b"glTF" + struct.pack("<II", 2, 12 + len(chunks)) + chunks
+
+
+def clustered_embeddings(n: int, d: int, seed: int = 0) -> np.ndarray:
+    """Embeddings that cluster like real part embeddings do: jittered copies of a few centres.
+
+    Shapes:
+        returns (n, d) float32.
+    """
+    rng = np.random.default_rng(seed)
+    centres = rng.standard_normal((max(1, n // 50), d))
+    x = centres[rng.integers(len(centres), size=n)] + 0.3 * rng.standard_normal((n, d))
+    return x.astype(np.float32)

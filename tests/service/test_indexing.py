@@ -9,7 +9,7 @@ from typing import Literal
 import faiss
 import numpy as np
 import pytest
-from service_testkit import make_settings
+from service_testkit import clustered_embeddings, make_settings
 
 from service.artifacts.indexing import (
     build_index,
@@ -25,12 +25,8 @@ from service.artifacts.loading import load_artifacts
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 
 
-def _clustered(n: int, d: int = 16, seed: int = 0) -> np.ndarray:
-    """Embeddings that cluster like real part embeddings do: jittered copies of a few centres."""
-    rng = np.random.default_rng(seed)
-    centres = rng.standard_normal((max(1, n // 50), d))
-    x = centres[rng.integers(len(centres), size=n)] + 0.3 * rng.standard_normal((n, d))
-    return x.astype(np.float32)
+def _clustered(n: int) -> np.ndarray:
+    return clustered_embeddings(n, 16)
 
 
 def test_small_catalog_gets_an_exact_flat_index() -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import faiss
 import numpy as np
 import pytest
+from service_testkit import clustered_embeddings
 
 from service.artifacts.indexing import (
     build_index,
@@ -19,12 +20,8 @@ from service.artifacts.indexing import (
 from service.suggest.neighbours import CatalogSearch
 
 
-def _clustered(n: int, d: int = 50, seed: int = 0) -> np.ndarray:
-    """Jittered copies of a few centres, like replicated part embeddings."""
-    rng = np.random.default_rng(seed)
-    centres = rng.standard_normal((max(1, n // 50), d))
-    x = centres[rng.integers(len(centres), size=n)] + 0.3 * rng.standard_normal((n, d))
-    return x.astype(np.float32)
+def _clustered(n: int) -> np.ndarray:
+    return clustered_embeddings(n, 50)
 
 
 @pytest.fixture(scope="module")
