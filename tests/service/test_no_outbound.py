@@ -85,7 +85,8 @@ def test_serve_makes_no_outbound_connection(artifacts: Path, query: AssemblyQuer
     proc = subprocess.Popen(
         ["strace", "-f", "-qq", "-e", "trace=connect,sendto,sendmsg", "-o", str(log),
          sys.executable, "-m", "training", "serve", "--host", "127.0.0.1", "--port", str(port)],
-        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        start_new_session=True)  # its own process group: strace and the server it traces
     url = f"http://127.0.0.1:{port}"
     try:
         with httpx.Client(base_url=url, timeout=30) as http:
@@ -111,11 +112,27 @@ def test_serve_makes_no_outbound_connection(artifacts: Path, query: AssemblyQuer
                 time.sleep(0.2)
             assert answered >= 20
     finally:
-        proc.send_signal(signal.SIGINT)  # strace passes it on to the server
+        # To the whole group: strace detaches on SIGINT and exits, which left the server it traced
+        # running after the suite (seen after CI runs); the server stops on its own SIGINT.
+        os.killpg(proc.pid, signal.SIGINT)
         try:
             proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
-            proc.kill()
+            os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
     trace = log.read_text()
     assert outbound(trace) == [], "\n".join(outbound(trace)[:20])
+
+
+def _group_alive(pgid: int) -> bool:
+    """Whether any process of the group is still running."""
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
