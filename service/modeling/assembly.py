@@ -686,8 +686,9 @@ def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:
     d1, _ = b.kdtree().query(a.points, k=1, distance_upper_bound=cut)
     if 0.5 * float(np.minimum(d1, cut).mean()) >= distance:
         return False
-    if not np.all(np.isfinite(d1)):
-        d1, _ = b.kdtree().query(a.points, k=1)
+    far = ~np.isfinite(d1)
+    if np.any(far):  # only the points past the cut need the full search
+        d1[far] = b.kdtree().query(a.points[far], k=1)[0]
     half = 0.5 * float(d1.mean())
     if half >= distance:
         return False

@@ -26,8 +26,8 @@ from bench.server import HAPROXY_CONFIG, READY_PATH, haproxy_config, our_servers
 
 ARTIFACTS = REPO / "exported"
 HAPROXY = shutil.which("haproxy")
-needs_haproxy = pytest.mark.skipif(HAPROXY is None, reason="haproxy is not installed (Debian: apt-get "
-                                   "install haproxy; .ci/run installs it)")
+needs_haproxy = pytest.mark.skipif(HAPROXY is None, reason="haproxy is not installed (.ci/run installs "
+                                   "Debian's haproxy package)")
 
 
 def _check(path: Path) -> subprocess.CompletedProcess[str]:
