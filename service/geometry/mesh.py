@@ -674,14 +674,19 @@ def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         vertices (V, 3), faces (F, 3) int -> (F,) float64.
     """
     v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    a = v[f[:, 0]]
-    e1, e2 = v[f[:, 1]] - a, v[f[:, 2]] - a
-    # The cross product and its norm written out: the same sums in the same order as np.cross and
-    # np.linalg.norm (bit-identical), without their temporaries (3x faster on 100k triangles).
-    x = e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]
-    y = e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]
-    z = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    # Coordinate by coordinate from contiguous columns (np.take of one (V,) row per corner): the
+    # row gathers of (F, 3) blocks and the strided column reads cost 2-3x as much on 100k
+    # triangles. The cross product and its norm are written out: the same sums in the same order
+    # as np.cross and np.linalg.norm (bit-identical), without their temporaries.
+    vt = np.ascontiguousarray(v.T)   # (3, V)
+    ft = np.ascontiguousarray(f.T)   # (3, F)
+    ax, ay, az = (np.take(vt[k], ft[0]) for k in range(3))
+    bx, by, bz = (np.take(vt[k], ft[1]) - a for k, a in zip(range(3), (ax, ay, az), strict=True))
+    cx, cy, cz = (np.take(vt[k], ft[2]) - a for k, a in zip(range(3), (ax, ay, az), strict=True))
+    x = by * cz - bz * cy
+    y = bz * cx - bx * cz
+    z = bx * cy - by * cx
     return 0.5 * np.sqrt(x * x + y * y + z * z)
 
 
