@@ -214,7 +214,19 @@ class Settings(BaseSettings):
         "0.85); the same queries twice too large without a frame: median 1.03, at most 1.59; four "
         "times: median 2.56. Shapes of no known category (a ball, a torus, a cube, a plate, a "
         "helix, noise) score 0.72-0.96, like known ones: this warning catches frames off in "
-        "size, not unknown categories."))
+        "size, not unknown categories (`familiarity_check` does)."))
+    familiarity_check: bool = Field(default=True, description=(
+        "Compare g's answer for a query (its mixture means and log weights) with g's answers for "
+        "training partial assemblies shipped with the model (`familiarity.npz`); a query whose "
+        "nearest one lies further than the threshold gets an `unfamiliar_shape` warning: the "
+        "partial assembly is unlike any shape the model was trained on (of no known category), "
+        "so the inferred category and the suggestions are guesses. Artifacts exported without "
+        "the bank are not checked."))
+    familiarity_threshold: float | None = Field(default=None, gt=0, description=(
+        "The distance past which `familiarity_check` warns; unset: the threshold calibrated at "
+        "export (the 0.99 quantile of the training bank's distances to another shape's nearest "
+        "answer: with the shipped model 1.9% of held-out partial assemblies and 82% of shapes of "
+        "no known category lie past it)."))
     diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
         "ran out of parts."))

@@ -1,4 +1,4 @@
-"""`complementme train` and `complementme export`.
+"""`complementme train`, `complementme export` and `complementme familiarity`.
 
 The train command's options are generated from the ``TrainConfig`` and ``ModelConfig`` fields
 (one ``--field-name`` per field, help text from the field's metadata), so a new config field is
@@ -119,7 +119,7 @@ def export_command(
     duplicate_size_tolerance: float = typer.Option(
         0.02, "--duplicate-size-tolerance",
         help="Near-duplicate: max relative difference of area and bounding-box extents."),
-    max_megabytes: float = typer.Option(30.0, "--max-megabytes", help="Refuse to write a larger folder."),
+    max_megabytes: float = typer.Option(35.0, "--max-megabytes", help="Refuse to write a larger folder."),
     from_artifacts: Path | None = typer.Option(
         None, "--from-artifacts",
         help="Export the networks of this artifact folder instead of the run's checkpoint (the run then "
@@ -141,11 +141,36 @@ def export_command(
     log.info("wrote %s (model %s, %d parts)", out, manifest["model_version"], manifest["part_count"])
 
 
+def familiarity_command(
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts",
+                                   help="Exported folder to add the bank to."),
+    per_shape: int = typer.Option(2, "--per-shape", min=1, help="Partial assemblies per training shape."),
+    quantile: float = typer.Option(0.99, "--quantile", min=0.5, max=1.0,
+                                   help="Threshold: this quantile of the bank's other-shape distances."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the partial assemblies."),
+) -> None:
+    """Add the familiarity check's bank (familiarity.npz) to an exported folder made before it.
+
+    `complementme export` writes it; this gives an older export the same file and manifest entry
+    without exporting its graphs or catalog again.
+    """
+    from training.export import ExportOptions, add_familiarity
+
+    opts = ExportOptions(seed=seed, familiarity_per_shape=per_shape, familiarity_quantile=quantile)
+    try:
+        manifest = add_familiarity(artifacts, opts)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        raise _fail(exc) from exc
+    log.info("wrote %s/familiarity.npz: threshold %.3f over %d descriptors", artifacts,
+             manifest["familiarity"]["threshold"], manifest["familiarity"]["queries"])
+
+
 def register_training_commands(app: typer.Typer) -> None:
-    """Add `train` and `export` to the root CLI."""
+    """Add `train`, `export` and `familiarity` to the root CLI."""
     signature = _build_train_signature()
     train_command.__signature__ = signature  # type: ignore[attr-defined]
     train_command.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
     train_command.__annotations__["return"] = None
     app.command("train")(train_command)
     app.command("export")(export_command)
+    app.command("familiarity")(familiarity_command)

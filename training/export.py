@@ -30,21 +30,24 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
-from service.artifacts.catalog import load_catalog, partial_assemblies
+from service.artifacts.catalog import load_catalog, partial_assemblies, partial_assembly_bank
 from service.artifacts.files import write_file_atomic
 from service.artifacts.indexing import IndexKind, build_index, index_entry
 from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_JSON,
+    FAMILIARITY_FILE,
     GRAPH_FILES,
     GRAPH_INPUTS,
     INDEX_FILE,
     MANIFEST,
     catalog_arrays,
     graph_outputs,
+    read_manifest,
     write_manifest,
 )
 from service.artifacts.loading import build_session
+from service.suggest.familiarity import calibrate_threshold, mixture_descriptor
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
 from training.checkpoint import Trained, load_trained, load_trained_config
 from training.config import config_to_dict
@@ -73,7 +76,7 @@ class ExportOptions:
     # ... AND area and bounding-box extents equal within this relative tolerance.
     duplicate_size_tolerance: float = 0.02
     # The whole folder must stay under this size (the repository ships it).
-    max_megabytes: float = 30.0
+    max_megabytes: float = 35.0
     # Storage of the catalog arrays (the service reads any float kind and casts to float32):
     # float16 placement features and mesh vertices cut about 3 MB from a 7000-part catalog; the
     # error (about 5e-4 relative) is far below what placement or display can show.
@@ -89,6 +92,11 @@ class ExportOptions:
     # The approximate index is tuned on g's mixture means of this many training shapes with one
     # part left out (the queries it will serve), not on jittered embeddings (service.artifacts.indexing).
     index_tuning_shapes: int = 128
+    # The familiarity check's bank (service.suggest.familiarity): g's answers for this many partial
+    # assemblies of every training shape, and the quantile of their nearest-other-shape distances
+    # that becomes the threshold (0.99: 1 in 100 new shapes of a known kind is called unfamiliar).
+    familiarity_per_shape: int = 2
+    familiarity_quantile: float = 0.99
     opset: int = 17
     # Parts per onnxruntime call when encoding the catalog.
     chunk: int = 256
@@ -177,6 +185,46 @@ def tuning_means(folder: Path, part_count: int, dim: int, n_points: int, opts: E
     session = build_session(folder / GRAPH_FILES["g"], torch.get_num_threads())
     means = session.run(["means"], {GRAPH_INPUTS["g"][0]: np.stack(clouds)})[0]
     return np.ascontiguousarray(means.reshape(-1, means.shape[-1]), dtype=np.float32)
+
+
+def write_familiarity(folder: Path, n_points: int, part_count: int, dim: int, opts: ExportOptions
+                      ) -> dict[str, Any]:
+    """The familiarity bank of the folder just written (``FAMILIARITY_FILE``); its manifest entry.
+
+    g's descriptors (``mixture_descriptor``) of ``familiarity_per_shape`` partial assemblies of
+    every training shape of the folder's catalog, run through the folder's own g.onnx, stored as
+    float16; the threshold is calibrated on the stored (rounded) values, as the service reads them.
+    """
+    catalog = load_catalog(folder / CATALOG_JSON, folder / CATALOG_ARRAYS, part_count, dim)
+    clouds, groups = partial_assembly_bank(catalog, opts.familiarity_per_shape, n_points, opts.seed,
+                                           split="train")
+    session = build_session(folder / GRAPH_FILES["g"], torch.get_num_threads())
+    descriptors = []
+    for start in range(0, len(clouds), opts.chunk):
+        weights, means = session.run(["weights", "means"],
+                                     {GRAPH_INPUTS["g"][0]: np.stack(clouds[start:start + opts.chunk])})
+        descriptors.append(mixture_descriptor(weights, means))
+    stored = np.concatenate(descriptors).astype(np.float16)
+    if not np.isfinite(stored).all():
+        raise ValueError(f"{folder / GRAPH_FILES['g']}: g's answers overflow float16; cannot store the "
+                         "familiarity bank")
+    threshold = calibrate_threshold(stored.astype(np.float32), groups, opts.familiarity_quantile)
+    save_npz_deterministic(folder / FAMILIARITY_FILE, {"descriptors": stored})
+    log.info("familiarity bank: %d descriptors of %d training shapes, threshold %.3f (quantile %g)",
+             len(stored), len(np.unique(groups)), threshold, opts.familiarity_quantile)
+    return {"threshold": round(threshold, 6), "quantile": opts.familiarity_quantile, "queries": len(stored),
+            "per_shape": opts.familiarity_per_shape, "seed": opts.seed}
+
+
+def add_familiarity(folder: Path, opts: ExportOptions) -> dict[str, Any]:
+    """Write the familiarity bank into an exported folder and its manifest (nothing else changes)."""
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    part_count, dim = int(manifest["part_count"]), int(manifest["embedding_dim"])
+    manifest["familiarity"] = write_familiarity(folder, int(manifest["n_points"]), part_count, dim, opts)
+    manifest.pop("files", None)
+    manifest.pop("format_version", None)
+    return write_manifest(folder, manifest)
 
 
 def _round_floats(obj: Any, digits: int = 6) -> Any:
@@ -297,6 +345,7 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
                                       target_recall=opts.index_target_recall, recall_k=opts.index_recall_k,
                                       queries=tuning, seed=opts.seed)
     faiss.write_index(index, str(folder / INDEX_FILE))
+    familiarity = write_familiarity(folder, n_points, len(records), cfg.model.embedding_dim, opts)
 
     state = trained.state
     summary = summary_of(run_dir)
@@ -311,6 +360,7 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "part_feature_dim": trained.placement.part_dim,
         "catalog_points": opts.catalog_points,
         "index": index_entry(index_params),
+        "familiarity": familiarity,
         "model_config": config_to_dict(cfg.model),
         # The classes of g's category_probs output, in order (ProcessedDataset.categories).
         **({"categories": ds.categories()} if cfg.model.n_categories else {}),

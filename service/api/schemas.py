@@ -300,7 +300,9 @@ class WarningOut(BaseModel):
     code: str = Field(..., description=(
         "`frame` (the points are far from the model's unit-radius frame), `category_unsure` (no "
         "category is likely enough), `unfamiliar` (nothing in the catalog is like what the model "
-        "expects) or `region_empty` (no candidate is placed in the request's region)."))
+        "expects), `unfamiliar_shape` (the partial assembly is unlike every training shape: the "
+        "category and suggestions are guesses) or `region_empty` (no candidate is placed in the "
+        "request's region)."))
     message: str = Field(..., description="What is wrong and how to fix it.")
 
 

@@ -234,18 +234,9 @@ def _build_catalog(records: list[dict[str, Any]], a: dict[str, np.ndarray]) -> C
     )
 
 
-def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 0,
-                       split: str = "test") -> list[np.ndarray]:
-    """Queries like the service's: shapes of one split, each with one random part left out.
-
-    Points come from the catalog's stored part samples (placed with their translations),
-    resampled to ``n_points``; shapes are drawn without replacement (seeded). A catalog without
-    that split (records carry ``split``; added parts have none) gives any multi-part shapes.
-
-    Shapes:
-        returns ``count`` arrays of (n_points, 3) float32 (fewer if the catalog has fewer shapes).
-    """
-    rng = np.random.default_rng(seed)
+def _split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
+    """Rows of each multi-part shape of one split (records carry ``split``; added parts have
+    none); a catalog without that split gives every multi-part shape."""
 
     def shapes_with(keep: Any) -> dict[str, list[int]]:
         rows_of: dict[str, list[int]] = {}
@@ -254,15 +245,60 @@ def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 
                 rows_of.setdefault(rec["shape_id"], []).append(i)
         return {s: rows for s, rows in rows_of.items() if len(rows) >= 2}
 
-    rows_of = shapes_with(lambda rec: rec.get("split", split) == split) or shapes_with(lambda rec: True)
+    return shapes_with(lambda rec: rec.get("split", split) == split) or shapes_with(lambda rec: True)
+
+
+def _assembly_cloud(catalog: Catalog, rows: list[int], n_points: int, rng: np.random.Generator) -> np.ndarray:
+    """The stored samples of ``rows`` placed with their translations, resampled to ``n_points``."""
+    pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows])
+    return resample_points(pts, n_points, int(rng.integers(2**31))).astype(np.float32)
+
+
+def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 0,
+                       split: str = "test") -> list[np.ndarray]:
+    """Queries like the service's: shapes of one split, each with one random part left out.
+
+    Points come from the catalog's stored part samples (placed with their translations),
+    resampled to ``n_points``; shapes are drawn without replacement (seeded). A catalog without
+    that split gives any multi-part shapes.
+
+    Shapes:
+        returns ``count`` arrays of (n_points, 3) float32 (fewer if the catalog has fewer shapes).
+    """
+    rng = np.random.default_rng(seed)
+    rows_of = _split_shapes(catalog, split)
     shapes = sorted(rows_of)
     out = []
     for j in rng.permutation(len(shapes))[:count]:
         rows = rows_of[shapes[j]]
         drop = rows[int(rng.integers(len(rows)))]
-        pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows if i != drop])
-        out.append(resample_points(pts, n_points, int(rng.integers(2**31))).astype(np.float32))
+        out.append(_assembly_cloud(catalog, [i for i in rows if i != drop], n_points, rng))
     return out
+
+
+def partial_assembly_bank(catalog: Catalog, per_shape: int, n_points: int, seed: int = 0,
+                          split: str = "train") -> tuple[list[np.ndarray], np.ndarray]:
+    """``per_shape`` partial assemblies of every multi-part shape of one split, and their shapes.
+
+    The first of each shape leaves one random part out; the others keep a random number (1 to
+    all but one) of random parts, so that lone parts and near-complete shapes are both there,
+    as in requests. Labels are never read.
+
+    Shapes:
+        returns (shapes * per_shape) arrays of (n_points, 3) float32, and (shapes * per_shape,)
+        int64 shape numbers (sorted shape ids' positions).
+    """
+    rng = np.random.default_rng(seed)
+    rows_of = _split_shapes(catalog, split)
+    clouds, groups = [], []
+    for j, shape in enumerate(sorted(rows_of)):
+        rows = rows_of[shape]
+        for t in range(per_shape):
+            keep = len(rows) - 1 if t == 0 else int(rng.integers(1, len(rows)))
+            chosen = sorted(int(i) for i in rng.choice(rows, size=keep, replace=False))
+            clouds.append(_assembly_cloud(catalog, chosen, n_points, rng))
+            groups.append(j)
+    return clouds, np.asarray(groups, dtype=np.int64)
 
 
 @lru_cache(maxsize=1 << 16)

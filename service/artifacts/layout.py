@@ -17,6 +17,9 @@ Layout of an artifact folder (``exported/`` ships with the repository)::
                         points (P, S, 3) float16 centred samples,
                         mesh_vertices (Vt, 3) float32 centred, mesh_faces (Ft, 3) int32 local,
                         vertex_first (P + 1,) int64, face_first (P + 1,) int64
+    familiarity.npz     optional: descriptors (Q, K * D + K) float16, g's answers for training
+                        partial assemblies (``service.suggest.familiarity``); the manifest's
+                        "familiarity" entry holds the distance threshold calibrated on them
 
 Query points are in the canonical frame: y up, front +x, the complete object centred at its
 bounding-box centre and scaled to unit radius. Part points are centred at the part's
@@ -49,6 +52,8 @@ GRAPH_FILES = {
 INDEX_FILE = "index.faiss"
 CATALOG_JSON = "catalog.json"
 CATALOG_ARRAYS = "catalog.npz"
+# Optional (exports before it lack it): the bank of the familiarity check; see the docstring.
+FAMILIARITY_FILE = "familiarity.npz"
 
 # Input and output names of each graph, checked at load time against the ONNX files.
 GRAPH_INPUTS = {
@@ -133,6 +138,8 @@ def write_manifest(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     """Complete ``manifest`` with the format version and the checksum of every file, then write it."""
     folder = Path(folder)
     files = [*GRAPH_FILES.values(), INDEX_FILE, CATALOG_JSON, CATALOG_ARRAYS]
+    if (folder / FAMILIARITY_FILE).is_file():
+        files.append(FAMILIARITY_FILE)
     checksums = {}
     for name in files:
         p = folder / name

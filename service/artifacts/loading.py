@@ -10,6 +10,7 @@ against ``manifest.json`` and each other, runs every graph once on catalog data,
 from __future__ import annotations
 
 import logging
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from service.artifacts.indexing import configure_search, params_from_entry, read
 from service.artifacts.layout import (
     CATALOG_ARRAYS,
     CATALOG_JSON,
+    FAMILIARITY_FILE,
     GRAPH_FILES,
     GRAPH_INPUTS,
     GRAPH_OUTPUTS,
@@ -38,6 +40,41 @@ from service.settings import Settings
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class FamiliarityBank:
+    """The familiarity check's bank (``familiarity.npz``) and its calibrated threshold.
+
+    Shapes:
+        descriptors: (Q, K * D + K) float32.
+    """
+
+    descriptors: np.ndarray
+    threshold: float
+
+
+def load_familiarity(folder: Path, manifest: dict[str, Any]) -> FamiliarityBank | None:
+    """The bank the manifest names (None for an export made before it); ``ArtifactError`` names
+    the file when it is missing, unreadable or does not match g's outputs."""
+    entry = manifest.get("familiarity")
+    if entry is None:
+        return None
+    path = folder / FAMILIARITY_FILE
+    K, D = int(manifest["n_modes"]), int(manifest["embedding_dim"])
+    try:
+        threshold = float(entry["threshold"])
+        with np.load(path, allow_pickle=False) as data:
+            descriptors = np.asarray(data["descriptors"], dtype=np.float32)
+    except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as exc:
+        raise ArtifactError(f"{path}: cannot read the familiarity bank the manifest names ({exc!r})") from exc
+    if descriptors.ndim != 2 or descriptors.shape[1] != K * D + K or len(descriptors) == 0:
+        raise ArtifactError(f"{path}: descriptors must have shape (Q, {K * D + K}) for {K} modes of "
+                            f"{D} dimensions, found {descriptors.shape}")
+    if not (np.isfinite(descriptors).all() and np.isfinite(threshold) and threshold > 0):
+        raise ArtifactError(f"{path}: non-finite descriptors or a threshold that is not positive "
+                            f"({threshold!r} in manifest.json)")
+    return FamiliarityBank(descriptors, threshold)
+
+
 @dataclass
 class Artifacts:
     """Everything loaded from one artifact folder, checked and ready to serve."""
@@ -47,6 +84,7 @@ class Artifacts:
     networks: Networks
     index: faiss.Index
     catalog: Catalog
+    familiarity: FamiliarityBank | None = None
 
     @property
     def model_version(self) -> str:
@@ -253,4 +291,6 @@ def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 
     _check_run(folder, nets, catalog, manifest)
     log.info("loaded artifacts %s: model %s, %d parts in %d categories", folder,
              manifest["model_version"], P, len(catalog.categories))
-    return Artifacts(folder=folder, manifest=manifest, networks=nets, index=index, catalog=catalog)
+    familiarity = load_familiarity(folder, manifest)
+    return Artifacts(folder=folder, manifest=manifest, networks=nets, index=index, catalog=catalog,
+                     familiarity=familiarity)

@@ -53,6 +53,7 @@ from service.settings import Settings
 from service.suggest.complement import complement_order, covered_share
 from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
 from service.suggest.engine_settings import EngineSettings
+from service.suggest.familiarity import FamiliarityCheck, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, share_order
@@ -134,7 +135,7 @@ class InferredCategory:
 class QueryWarning:
     """Something about a query that the answer should not hide (status stays 200)."""
 
-    code: str             # "frame", "category_unsure", "unfamiliar", "region_empty"
+    code: str             # "frame", "category_unsure", "unfamiliar", "unfamiliar_shape", "region_empty"
     message: str          # what is wrong and how to fix it
 
 
@@ -304,6 +305,9 @@ class SuggestionEngine:
                           search_points=c.contact_search_points, seed=c.seed),
             part_samples=c.contact_part_samples, assembly_points=c.contact_assembly_points,
             cache_entries=c.contact_cache_parts)
+        bank = artifacts.familiarity
+        self.familiarity = (FamiliarityCheck(bank.descriptors, c.familiarity_threshold or bank.threshold)
+                            if c.familiarity_check and bank is not None else None)
         self._beside: ThreadPoolExecutor | None = None
         self._beside_lock = threading.Lock()
 
@@ -553,8 +557,11 @@ class SuggestionEngine:
                   if len(queries) <= self.config.overlap_max_batch else None)
         with timer.stage("g"):
             mix = self.networks.mixture(batch)
+            distances = self.familiarity_distances(mix.weights, mix.means)
             for b, q in enumerate(queries):
                 self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
+                if distances is not None:
+                    q.warnings.extend(self._shape_warnings(float(distances[b])))
         with timer.stage("search"):
             candidates = self.search(queries, mix.means, snap)
         ranked: dict[int, Ranked] = {}  # query position b -> its ranked candidates
@@ -640,7 +647,7 @@ class SuggestionEngine:
             mode_weights=mix.weights, frame=q.options.frame, n_input_points=q.n_input,
             candidates=scored, timings=timings, mode_means=mix.means, mode_sigmas=mix.sigmas,
             inferred_category=q.inferred,
-            warnings=q.warnings + self._familiarity_warnings(placed, mix.means, mix.sigmas, snap.catalog),
+            warnings=q.warnings + self._mode_distance_warnings(placed, mix.means, mix.sigmas, snap.catalog),
             region=q.region_report)
 
     def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None,
@@ -864,7 +871,31 @@ class SuggestionEngine:
             return np.ones((len(raw), 3))
         return np.clip(raw.astype(np.float64), c.scale_min, c.scale_max)
 
-    def _familiarity_warnings(self, placed: Placed, means: np.ndarray, sigmas: np.ndarray,
+    def familiarity_distances(self, weights: np.ndarray, means: np.ndarray) -> np.ndarray | None:
+        """Distance of g's answer for each query to the nearest answer for a training partial
+        assembly (``service.suggest.familiarity``); None when the check is off or the artifacts
+        have no bank.
+
+        Shapes:
+            weights: (B, K), means: (B, K, D) -> (B,) float64.
+        """
+        if self.familiarity is None:
+            return None
+        return self.familiarity.distances(mixture_descriptor(weights, means))
+
+    def _shape_warnings(self, distance: float) -> list[QueryWarning]:
+        """An ``unfamiliar_shape`` warning when g's answer is unlike its answers for training shapes."""
+        assert self.familiarity is not None
+        limit = self.familiarity.threshold
+        if distance <= limit:
+            return []
+        return [QueryWarning("unfamiliar_shape", (
+            f"g's answer for this partial assembly lies {distance:.2f} from its nearest answer for a "
+            f"training shape (threshold {limit:.2f}): the shape is unlike anything the model was trained "
+            "on, so the inferred category and the suggestions are guesses; if it is of a known kind, "
+            "check the frame (frame.radius, frame.center, frame.up) or name the category"))]
+
+    def _mode_distance_warnings(self, placed: Placed, means: np.ndarray, sigmas: np.ndarray,
                               catalog: Catalog) -> list[QueryWarning]:
         """An ``unfamiliar`` warning when even the best suggestion is far from its mode's mean.
 

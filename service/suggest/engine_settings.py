@@ -65,6 +65,8 @@ class EngineSettings(BaseModel):
     ood_min_extent: float
     ood_max_extent: float
     ood_max_mode_distance: float
+    familiarity_check: bool
+    familiarity_threshold: float | None
 
     @classmethod
     def of(cls, settings: Settings) -> EngineSettings:

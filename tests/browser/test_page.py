@@ -432,3 +432,20 @@ def test_start_from_an_uploaded_mesh(page: Any, tmp_path: Path) -> None:
     page.click("#undo-button")
     _wait_parts(page, 0)
     assert not page.problems, page.problems
+
+
+def test_a_shape_of_no_known_kind_is_called_a_guess(page: Any, tmp_path: Path) -> None:
+    """A torus is "watercraft, 95% sure" to the category head; the answer's unfamiliar_shape
+    warning reaches the designer as a notice instead of staying in the JSON."""
+    path = tmp_path / "torus.obj"
+    path.write_text(trimesh.creation.torus(0.6, 0.15).export(file_type="obj"))
+    with page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
+        page.set_input_files("#mesh-upload", str(path))
+    assert answer.value.status == 200
+    codes = {w["code"] for w in answer.value.json()["warnings"]}
+    assert codes & {"unfamiliar_shape", "unfamiliar", "frame"}, codes
+    page.wait_for_function(IDLE)
+    notice = page.locator("#notice")
+    assert notice.is_visible()
+    assert "guesses" in page.inner_text("#notice-text")
+    assert not page.problems, page.problems

@@ -212,3 +212,48 @@ def test_copying_keeps_a_loadable_folder(tmp_path: Path, artifacts: Path) -> Non
     folder = faulty_copy(artifacts, tmp_path / "a", lambda d: None)
     assert load_artifacts(folder).model_version == read_manifest(artifacts, False)["model_version"]
     shutil.rmtree(folder)
+
+
+def test_familiarity_bank_faults(tmp_path: Path, artifacts: Path) -> None:
+    """The manifest names the bank: missing, unreadable, the wrong width or a bad threshold refuse
+    the folder, naming the file."""
+    assert read_manifest(artifacts).get("familiarity"), "the shipped folder has a familiarity bank"
+    bank = load_npz(artifacts / "familiarity.npz")
+
+    def save_bank(d: Path, arrays: dict[str, np.ndarray]) -> None:
+        (d / "familiarity.npz").unlink()
+        np.savez(d / "familiarity.npz", **arrays)
+
+    folder = faulty_copy(artifacts, tmp_path / "a", lambda d: (d / "familiarity.npz").unlink(),
+                         rewrite_manifest=False)
+    refused(folder, str(folder / "familiarity.npz"))
+    folder = faulty_copy(artifacts, tmp_path / "b", lambda d: replace(d, "familiarity.npz", b"not a zip"))
+    refused(folder, str(folder / "familiarity.npz"))
+    folder = faulty_copy(artifacts, tmp_path / "c",
+                         lambda d: save_bank(d, {"descriptors": bank["descriptors"][:, :-1]}))
+    refused(folder, str(folder / "familiarity.npz"), "shape")
+    folder = faulty_copy(artifacts, tmp_path / "d", lambda d: save_bank(d, {"other": bank["descriptors"]}))
+    refused(folder, str(folder / "familiarity.npz"))
+
+    def bad_threshold(d: Path) -> None:
+        manifest = json.loads((artifacts / "manifest.json").read_text())
+        manifest["familiarity"]["threshold"] = -1.0
+        replace(d, "manifest.json", json.dumps(manifest).encode())
+        write_manifest(d, {k: v for k, v in manifest.items() if k not in ("files", "format_version")})
+
+    folder = faulty_copy(artifacts, tmp_path / "e", bad_threshold, rewrite_manifest=False)
+    refused(folder, str(folder / "familiarity.npz"), "threshold")
+
+
+def test_an_export_without_a_familiarity_bank_still_loads(tmp_path: Path, artifacts: Path) -> None:
+    """Exports made before the bank load and serve without the check."""
+
+    def drop(d: Path) -> None:
+        (d / "familiarity.npz").unlink()
+        manifest = read_manifest(artifacts, verify_checksums=False)
+        replace(d, "manifest.json", b"{}")
+        dropped = ("files", "format_version", "familiarity")
+        write_manifest(d, {k: v for k, v in manifest.items() if k not in dropped})
+
+    folder = faulty_copy(artifacts, tmp_path / "a", drop, rewrite_manifest=False)
+    assert load_artifacts(folder).familiarity is None

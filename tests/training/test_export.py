@@ -104,8 +104,11 @@ def test_exported_folder_loads_and_is_consistent(exported: Path, tiny_run: Path,
     P = toy_dataset.n_components
     for key in ("model_version", "n_points", "embedding_dim", "n_modes", "part_count", "query_feature_dim",
                 "part_feature_dim", "catalog_points", "index", "model_config", "dataset", "training",
-                "created"):
+                "created", "familiarity"):
         assert key in manifest, key
+    # The familiarity bank: two partial assemblies per training shape, a positive threshold.
+    assert 0 < manifest["familiarity"]["queries"] <= 2 * manifest["split"]["train_shapes"]
+    assert manifest["familiarity"]["threshold"] > 0 and "familiarity.npz" in manifest["files"]
     assert manifest["part_count"] == P and manifest["n_points"] == cfg.n_points
     assert manifest["embedding_dim"] == cfg.model.embedding_dim and manifest["n_modes"] == cfg.model.n_modes
     assert manifest["training"]["steps"] == 20

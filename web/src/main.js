@@ -380,6 +380,9 @@ async function refreshSuggestions() {
   });
   if (token !== refreshToken) return;
   renderInferred(answer);
+  // What the service cannot vouch for (a shape of no kind it knows, a frame far off) is said, not hidden.
+  const doubt = answer.warnings.find((w) => ["unfamiliar_shape", "unfamiliar", "frame"].includes(w.code));
+  if (doubt) notify(`These suggestions are guesses: ${doubt.message}.`, "warn");
   if (spot && answer.region) {
     $("spot-text").textContent = `Parts for ${spotName(spot)}: ` +
       `${answer.region.inside} of the ${answer.region.placed} best candidates are placed there`;
