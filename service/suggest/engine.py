@@ -51,7 +51,7 @@ from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
 from service.settings import Settings
 from service.suggest.complement import complement_order, covered_share
-from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offset
+from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offsets
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
@@ -723,22 +723,24 @@ class SuggestionEngine:
         """
         cat = catalog if catalog is not None else self.catalog
         t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-        if scales is None or np.all(np.asarray(scales) == 1.0):
-            found = self.contacts.refine(cat, rows, t, assembly)
-            surfaces = [lambda j=j: self.contacts.part_surface(cat, int(rows[j])).moved(t[j])
-                        for j in range(len(t))]
-        else:
-            surfaces = [lambda j=j: scaled_surface(self.contacts.part_surface(cat, int(rows[j])),
-                                                   scales[j]).moved(t[j]) for j in range(len(t))]
-            found = [refine_offset(make(), assembly, self.contacts.params) for make in surfaces]
-        offsets = np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
+        surfaces = [self.contacts.part_surface(cat, int(i)) for i in np.asarray(rows).tolist()]
+        if scales is not None and not np.all(np.asarray(scales) == 1.0):
+            sc = np.asarray(scales, dtype=np.float64).reshape(-1, 3)
+            surfaces = [scaled_surface(sf, sc[j]) for j, sf in enumerate(surfaces)]
+        moved = [sf.moved(t[j]) for j, sf in enumerate(surfaces)]
+        # All parts in one search (refine_offsets answers as one part at a time would, faster).
         params = self.contacts.params
+        found = refine_offsets(moved, assembly, params)
+        offsets = np.array([r.offset for r in found], dtype=np.float64).reshape(-1, 3)
         reach = replace(params, max_offset=self.config.contact_reach)
         if reach.max_offset <= params.max_offset:
             return offsets
-        for j, r in enumerate(found):
-            if not r.resolved and r.before.depth <= params.tolerance < r.before.gap:
-                offsets[j] = refine_offset(surfaces[j](), assembly, reach).offset
+        floating = [j for j, r in enumerate(found)
+                    if not r.resolved and r.before.depth <= params.tolerance < r.before.gap]
+        if floating:
+            far = refine_offsets([moved[j] for j in floating], assembly, reach)
+            for j, r in zip(floating, far, strict=True):
+                offsets[j] = r.offset
         return offsets
 
     # ---------------------------------------------------------------- steps 3-6
