@@ -144,7 +144,7 @@ def export_command(
 def familiarity_command(
     artifacts: Path = typer.Option(Path("exported"), "--artifacts",
                                    help="Exported folder to add the bank to."),
-    per_shape: int = typer.Option(2, "--per-shape", min=1, help="Partial assemblies per training shape."),
+    per_shape: int = typer.Option(3, "--per-shape", min=1, help="Partial assemblies per training shape."),
     quantile: float = typer.Option(0.99, "--quantile", min=0.5, max=1.0,
                                    help="Threshold: this quantile of the bank's other-shape distances."),
     seed: int = typer.Option(0, "--seed", help="Seed of the partial assemblies."),

@@ -95,7 +95,7 @@ class ExportOptions:
     # The familiarity check's bank (service.suggest.familiarity): g's answers for this many partial
     # assemblies of every training shape, and the quantile of their nearest-other-shape distances
     # that becomes the threshold (0.99: 1 in 100 new shapes of a known kind is called unfamiliar).
-    familiarity_per_shape: int = 2
+    familiarity_per_shape: int = 3
     familiarity_quantile: float = 0.99
     opset: int = 17
     # Parts per onnxruntime call when encoding the catalog.

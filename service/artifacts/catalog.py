@@ -234,7 +234,7 @@ def _build_catalog(records: list[dict[str, Any]], a: dict[str, np.ndarray]) -> C
     )
 
 
-def _split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
+def split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
     """Rows of each multi-part shape of one split (records carry ``split``; added parts have
     none); a catalog without that split gives every multi-part shape."""
 
@@ -266,7 +266,7 @@ def partial_assemblies(catalog: Catalog, count: int, n_points: int, seed: int = 
         returns ``count`` arrays of (n_points, 3) float32 (fewer if the catalog has fewer shapes).
     """
     rng = np.random.default_rng(seed)
-    rows_of = _split_shapes(catalog, split)
+    rows_of = split_shapes(catalog, split)
     shapes = sorted(rows_of)
     out = []
     for j in rng.permutation(len(shapes))[:count]:
@@ -280,21 +280,21 @@ def partial_assembly_bank(catalog: Catalog, per_shape: int, n_points: int, seed:
                           split: str = "train") -> tuple[list[np.ndarray], np.ndarray]:
     """``per_shape`` partial assemblies of every multi-part shape of one split, and their shapes.
 
-    The first of each shape leaves one random part out; the others keep a random number (1 to
-    all but one) of random parts, so that lone parts and near-complete shapes are both there,
-    as in requests. Labels are never read.
+    The first of each shape leaves one random part out, the second is one random part alone (the
+    page's usual start), the others keep a random number (1 to all but one) of random parts: lone
+    parts and near-complete shapes are both there, as in requests. Labels are never read.
 
     Shapes:
         returns (shapes * per_shape) arrays of (n_points, 3) float32, and (shapes * per_shape,)
         int64 shape numbers (sorted shape ids' positions).
     """
     rng = np.random.default_rng(seed)
-    rows_of = _split_shapes(catalog, split)
+    rows_of = split_shapes(catalog, split)
     clouds, groups = [], []
     for j, shape in enumerate(sorted(rows_of)):
         rows = rows_of[shape]
         for t in range(per_shape):
-            keep = len(rows) - 1 if t == 0 else int(rng.integers(1, len(rows)))
+            keep = len(rows) - 1 if t == 0 else 1 if t == 1 else int(rng.integers(1, len(rows)))
             chosen = sorted(int(i) for i in rng.choice(rows, size=keep, replace=False))
             clouds.append(_assembly_cloud(catalog, chosen, n_points, rng))
             groups.append(j)

@@ -32,7 +32,9 @@ every step or, for a tree of possibilities, several choices per step. Each step 
        shade). Parts of other kinds may overlap (the data's own car bodies and wheels, sofa
        seats and arms overlap with IoU up to 0.5);
      - lying on placed surface: at least ``assemble_cover_share`` of its placed samples within
-       ``assemble_cover_distance`` of the placed parts' samples;
+       ``assemble_cover_distance`` of the placed parts' samples; where the category's own
+       training parts lie on each other more (rifle magazines in their bodies), the share its
+       parts reach at ``assemble_cover_quantile`` (``own_cover_shares``);
 4. stops when the object is *complete*: when no eligible candidate is more likely under g's
    mixture than a part already placed, by ``assemble_complete_margin`` (g's most wanted
    complement is one the assembly has: a chair with a seat, a back and legs asks for one more
@@ -55,7 +57,9 @@ Everything runs in the canonical frame; the API maps translations to the caller'
 
 from __future__ import annotations
 
+import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -64,6 +68,7 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.artifacts.catalog import Catalog, split_shapes
 from service.errors import InputError
 from service.geometry.frames import Frame
 from service.settings import Settings
@@ -249,6 +254,7 @@ class Assembler:
         self.catalog = self.snapshot.catalog
         self.settings = settings
         self._part_counts: tuple[float, float] = (0.0, np.inf)   # set per assembly (its category)
+        self._cover_share = settings.assemble_cover_share          # likewise
 
     # ---------------------------------------------------------------- the parts of a state
     def _start_parts(self, start: Start) -> list[_Placed]:
@@ -336,10 +342,10 @@ class Assembler:
             return True
         if sigma is not None and self._same_job(cand, state, sigma):
             return True
-        if s.assemble_cover_share >= 1:
+        if self._cover_share >= 1:
             return False
         d, _ = state.tree().query(cand.points, k=1, distance_upper_bound=s.assemble_cover_distance)
-        return bool(np.mean(np.isfinite(d)) >= s.assemble_cover_share)
+        return bool(np.mean(np.isfinite(d)) >= self._cover_share)
 
     def _same_job(self, cand: _Placed, state: _State, sigma: np.ndarray) -> bool:
         """A placed part in the same region that g cannot tell apart from the candidate here: boxes
@@ -509,6 +515,7 @@ class Assembler:
         rng = np.random.default_rng(options.seed)
         only = options.categories[0] if len(options.categories) == 1 else None
         self._part_counts = self.part_counts(category or only)
+        self._cover_share = self.cover_share(category or only)
         base = self._start_parts(start)
         nodes: list[Node] = []
         states: dict[int | None, _State] = {None: _State(base, frozenset(
@@ -630,6 +637,21 @@ class Assembler:
         lo, hi = self.settings.assemble_complete_quantiles
         return float(np.quantile(counts, lo)), float(np.quantile(counts, hi))
 
+    def cover_share(self, category: str | None) -> float:
+        """The cover rule's share for an assembly of ``category`` (see ``assemble_cover_quantile``):
+        made once per snapshot and category from the catalog's training shapes."""
+        s = self.settings
+        if s.assemble_cover_quantile <= 0 or s.assemble_cover_share >= 1:
+            return s.assemble_cover_share
+        with _COVER_LOCK:
+            share = _COVER_SHARES.setdefault(self.snapshot, {}).get(category)
+        if share is None:  # measured outside the lock: two first requests may both measure it
+            shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance)
+            share = float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
+            with _COVER_LOCK:
+                _COVER_SHARES.setdefault(self.snapshot, {})[category] = share
+        return max(s.assemble_cover_share, share)
+
     def _fills_frame(self, state: _State) -> bool:
         """Whether the state spans the complete object's frame: a complete object's box is centred
         at the origin and its surface reaches radius 1 (the canonical frame's definition), within
@@ -669,6 +691,33 @@ class Assembler:
                 return chain
             chain.append(child)
             parent = child.node
+
+
+def own_cover_shares(catalog: Catalog, category: str | None, distance: float) -> np.ndarray:
+    """For each part of the catalog's training shapes of ``category`` (every category: None), the
+    share of its stored samples within ``distance`` of the rest of its shape: how much real parts
+    lie on each other (labels are not read).
+
+    Shapes:
+        returns (parts,) float64.
+    """
+    code = None if category is None else catalog.category_codes([category])[0]
+    out: list[float] = []
+    for rows in split_shapes(catalog, "train").values():
+        if code is not None and catalog.category_of[rows[0]] != code:
+            continue
+        clouds = [catalog.part_points(i).astype(np.float64) + catalog.translations[i] for i in rows]
+        for j, pts in enumerate(clouds):
+            rest = cKDTree(np.concatenate(clouds[:j] + clouds[j + 1:]))
+            d, _ = rest.query(pts, k=1, distance_upper_bound=distance)
+            out.append(float(np.mean(np.isfinite(d))))
+    return np.asarray(out, dtype=np.float64)
+
+
+# The cover share of each catalog snapshot and category, made on first use (``Assembler.cover_share``).
+_COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float]] = (
+    weakref.WeakKeyDictionary())
+_COVER_LOCK = threading.Lock()
 
 
 def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:

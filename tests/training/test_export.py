@@ -106,8 +106,8 @@ def test_exported_folder_loads_and_is_consistent(exported: Path, tiny_run: Path,
                 "part_feature_dim", "catalog_points", "index", "model_config", "dataset", "training",
                 "created", "familiarity"):
         assert key in manifest, key
-    # The familiarity bank: two partial assemblies per training shape, a positive threshold.
-    assert 0 < manifest["familiarity"]["queries"] <= 2 * manifest["split"]["train_shapes"]
+    # The familiarity bank: three partial assemblies per training shape, a positive threshold.
+    assert 0 < manifest["familiarity"]["queries"] <= 3 * manifest["split"]["train_shapes"]
     assert manifest["familiarity"]["threshold"] > 0 and "familiarity.npz" in manifest["files"]
     assert manifest["part_count"] == P and manifest["n_points"] == cfg.n_points
     assert manifest["embedding_dim"] == cfg.model.embedding_dim and manifest["n_modes"] == cfg.model.n_modes
