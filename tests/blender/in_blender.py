@@ -134,6 +134,7 @@ def main() -> None:
     assert answer["frame"]["up_axis"] == "z", answer["frame"]
     assert abs(answer["frame"]["scale"] - radius) < 1e-5, answer["frame"]
     assert len(settings.suggestions) == len(answer["suggestions"]) == 5, len(settings.suggestions)
+    assert settings.warning == "", (settings.warning, answer["warnings"])  # a chair: nothing to doubt
     result["suggestions"] = [(s["rank"], s["part_id"], s["label"], round(s["score"], 2))
                              for s in answer["suggestions"]]
 
@@ -171,6 +172,21 @@ def main() -> None:
         assert_close(found_hi, step["bbox_max"], tol, f"step {step['part_id']} box max")
         assert_upright(obj, os.environ["CM_URL"], step, radius, tol)
     result["assembled"] = [(s["part_id"], s["label"]) for s in steps]
+
+    # A torus is no known kind of shape: the answer's unfamiliar_shape warning reaches the panel.
+    bpy.ops.mesh.primitive_torus_add(location=(3.0, 0.0, 0.3), major_radius=0.3, minor_radius=0.08)
+    torus = bpy.context.object
+    for obj in bpy.data.objects:
+        obj.select_set(obj is torus)
+    settings.category = ""
+    assert bpy.ops.complementme.suggest() == {"FINISHED"}
+    codes = [w["code"] for w in calls[-1][3]["warnings"]]
+    assert "unfamiliar_shape" in codes, codes
+    assert "training shape" in settings.warning, settings.warning
+    result["torus_warning"] = settings.warning
+    bpy.data.objects.remove(torus)
+    for obj in bpy.data.objects:
+        obj.select_set(obj.name in ("seat", "back"))
 
     # Errors, in the report area: the service's 4xx message ...
     settings.category = "no-such-category"

@@ -8,6 +8,7 @@ the user reads one line in the status bar and the Info editor, never a traceback
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 import bpy
@@ -84,6 +85,13 @@ class ComplementMeSettings(bpy.types.PropertyGroup):
     frame_scale: FloatProperty(default=1.0)  # type: ignore[valid-type]
     frame_rotation: FloatVectorProperty(size=9, default=(1, 0, 0, 0, 1, 0, 0, 0, 1))  # type: ignore[valid-type]
     model_version: StringProperty()  # type: ignore[valid-type]
+    # What the last answer could not vouch for (a shape of no kind the model knows, a frame far
+    # off, no sure category): its warnings' messages, shown above the suggestions.
+    warning: StringProperty()  # type: ignore[valid-type]
+
+
+# Warnings of an answer that the panel shows (the others, such as an empty region, cannot occur here).
+WARNED_CODES = ("unfamiliar_shape", "unfamiliar", "frame", "category_unsure")
 
 
 # -- helpers -----------------------------------------------------------------------------------
@@ -226,6 +234,11 @@ class COMPLEMENTME_OT_suggest(_ServiceOperator):  # noqa: N801 - Blender\'s nami
             item.bbox_min, item.bbox_max = s["bbox_min"], s["bbox_max"]
         _store_frame(settings, answer["frame"])
         settings.model_version = str(answer.get("model_version", ""))
+        doubts = [str(w.get("message", "")) for w in answer.get("warnings", [])
+                  if w.get("code") in WARNED_CODES]
+        settings.warning = " ".join(doubts)
+        if doubts:
+            self.report({"WARNING"}, f"ComplementMe: the suggestions are guesses: {doubts[0]}")
         return f"{len(settings.suggestions)} suggestions"
 
 
@@ -309,6 +322,11 @@ class COMPLEMENTME_PT_panel(bpy.types.Panel):  # noqa: N801 - Blender\'s naming 
         if not settings.suggestions:
             layout.label(text="Select the parts you have, then Suggest.", icon="INFO")
             return
+        if settings.warning:
+            warn = layout.box()
+            warn.label(text="These suggestions are guesses:", icon="ERROR")
+            for line in textwrap.wrap(settings.warning, 60)[:6]:
+                warn.label(text=line)
         # The service has no thumbnail route: each row shows rank, label, score and the part id.
         box = layout.box()
         box.use_property_split = False
