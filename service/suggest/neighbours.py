@@ -8,6 +8,10 @@ flat search spends its time in per-row heaps, not in distances: 8 means, top 64,
 1.0 ms, and 256 means (a batch of 32 queries) 24 ms. One matrix product, one ``np.partition``
 per row and a threshold give the same parts (ties included) in 0.23 ms and 5.5 ms.
 
+A category the snapshot keeps a mask for (named or inferred: most requests) is searched over its
+own columns of the embedding matrix, cut once per snapshot and category: masking all 8,300
+columns and partitioning them cost about 0.9 ms per request, the category's ninth 0.1 ms.
+
 Squared L2 distances are ``|x|^2 - 2 m.x`` (the ``|m|^2`` term does not change any row's order);
 for an inner-product index the nearest parts are those of largest ``m.x``.
 """
@@ -32,6 +36,27 @@ class BruteForceNeighbours:
         self._transposed = np.ascontiguousarray(emb.T)  # (D, P): the product reads it row by row
         self._sq_norms = None if inner_product else np.einsum("pd,pd->p", emb, emb)
         self.size = len(emb)
+        # Read-only masks (a snapshot's categories): their rows and columns of the product, kept.
+        self._subsets: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._subsets_lock = threading.Lock()
+
+    def _subset(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+        """For a read-only mask (one the snapshot keeps), its rows, their columns of the transposed
+        embeddings and their squared norms, made once: an inferred category is a ninth of the
+        shipped catalog, and searching its columns alone is that much less work than masking all
+        of them (the answer is the same). None for another mask (searched by masking)."""
+        if allowed.flags.writeable:
+            return None
+        kept = self._subsets.get(id(allowed))
+        if kept is None or kept[0] is not allowed:
+            rows = np.flatnonzero(allowed)
+            kept = (allowed, rows, np.ascontiguousarray(self._transposed[:, rows]),
+                    None if self._sq_norms is None else self._sq_norms[rows])
+            with self._subsets_lock:
+                if len(self._subsets) >= FILTERS_KEPT:
+                    self._subsets.pop(next(iter(self._subsets)))
+                self._subsets[id(allowed)] = kept
+        return kept[1], kept[2], kept[3]
 
     def neighbour_union(self, means: np.ndarray, modes: int, nn: int,
                         allowed: np.ndarray | None = None) -> list[np.ndarray]:
@@ -45,24 +70,41 @@ class BruteForceNeighbours:
             returns: Q sorted int64 arrays.
         """
         queries = len(means) // modes
+        subset = None if allowed is None else self._subset(allowed)
+        if subset is not None:
+            rows, transposed, sq_norms = subset
+            products = np.asarray(means, dtype=np.float32) @ transposed  # (Q * modes, allowed)
+            return [rows[f] for f in _union(products, sq_norms, queries, modes, nn, None)]
         dist = np.asarray(means, dtype=np.float32) @ self._transposed  # (Q * modes, P)
-        if self._sq_norms is None:
-            np.negative(dist, out=dist)
-        else:
-            dist *= -2.0
-            dist += self._sq_norms
-        available = self.size
-        if allowed is not None:
-            dist[:, ~allowed] = np.inf
-            available = int(allowed.sum())
-        nn = min(nn, available)
-        if nn == 0 or queries == 0:
-            return [np.zeros(0, np.int64) for _ in range(queries)]
-        kth = np.partition(dist, nn - 1, axis=1)[:, nn - 1:nn]  # (Q * modes, 1)
-        near = np.any((dist <= kth).reshape(queries, modes, -1), axis=1)  # (Q, P)
-        if allowed is not None:
-            near &= allowed  # an all-inf row (nn == available) must not admit filtered parts
-        return [np.flatnonzero(row).astype(np.int64) for row in near]
+        return _union(dist, self._sq_norms, queries, modes, nn, allowed)
+
+
+def _union(dist: np.ndarray, sq_norms: np.ndarray | None, queries: int, modes: int, nn: int,
+           allowed: np.ndarray | None) -> list[np.ndarray]:
+    """``BruteForceNeighbours.neighbour_union`` from the products ``dist`` (turned into distances
+    in place): each query's columns within the ``nn`` nearest of any of its means, ties kept.
+
+    Shapes:
+        dist: (Q * modes, P) means . embeddings; sq_norms: (P,) or None (inner product);
+        allowed: (P,) bool or None -> Q sorted int64 arrays of columns.
+    """
+    if sq_norms is None:
+        np.negative(dist, out=dist)
+    else:
+        dist *= -2.0
+        dist += sq_norms
+    available = dist.shape[1]
+    if allowed is not None:
+        dist[:, ~allowed] = np.inf
+        available = int(allowed.sum())
+    nn = min(nn, available)
+    if nn == 0 or queries == 0:
+        return [np.zeros(0, np.int64) for _ in range(queries)]
+    kth = np.partition(dist, nn - 1, axis=1)[:, nn - 1:nn]  # (Q * modes, 1)
+    near = np.any((dist <= kth).reshape(queries, modes, -1), axis=1)  # (Q, P)
+    if allowed is not None:
+        near &= allowed  # an all-inf row (nn == available) must not admit filtered parts
+    return [np.flatnonzero(row).astype(np.int64) for row in near]
 
 
 class CatalogSearch:

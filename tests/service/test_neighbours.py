@@ -105,3 +105,23 @@ def test_the_snapshot_keeps_one_read_only_mask_per_category(engine: SuggestionEn
     both = snap.category_mask(cat.category_codes(["chair", "table"]))
     assert both.flags.writeable and int(both.sum()) == int(chair.sum()) + int(
         (cat.category_of == cat.category_codes(["table"])[0]).sum())
+
+
+@pytest.mark.parametrize("share", [0.1, 0.6, 0.002])
+def test_brute_force_over_a_kept_mask_searches_its_rows_alone_with_the_same_answer(share: float) -> None:
+    """A read-only (kept) mask is searched over its own columns, made once; the answer is the
+    masked search's, ties included, and a writeable mask is still masked per call."""
+    rng = np.random.default_rng(4)
+    emb = np.round(rng.normal(size=(3000, 16)), 1).astype(np.float32)  # coarse values: ties happen
+    means = np.round(rng.normal(size=(3 * 4, 16)), 1).astype(np.float32)
+    allowed = rng.random(3000) < share
+    fresh = BruteForceNeighbours(emb).neighbour_union(means, 4, 32, allowed.copy())
+    kept = allowed.copy()
+    kept.setflags(write=False)
+    search = BruteForceNeighbours(emb)
+    for _ in range(2):  # the second call reads the kept columns
+        got = search.neighbour_union(means, 4, 32, kept)
+        assert [g.tolist() for g in got] == [f.tolist() for f in fresh]
+        assert all(g.dtype == np.int64 and allowed[g].all() for g in got)
+    assert len(search._subsets) == 1
+    assert [set(g.tolist()) for g in got] == _faiss_union(emb, means, 4, 32, faiss.METRIC_L2, allowed)
