@@ -4,7 +4,9 @@ One request (or a batch of them) goes through these steps, each one batched:
 
 1. points to the canonical frame, resampled to the networks' N points (seeded);
 2. g: the mixture {phi_k, mu_k, sigma_k} and h_query: the query's placement feature, one run
-   each for the whole batch;
+   each for the whole batch; g's head names the category when the request does not, and g's
+   answer is compared with its answers for training shapes (``service.suggest.familiarity``:
+   an ``unfamiliar_shape`` warning for a shape of no kind the model knows);
 3. the search (``CatalogSearch`` of the request's ``CatalogSnapshot``: numpy brute force or
    FAISS): the nearest catalog parts of every mean, all K means (of all queries sharing the same
    filter) in one search;
