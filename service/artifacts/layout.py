@@ -17,8 +17,9 @@ Layout of an artifact folder (``exported/`` ships with the repository)::
                         points (P, S, 3) float16 centred samples,
                         mesh_vertices (Vt, 3) float32 centred, mesh_faces (Ft, 3) int32 local,
                         vertex_first (P + 1,) int64, face_first (P + 1,) int64
-    familiarity.npz     optional: descriptors (Q, K * D + K) float16, g's answers for training
-                        partial assemblies (``service.suggest.familiarity``); the manifest's
+    familiarity.npz     optional: descriptors (Q, P) float32, g's answers for training partial
+                        assemblies (``service.suggest.familiarity``) in their principal subspace:
+                        components (P, K * D + K) about mean (K * D + K,); the manifest's
                         "familiarity" entry holds the distance threshold calibrated on them
 
 Query points are in the canonical frame: y up, front +x, the complete object centred at its

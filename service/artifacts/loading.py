@@ -45,11 +45,14 @@ class FamiliarityBank:
     """The familiarity check's bank (``familiarity.npz``) and its calibrated threshold.
 
     Shapes:
-        descriptors: (Q, K * D + K) float32.
+        descriptors: (Q, P) float32, in the principal subspace ``components`` (P, K * D + K)
+        about ``mean`` (K * D + K,).
     """
 
     descriptors: np.ndarray
     threshold: float
+    mean: np.ndarray
+    components: np.ndarray
 
 
 def load_familiarity(folder: Path, manifest: dict[str, Any]) -> FamiliarityBank | None:
@@ -63,16 +66,21 @@ def load_familiarity(folder: Path, manifest: dict[str, Any]) -> FamiliarityBank 
     try:
         threshold = float(entry["threshold"])
         with np.load(path, allow_pickle=False) as data:
-            descriptors = np.asarray(data["descriptors"], dtype=np.float32)
+            descriptors, mean, components = (np.asarray(data[k], dtype=np.float32)
+                                             for k in ("descriptors", "mean", "components"))
     except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as exc:
         raise ArtifactError(f"{path}: cannot read the familiarity bank the manifest names ({exc!r})") from exc
-    if descriptors.ndim != 2 or descriptors.shape[1] != K * D + K or len(descriptors) == 0:
-        raise ArtifactError(f"{path}: descriptors must have shape (Q, {K * D + K}) for {K} modes of "
-                            f"{D} dimensions, found {descriptors.shape}")
-    if not (np.isfinite(descriptors).all() and np.isfinite(threshold) and threshold > 0):
-        raise ArtifactError(f"{path}: non-finite descriptors or a threshold that is not positive "
+    F = K * D + K
+    if (mean.shape != (F,) or components.ndim != 2 or components.shape[1] != F
+            or descriptors.ndim != 2 or descriptors.shape[1] != len(components) or len(descriptors) == 0):
+        raise ArtifactError(f"{path}: expected mean ({F},), components (P, {F}) and descriptors (Q, P) for "
+                            f"{K} modes of {D} dimensions, found shapes {mean.shape}, {components.shape} "
+                            f"and {descriptors.shape}")
+    if not (all(np.isfinite(a).all() for a in (descriptors, mean, components))
+            and np.isfinite(threshold) and threshold > 0):
+        raise ArtifactError(f"{path}: non-finite arrays or a threshold that is not positive "
                             f"({threshold!r} in manifest.json)")
-    return FamiliarityBank(descriptors, threshold)
+    return FamiliarityBank(descriptors, threshold, mean, components)
 
 
 @dataclass

@@ -55,7 +55,7 @@ from service.settings import Settings
 from service.suggest.complement import complement_order, covered_share
 from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offsets
 from service.suggest.engine_settings import EngineSettings
-from service.suggest.familiarity import FamiliarityCheck, mixture_descriptor
+from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, share_order
@@ -308,7 +308,8 @@ class SuggestionEngine:
             part_samples=c.contact_part_samples, assembly_points=c.contact_assembly_points,
             cache_entries=c.contact_cache_parts)
         bank = artifacts.familiarity
-        self.familiarity = (FamiliarityCheck(bank.descriptors, c.familiarity_threshold or bank.threshold)
+        self.familiarity = (FamiliarityCheck(bank.descriptors, c.familiarity_threshold or bank.threshold,
+                                             Projection(bank.mean, bank.components))
                             if c.familiarity_check and bank is not None else None)
         self._beside: ThreadPoolExecutor | None = None
         self._beside_lock = threading.Lock()

@@ -230,9 +230,13 @@ def test_familiarity_bank_faults(tmp_path: Path, artifacts: Path) -> None:
     folder = faulty_copy(artifacts, tmp_path / "b", lambda d: replace(d, "familiarity.npz", b"not a zip"))
     refused(folder, str(folder / "familiarity.npz"))
     folder = faulty_copy(artifacts, tmp_path / "c",
-                         lambda d: save_bank(d, {"descriptors": bank["descriptors"][:, :-1]}))
+                         lambda d: save_bank(d, {**bank, "descriptors": bank["descriptors"][:, :-1]}))
     refused(folder, str(folder / "familiarity.npz"), "shape")
-    folder = faulty_copy(artifacts, tmp_path / "d", lambda d: save_bank(d, {"other": bank["descriptors"]}))
+    folder = faulty_copy(artifacts, tmp_path / "f",
+                         lambda d: save_bank(d, {**bank, "components": bank["components"][:, :-1]}))
+    refused(folder, str(folder / "familiarity.npz"), "shape")
+    folder = faulty_copy(artifacts, tmp_path / "d",
+                         lambda d: save_bank(d, {k: v for k, v in bank.items() if k != "mean"}))
     refused(folder, str(folder / "familiarity.npz"))
 
     def bad_threshold(d: Path) -> None:
