@@ -33,7 +33,10 @@ against one assembly are searched together, each part a block of one combined KD
 are measured in full, by exact tests: a sample that was inside by more than the tolerance is
 measured alone first, and a sample's nearest distance moves at most as far as the part does.
 On the benchmark query (k = 10) that queries 7 times fewer samples (34k against 236k) in 5.5
-times fewer KD-tree calls (66 against 365) than one part at a time, for the same offsets.
+times fewer KD-tree calls (66 against 365) than one part at a time, for the same offsets. Before
+any round, each part's first open offset (the first step the nearest-distance bound leaves, in
+the first direction) is measured alone, all parts together: where it touches it is the answer,
+and most floating parts end there (the contact stage of the benchmark query, 23-31 -> 15-17 ms).
 
 Everything is in the canonical frame; callers map offsets to their frame like translations.
 """
@@ -646,6 +649,10 @@ def _line_search(batch: _Batch, searched: list[int], first: _Measured, steps: np
         informed = np.stack([first.pull[b], _unit(first.push[b])])  # type: ignore[index]
         informed = informed[np.linalg.norm(informed, axis=1) > 0]
         passes[b] = [np.concatenate([informed, _AXES]), _CORNERS]
+    found = _first_open_offsets(batch, searched, passes, first, steps)
+    searched = [b for b in searched if b not in found]
+    if not searched:
+        return found
     table = _Offsets()
     for b in searched:
         table.add(b, passes[b][0], steps)
@@ -655,7 +662,6 @@ def _line_search(batch: _Batch, searched: list[int], first: _Measured, steps: np
     keep = np.isin(first.deep_pair, start)
     witnesses.add(first.deep_pair[keep], first.deep_side[keep], first.deep_row[keep])
     stage = dict.fromkeys(searched, 0)
-    found: dict[int, tuple[np.ndarray, ContactState]] = {}
     active = set(searched)
     while active:
         table.alive &= table.bound <= tol + slack
@@ -686,6 +692,34 @@ def _line_search(batch: _Batch, searched: list[int], first: _Measured, steps: np
         new = left[m.deep_pair]
         witnesses.add(table.block[rows[m.deep_pair[new]]], m.deep_side[new], m.deep_row[new])
     return found
+
+
+def _first_open_offsets(batch: _Batch, searched: list[int], passes: dict[int, list[np.ndarray]],
+                        first: _Measured, steps: np.ndarray) -> dict[int, tuple[np.ndarray, ContactState]]:
+    """The blocks whose first open offset touches, and that offset: measured first, together.
+
+    The nearest-distance bound rules out every offset of a step shorter than ``g - tol`` (``g``:
+    the nearest distance at h's placement), in every direction; at the first step it leaves
+    open, the first direction of the search is the measured one (towards the nearest sample).
+    Where that offset touches, it is the first touching offset in search order: what the line
+    search would return, found with one measurement of one offset per part instead of a round of
+    two steps in every direction (most floating parts end there).
+    """
+    tol, ub = batch.params.tolerance, batch.ub
+    slack = 1e-9 * tol
+    blocks, offsets = [], []
+    for b in searched:
+        g = min(float(first.nearest[b]), ub)
+        open_steps = np.flatnonzero(g - steps <= tol + slack)
+        if len(open_steps) == 0:
+            continue
+        blocks.append(b)
+        offsets.append(passes[b][0][0] * steps[open_steps[0]])  # as _Offsets.add computes it
+    if not blocks:
+        return {}
+    m = batch.evaluate(np.array(blocks, dtype=np.int64), np.array(offsets))
+    return {b: (offsets[r].copy(), ContactState(float(m.gap[r]), float(m.depth[r])))
+            for r, b in enumerate(blocks) if m.gap[r] <= tol and m.depth[r] <= tol}
 
 
 class PartContacts:
