@@ -272,6 +272,10 @@ class Settings(BaseSettings):
         "the category's training parts, each measured against the rest of its shape (rifle "
         "magazines and bodies, boat cabins lie half on other parts; chair parts do not). 0: "
         "`assemble_cover_share` everywhere."))
+    assemble_cover_shapes: int = Field(default=300, ge=1, description=(
+        "Shapes of a category `assemble_cover_quantile` measures at most (a seeded draw): the "
+        "shipped catalog has at most 144 training shapes per category, about 0.3 s on the first "
+        "`/assemble` of a category per catalog version; a catalog grown by writes costs no more."))
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
         "`/assemble` skips a candidate whose placed box overlaps a placed part's box with more than "
         "this IoU when the two parts do the same job (see `assemble_same_job_sigmas`)."))

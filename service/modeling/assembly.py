@@ -646,7 +646,8 @@ class Assembler:
         with _COVER_LOCK:
             share = _COVER_SHARES.setdefault(self.snapshot, {}).get(category)
         if share is None:  # measured outside the lock: two first requests may both measure it
-            shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance)
+            shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance,
+                                      s.assemble_cover_shapes, s.seed)
             share = float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
             with _COVER_LOCK:
                 _COVER_SHARES.setdefault(self.snapshot, {})[category] = share
@@ -693,19 +694,24 @@ class Assembler:
             parent = child.node
 
 
-def own_cover_shares(catalog: Catalog, category: str | None, distance: float) -> np.ndarray:
+def own_cover_shares(catalog: Catalog, category: str | None, distance: float, max_shapes: int,
+                     seed: int = 0) -> np.ndarray:
     """For each part of the catalog's training shapes of ``category`` (every category: None), the
     share of its stored samples within ``distance`` of the rest of its shape: how much real parts
-    lie on each other (labels are not read).
+    lie on each other (labels are not read). At most ``max_shapes`` shapes (a seeded draw), so
+    that a catalog grown by writes costs no more on its first ``/assemble`` than the shipped one.
 
     Shapes:
         returns (parts,) float64.
     """
     code = None if category is None else catalog.category_codes([category])[0]
+    shapes = [rows for _, rows in sorted(split_shapes(catalog, "train").items())
+              if code is None or catalog.category_of[rows[0]] == code]
+    if len(shapes) > max_shapes:
+        pick = np.random.default_rng(seed).choice(len(shapes), size=max_shapes, replace=False)
+        shapes = [shapes[j] for j in np.sort(pick)]
     out: list[float] = []
-    for rows in split_shapes(catalog, "train").values():
-        if code is not None and catalog.category_of[rows[0]] != code:
-            continue
+    for rows in shapes:
         clouds = [catalog.part_points(i).astype(np.float64) + catalog.translations[i] for i in rows]
         for j, pts in enumerate(clouds):
             rest = cKDTree(np.concatenate(clouds[:j] + clouds[j + 1:]))

@@ -448,8 +448,10 @@ def test_the_cover_rule_follows_each_categorys_own_parts(shipped_engine: Suggest
     below, never less than ``assemble_cover_share``."""
     s, cat = shipped_settings, shipped_engine.catalog
     asm = Assembler(shipped_engine, s)
-    rifle = own_cover_shares(cat, "rifle", s.assemble_cover_distance)
-    chair = own_cover_shares(cat, "chair", s.assemble_cover_distance)
+    rifle = own_cover_shares(cat, "rifle", s.assemble_cover_distance, s.assemble_cover_shapes)
+    chair = own_cover_shares(cat, "chair", s.assemble_cover_distance, s.assemble_cover_shapes)
+    few = own_cover_shares(cat, "rifle", s.assemble_cover_distance, 10)
+    assert 10 <= len(few) <= 10 * 8 < len(rifle)  # a draw of 10 shapes (2-8 parts each)
     assert len(rifle) > 100 and len(chair) > 100
     assert asm.cover_share("rifle") == pytest.approx(max(s.assemble_cover_share, np.quantile(rifle, 0.9)))
     assert asm.cover_share("rifle") > s.assemble_cover_share + 0.2 > asm.cover_share("chair") > 0
