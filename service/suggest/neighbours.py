@@ -19,6 +19,7 @@ for an inner-product index the nearest parts are those of largest ``m.x``.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import faiss
@@ -26,6 +27,33 @@ import numpy as np
 
 # Read-only filter masks (one per category of the snapshot) whose FAISS bitmaps are kept.
 FILTERS_KEPT = 64
+
+
+class _PerKeptMask:
+    """Data derived from a read-only mask (one a snapshot keeps: ``CatalogSnapshot.category_mask``),
+    made once and kept beside it, keyed by the array's identity and holding a reference so the
+    identity stays its own (at most ``FILTERS_KEPT`` masks). Writeable masks are made per call.
+    """
+
+    def __init__(self, make: Callable[[np.ndarray], Any]):
+        self._make = make
+        self._kept: dict[int, tuple[np.ndarray, Any]] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, mask: np.ndarray) -> Any:
+        if mask.flags.writeable:
+            return self._make(mask)
+        kept = self._kept.get(id(mask))
+        if kept is None or kept[0] is not mask:
+            kept = (mask, self._make(mask))
+            with self._lock:
+                if len(self._kept) >= FILTERS_KEPT:
+                    self._kept.pop(next(iter(self._kept)))
+                self._kept[id(mask)] = kept
+        return kept[1]
+
+    def __len__(self) -> int:
+        return len(self._kept)
 
 
 class BruteForceNeighbours:
@@ -36,27 +64,15 @@ class BruteForceNeighbours:
         self._transposed = np.ascontiguousarray(emb.T)  # (D, P): the product reads it row by row
         self._sq_norms = None if inner_product else np.einsum("pd,pd->p", emb, emb)
         self.size = len(emb)
-        # Read-only masks (a snapshot's categories): their rows and columns of the product, kept.
-        self._subsets: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
-        self._subsets_lock = threading.Lock()
+        # A kept mask's rows, their columns of the transposed embeddings and their squared norms:
+        # an inferred category is a ninth of the shipped catalog, and searching its columns alone
+        # is that much less work than masking all of them (the answer is the same).
+        self._subsets = _PerKeptMask(self._cut)
 
-    def _subset(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
-        """For a read-only mask (one the snapshot keeps), its rows, their columns of the transposed
-        embeddings and their squared norms, made once: an inferred category is a ninth of the
-        shipped catalog, and searching its columns alone is that much less work than masking all
-        of them (the answer is the same). None for another mask (searched by masking)."""
-        if allowed.flags.writeable:
-            return None
-        kept = self._subsets.get(id(allowed))
-        if kept is None or kept[0] is not allowed:
-            rows = np.flatnonzero(allowed)
-            kept = (allowed, rows, np.ascontiguousarray(self._transposed[:, rows]),
-                    None if self._sq_norms is None else self._sq_norms[rows])
-            with self._subsets_lock:
-                if len(self._subsets) >= FILTERS_KEPT:
-                    self._subsets.pop(next(iter(self._subsets)))
-                self._subsets[id(allowed)] = kept
-        return kept[1], kept[2], kept[3]
+    def _cut(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        rows = np.flatnonzero(allowed)
+        return (rows, np.ascontiguousarray(self._transposed[:, rows]),
+                None if self._sq_norms is None else self._sq_norms[rows])
 
     def neighbour_union(self, means: np.ndarray, modes: int, nn: int,
                         allowed: np.ndarray | None = None) -> list[np.ndarray]:
@@ -70,9 +86,8 @@ class BruteForceNeighbours:
             returns: Q sorted int64 arrays.
         """
         queries = len(means) // modes
-        subset = None if allowed is None else self._subset(allowed)
-        if subset is not None:
-            rows, transposed, sq_norms = subset
+        if allowed is not None and not allowed.flags.writeable:
+            rows, transposed, sq_norms = self._subsets(allowed)
             products = np.asarray(means, dtype=np.float32) @ transposed  # (Q * modes, allowed)
             return [rows[f] for f in _union(products, sq_norms, queries, modes, nn, None)]
         dist = np.asarray(means, dtype=np.float32) @ self._transposed  # (Q * modes, P)
@@ -125,8 +140,9 @@ class CatalogSearch:
         inner = index.metric_type == faiss.METRIC_INNER_PRODUCT
         self.brute_force = (BruteForceNeighbours(embeddings, inner_product=inner)
                             if small and isinstance(index, faiss.IndexFlat) else None)
-        self._filters: dict[int, tuple[np.ndarray, int, np.ndarray]] = {}  # see _filter
-        self._filters_lock = threading.Lock()
+        # A kept mask's count and FAISS bitmap (see _filter).
+        self._filters = _PerKeptMask(
+            lambda m: (int(np.count_nonzero(m)), np.packbits(m, bitorder="little")))
 
     def neighbour_union(self, means: np.ndarray, modes: int, nn: int,
                         allowed: np.ndarray | None = None) -> list[np.ndarray]:
@@ -170,21 +186,12 @@ class CatalogSearch:
     def _filter(self, allowed: np.ndarray) -> tuple[int, np.ndarray]:
         """The allowed rows' count and FAISS bitmap (little-endian bits).
 
-        A read-only mask is one the snapshot keeps (a category's, ``CatalogSnapshot.category_mask``):
-        its count and bitmap are kept beside it, keyed by the array's identity and holding a
-        reference so the identity stays its own (over 10M parts, packing the bitmap cost about
-        2 ms of every filtered request). Other masks are packed per call.
+        A read-only mask is one the snapshot keeps (a category's): its count and bitmap are kept
+        beside it (``_PerKeptMask``; over 10M parts, packing the bitmap cost about 2 ms of every
+        filtered request). Other masks are packed per call.
         """
-        if allowed.flags.writeable:
-            return int(np.count_nonzero(allowed)), np.packbits(allowed, bitorder="little")
-        kept = self._filters.get(id(allowed))
-        if kept is None or kept[0] is not allowed:
-            kept = (allowed, int(np.count_nonzero(allowed)), np.packbits(allowed, bitorder="little"))
-            with self._filters_lock:
-                if len(self._filters) >= FILTERS_KEPT:
-                    self._filters.pop(next(iter(self._filters)))
-                self._filters[id(allowed)] = kept
-        return kept[1], kept[2]
+        count, packed = self._filters(allowed)
+        return count, packed
 
     def _exact_subset(self, x: np.ndarray, nn: int, rows: np.ndarray) -> np.ndarray:
         """Exact nearest catalog rows among ``rows``: labels (Q, nn), -1 past the subset's size."""
