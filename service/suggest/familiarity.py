@@ -22,7 +22,6 @@ box clusters at three sizes) are past the threshold.
 
 from __future__ import annotations
 
-import faiss
 import numpy as np
 
 # Weight below which log(phi) stops mattering: a dead mode is dead whatever its exact weight.
@@ -70,12 +69,11 @@ class Projection:
         return (np.asarray(descriptors, dtype=np.float32) - self.mean) @ self.components.T
 
 
-def _nearest(queries: np.ndarray, bank: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """FAISS's exact search (as the complement check uses it): (Q, F) x (B, F) -> squared
-    distances (Q, k) float32, nearest first, and the bank rows (Q, k)."""
-    q = np.ascontiguousarray(queries, dtype=np.float32)
-    sq, rows = faiss.knn(q, bank, k)
-    return np.maximum(sq, 0.0), rows
+def _squared_distances(queries: np.ndarray, bank: np.ndarray, bank_sq: np.ndarray) -> np.ndarray:
+    """(Q, F) x (B, F) -> (Q, B) squared L2 distances, clipped at 0 (the expansion rounds)."""
+    q = np.asarray(queries, dtype=np.float32)
+    d2 = np.einsum("qf,qf->q", q, q)[:, None] - 2.0 * (q @ bank.T) + bank_sq[None]
+    return np.maximum(d2, 0.0)
 
 
 def calibrate_threshold(descriptors: np.ndarray, groups: np.ndarray, quantile: float) -> float:
@@ -93,12 +91,13 @@ def calibrate_threshold(descriptors: np.ndarray, groups: np.ndarray, quantile: f
         raise ValueError("calibration needs descriptors of at least two shapes")
     if not 0 < quantile <= 1:
         raise ValueError(f"quantile must be in (0, 1], found {quantile}")
-    # One more neighbour than the largest group holds: each row's list then reaches another group.
-    k = min(len(bank), int(np.unique(groups, return_counts=True)[1].max()) + 1)
-    sq, rows = _nearest(bank, np.ascontiguousarray(bank), k)
-    other = groups[rows] != groups[:, None]
-    first = np.argmax(other, axis=1)
-    return float(np.quantile(np.sqrt(sq[np.arange(len(bank)), first].astype(np.float64)), quantile))
+    sq = np.einsum("bf,bf->b", bank, bank)
+    nearest = np.empty(len(bank), dtype=np.float64)
+    for start in range(0, len(bank), 1024):  # (1024, B) blocks: bounded memory for large banks
+        d2 = _squared_distances(bank[start:start + 1024], bank, sq)
+        d2[groups[start:start + 1024, None] == groups[None]] = np.inf
+        nearest[start:start + 1024] = np.sqrt(d2.min(axis=1))
+    return float(np.quantile(nearest, quantile))
 
 
 class FamiliarityCheck:
@@ -120,6 +119,7 @@ class FamiliarityCheck:
         self.bank = bank
         self.threshold = float(threshold)
         self.projection = projection
+        self._sq = np.einsum("bf,bf->b", bank, bank)
 
     @property
     def dim(self) -> int:
@@ -136,4 +136,4 @@ class FamiliarityCheck:
         assert d.ndim == 2 and d.shape[1] == self.dim, f"expected (Q, {self.dim}), found {d.shape}"
         if self.projection is not None:
             d = self.projection(d)
-        return np.sqrt(_nearest(d, self.bank, 1)[0][:, 0].astype(np.float64))
+        return np.sqrt(_squared_distances(d, self.bank, self._sq).min(axis=1)).astype(np.float64)
