@@ -6,7 +6,10 @@ Against our service on the shipped artifacts, started as the HTTP benchmark star
 summarised (count, p50, p99):
 
 - ``suggest_mesh_glb`` / ``suggest_mesh_obj``: ``/suggest/mesh`` with one ~100k-triangle mesh,
-  as GLB and as OBJ (k = 10);
+  as GLB and as OBJ (k = 10), read in the frame it is in (``fit_frame`` false: the caller knows
+  it, as the page's own parts are);
+- ``suggest_mesh_glb_fit``: the GLB sent as a designer's file is, without a frame, so the service
+  fits one (``COMPLEMENTME_FIT_FRAME_UPLOADS``, on by default; ``service.suggest.frame_fit``);
 - ``place_5``: ``/place`` of five parts (the first five suggestions of the query) next to the
   benchmark query's points;
 - ``suggest_contact_off`` / ``suggest_contact_on``: ``/suggest`` of the benchmark query (1000
@@ -50,8 +53,8 @@ from service.artifacts.catalog import Catalog
 
 log = logging.getLogger(__name__)
 
-PATHS = ("suggest_mesh_glb", "suggest_mesh_obj", "place_5", "suggest_contact_off", "suggest_contact_on",
-         "assemble")
+PATHS = ("suggest_mesh_glb", "suggest_mesh_obj", "suggest_mesh_glb_fit", "place_5", "suggest_contact_off",
+         "suggest_contact_on", "assemble")
 METRIC_PREFIX = "complementme_"
 # Requests that are not the timed path's: the snapshots' own, and HAProxy's health checks.
 PROBE_ROUTES = ("/metrics", "/readyz", "/healthz")
@@ -311,12 +314,14 @@ def time_path(client: httpx.Client, make: Callable[[], httpx.Request], requests:
             "server_metrics": histogram_means(before, after), "last_answer": last}
 
 
-def _mesh_request(client: httpx.Client, data: bytes, fmt: str, k: int) -> Callable[[], httpx.Request]:
+def _mesh_request(client: httpx.Client, data: bytes, fmt: str, k: int,
+                  fit: bool = False) -> Callable[[], httpx.Request]:
     mime = {"glb": "model/gltf-binary", "obj": "model/obj"}[fmt]
+    options = json.dumps({"k": k} if fit else {"k": k, "fit_frame": False})
 
     def make() -> httpx.Request:
         return client.build_request("POST", "/suggest/mesh", files={"file": (f"query.{fmt}", data, mime)},
-                                    data={"options": json.dumps({"k": k})})
+                                    data={"options": options})
     return make
 
 
@@ -373,6 +378,7 @@ def run_interactive_bench(query: BenchQuery, cfg: InteractiveBenchConfig, cache:
         makers = {
             "suggest_mesh_glb": _mesh_request(client, files["glb"], "glb", cfg.k),
             "suggest_mesh_obj": _mesh_request(client, files["obj"], "obj", cfg.k),
+            "suggest_mesh_glb_fit": _mesh_request(client, files["glb"], "glb", cfg.k, fit=True),
             "place_5": _json_request(client, "/place", place_body),
             "suggest_contact_off": _json_request(client, "/suggest", suggest_bodies["suggest_contact_off"]),
             "suggest_contact_on": _json_request(client, "/suggest", suggest_bodies["suggest_contact_on"]),

@@ -396,6 +396,7 @@ def _framework(data: dict[str, Any]) -> list[str]:
 
 
 INTERACTIVE_LABELS = {"suggest_mesh_glb": "/suggest/mesh, GLB", "suggest_mesh_obj": "/suggest/mesh, OBJ",
+                      "suggest_mesh_glb_fit": "/suggest/mesh, GLB, frame fitted",
                       "place_5": "/place, 5 parts", "suggest_contact_off": "/suggest, refine_contact false",
                       "suggest_contact_on": "/suggest, refine_contact true", "assemble": "/assemble (greedy)"}
 
@@ -489,6 +490,9 @@ def _interactive(data: dict[str, Any]) -> list[str]:
         if name in r["paths"]:
             stages = _server_stages(r["paths"][name]["server_metrics"])
             lines.append(f"| {INTERACTIVE_LABELS[name]} | {stages} | /metrics |")
+    if "suggest_mesh_glb_fit" in r["paths"]:
+        stages = _server_stages(r["paths"]["suggest_mesh_glb_fit"]["server_metrics"])
+        lines.append(f"| {INTERACTIVE_LABELS['suggest_mesh_glb_fit']} | {stages} | /metrics |")
     if "place_5" in r["paths"]:
         lines.append(f"| {INTERACTIVE_LABELS['place_5']} | "
                      f"{_server_stages(r['paths']['place_5']['server_metrics'])} | /metrics |")

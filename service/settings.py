@@ -186,7 +186,7 @@ class Settings(BaseSettings):
         "Smallest fitted scale per axis (larger shrinkage is clipped)."))
     scale_max: float = Field(default=2.0, ge=1, le=10, description=(
         "Largest fitted scale per axis (larger growth is clipped)."))
-    fit_frame_uploads: bool = Field(default=False, description=(
+    fit_frame_uploads: bool = Field(default=True, description=(
         "A mesh upload (`/suggest/mesh`, `/assemble/mesh`) sent without `frame` gets the complete "
         "object's frame estimated from the partial one (`fit_frame`); JSON points without `frame` "
         "are taken as canonical unless the request asks `fit_frame: true`."))
@@ -195,10 +195,14 @@ class Settings(BaseSettings):
     fit_frame_ratios: int = Field(default=5, ge=1, le=20, description=(
         "Radii frame fitting tries, from the partial's own radius to `fit_frame_max_ratio` times it "
         "(evenly spaced in log scale)."))
-    fit_frame_shifts: int = Field(default=5, ge=1, le=21, description=(
+    fit_frame_radius_prior: float = Field(default=0.8, ge=0, le=10, description=(
+        "Frame fitting keeps the hypothesis of the smallest familiarity distance plus this many "
+        "times the log of its radius over the partial's own: without it, a partial at the bottom "
+        "of a room much larger than the object could look as familiar as the right frame."))
+    fit_frame_shifts: int = Field(default=9, ge=1, le=21, description=(
         "Positions along the up axis frame fitting tries for the partial inside the complete "
         "object's room (from the bottom to the top); with each up axis and radius one query of a "
-        "single batch (2 x 5 x 5 = 50 by default, fewer where they coincide)."))
+        "single batch (2 x 5 x 9 = 90 by default, fewer where they coincide)."))
     ood_max_extent: float = Field(default=2.5, gt=1, description=(
         "A query whose points reach further than this from their box centre in the model's frame "
         "(unit radius; a whole object reaches 1) is far outside what the model knows: the answer "

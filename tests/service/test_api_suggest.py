@@ -128,7 +128,7 @@ def test_json_base64_and_mesh_inputs_agree(client: TestClient, catalog: Catalog,
     data = _mesh_without(catalog, query).export(file_type=fmt)
     data = data.encode() if isinstance(data, str) else data
     response = client.post("/suggest/mesh", files={"file": (f"query.{fmt}", io.BytesIO(data))},
-                           data={"options": '{"k": 8}'})
+                           data={"options": '{"k": 8, "fit_frame": false}'})
     assert response.status_code == 200, response.text
     from_mesh = SuggestResponse.model_validate(response.json()).model_dump()
     # The same surface samples the service takes: same loader, same seed, the model's count.

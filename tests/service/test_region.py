@@ -133,7 +133,8 @@ def test_mesh_upload_with_a_region(client: TestClient, catalog: Catalog) -> None
     vertices, faces = catalog.mesh(i)
     data = trimesh.Trimesh(vertices + catalog.translations[i], faces, process=False).export(file_type="obj")
     point = spot(catalog, BACK)
-    options = json.dumps({"k": 5, "category": "chair", "region": {"point": point, "radius": 0.1}})
+    options = json.dumps({"k": 5, "category": "chair", "region": {"point": point, "radius": 0.1},
+                          "fit_frame": False})
     response = client.post("/suggest/mesh", files={"file": ("seat.obj", io.BytesIO(data.encode()))},
                            data={"options": options})
     assert response.status_code == 200, response.text

@@ -142,7 +142,30 @@ def evaluate_assembly_command(
         raise typer.Exit(code=2) from exc
 
 
+def evaluate_frames_command(
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for results.json."),  # noqa: UP045
+    shapes: int = typer.Option(80, "--shapes", min=1, help="Held-out partial shapes per set."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the shapes and their frames."),
+    split: str = typer.Option("test", "--split", help="Split of the catalog's shapes: test or train."),
+) -> None:
+    """Frame fitting of partial uploads: how often each scoring rule finds the frame.
+
+    Labels are read to build the second set only."""
+    from training.evaluate.frames_eval import FrameEvalSettings, markdown, run_frame_evaluation
+
+    try:
+        report = run_frame_evaluation(FrameEvalSettings(artifacts=artifacts, shapes=shapes, seed=seed,
+                                                        split=split, out=out))
+    except (ValueError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+    typer.echo(f"{report['model_version']}, {report['hypotheses']}, radius prior {report['radius_prior']}")
+    typer.echo(markdown(report))
+
+
 def register_evaluate_command(app: typer.Typer) -> None:
-    """Add `evaluate` and `evaluate-assembly` to the root CLI."""
+    """Add `evaluate`, `evaluate-assembly` and `evaluate-frames` to the root CLI."""
     app.command("evaluate")(evaluate_command)
     app.command("evaluate-assembly")(evaluate_assembly_command)
+    app.command("evaluate-frames")(evaluate_frames_command)

@@ -96,7 +96,8 @@ async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, fr
     if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
     answers = await served.suggest_many(queries, ticket, deadline)
-    return replace(options, frame=best_frame(frames, answers).frame)
+    fit = best_frame(frames, answers, served.engine, served.settings.fit_frame_radius_prior)
+    return replace(options, frame=fit.frame)
 
 
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(

@@ -1,0 +1,123 @@
+"""`complementme evaluate-frames`: how often frame fitting finds a partial upload's frame.
+
+Held-out shapes of the catalog lose parts (one random part; or every part of one kind, the kind
+read from the labels, which this measurement alone reads), are put in a random caller frame (up
+axis y or z, radius 100-1000 units, centre anywhere within 2000 of the origin), and are fitted
+(``service.suggest.frame_fit``) with every hypothesis scored once; each rule then picks from the
+same answers:
+
+- ``likelihood``: the best suggestion's mixture log-likelihood (no familiarity bank);
+- ``familiarity``: the familiarity distance alone (radius prior 0);
+- ``shipped``: the familiarity distance plus the settings' radius prior (what the service does).
+
+A fit is *good* when its up axis is right, its radius within 25% and its centre within 0.3 of the
+true radius. The rates go to ``results.json`` and are printed as a Markdown table.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.artifacts.catalog import Catalog, partial_assemblies, split_shapes
+from service.artifacts.loading import load_served_artifacts
+from service.geometry.frames import Frame
+from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import UP_AXES, best_frame, fit_queries
+
+RULES = ("likelihood", "familiarity", "shipped")
+SETS = ("one part missing", "one kind missing")
+
+
+@dataclass(frozen=True)
+class FrameEvalSettings:
+    artifacts: Path
+    shapes: int = 80              # per set
+    seed: int = 0
+    split: str = "test"
+    out: Path | None = None
+
+
+def kind_missing(catalog: Catalog, count: int, n_points: int, seed: int, split: str) -> list[np.ndarray]:
+    """Shapes of one split without every part of one random label (labels read to measure only).
+
+    Shapes:
+        returns up to ``count`` arrays of (n_points, 3) float32, canonical frame.
+    """
+    rng = np.random.default_rng(seed)
+    rows_of = split_shapes(catalog, split)
+    shapes = sorted(rows_of)
+    out: list[np.ndarray] = []
+    for j in rng.permutation(len(shapes)):
+        rows = rows_of[shapes[j]]
+        labels = sorted({catalog.records[i]["label"] for i in rows})
+        if len(labels) < 2:
+            continue
+        gone = labels[int(rng.integers(len(labels)))]
+        pts = np.concatenate([catalog.part_points(i) + catalog.translations[i]
+                              for i in rows if catalog.records[i]["label"] != gone])
+        out.append(pts[rng.choice(len(pts), n_points)].astype(np.float32))
+        if len(out) >= count:
+            break
+    return out
+
+
+def _good(fit: Frame, true: Frame) -> tuple[bool, bool]:
+    """(up axis right, good frame) of one fit."""
+    up = fit.up_axis == true.up_axis
+    near = (abs(np.log(fit.radius / true.radius)) < np.log(1.25)
+            and float(np.linalg.norm(np.asarray(fit.center) - np.asarray(true.center))) < 0.3 * true.radius)
+    return up, up and near
+
+
+def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
+    """Fit every partial of both sets under every rule; the rates per set and rule."""
+    settings = Settings().model_copy(update={"artifacts": cfg.artifacts})
+    engine = SuggestionEngine(load_served_artifacts(settings), settings)
+    catalog = engine.artifacts.catalog
+    sets = {SETS[0]: partial_assemblies(catalog, cfg.shapes, 2000, seed=cfg.seed + 3, split=cfg.split),
+            SETS[1]: kind_missing(catalog, cfg.shapes, 2000, cfg.seed + 4, cfg.split)}
+    rng = np.random.default_rng(cfg.seed)
+    results: dict[str, Any] = {}
+    for name, clouds in sets.items():
+        counts = {rule: np.zeros(2) for rule in RULES}
+        for cloud in clouds:
+            true = Frame(center=rng.uniform(-2000, 2000, 3), radius=float(rng.uniform(100, 1000)),
+                         up_axis=str(rng.choice(UP_AXES)))  # type: ignore[arg-type]
+            frames, queries = fit_queries(settings, true.from_canonical(cloud.astype(np.float64)),
+                                          SuggestOptions(), UP_AXES)
+            answers = engine.suggest_batch(queries)
+            picks = {"likelihood": best_frame(frames, answers),
+                     "familiarity": best_frame(frames, answers, engine, 0.0),
+                     "shipped": best_frame(frames, answers, engine, settings.fit_frame_radius_prior)}
+            for rule, fit in picks.items():
+                counts[rule] += _good(fit.frame, true)
+        results[name] = {rule: {"up_axis_right": round(float(c[0]) / max(len(clouds), 1), 3),
+                                "good": round(float(c[1]) / max(len(clouds), 1), 3)}
+                         for rule, c in counts.items()}
+        results[name]["shapes"] = len(clouds)
+    report = {"artifacts": str(cfg.artifacts), "model_version": engine.model_version, "split": cfg.split,
+              "seed": cfg.seed, "radius_prior": settings.fit_frame_radius_prior,
+              "hypotheses": (f"{settings.fit_frame_ratios} radii x {settings.fit_frame_shifts} shifts x "
+                             f"{len(UP_AXES)} up axes"),
+              "results": results}
+    if cfg.out is not None:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        (cfg.out / "results.json").write_text(json.dumps(report, indent=1) + "\n")
+    return report
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The rates as a table: a row per rule, "up axis / good" per set."""
+    lines = ["| Rule | " + " | ".join(f"{s}: up axis / good" for s in SETS) + " |",
+             "|---|" + "---|" * len(SETS)]
+    for rule in RULES:
+        rows = [report["results"][s][rule] for s in SETS]
+        cells = [f"{r['up_axis_right']:.2f} / {r['good']:.2f}" for r in rows]
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
