@@ -174,14 +174,18 @@ def test_upload_keeps_the_chosen_category(page: Any, artifact_dir: Path) -> None
     with page.expect_request(lambda r: r.url.endswith("/suggest")) as sent, \
             page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
         page.set_input_files("#mesh-upload", str(EXAMPLE))
+    # The first request fits the complete object's frame to the upload (a chair without legs).
     assert sent.value.post_data_json["category"] == "chair"
+    assert sent.value.post_data_json["fit_frame"] is True
     assert answer.value.status == 200
+    fitted = answer.value.json()["frame"]
+    assert answer.value.json()["frame_fitted"] is True and fitted["up_axis"] == "y"
     page.wait_for_selector(CARDS)
     page.wait_for_function(IDLE)
     assert {s["category"] for s in answer.value.json()["suggestions"]} == {"chair"}
     assert page.input_value("#category-select") == "chair"
     assert page.locator("#inferred-category").is_hidden()
-    assert "uploaded mesh" in page.inner_text("#status")
+    assert "uploaded mesh (read y up" in page.inner_text("#status")
     _shot(page, artifact_dir, "page-upload.png")
 
     # "Any category": the request names none, and the page says what the service read.

@@ -3,12 +3,14 @@
 //
 // State: the placed catalog parts (id, translation and fitted scale in the canonical frame), the
 // category the suggestions stay in (null: any, the dropdown's "Any category") and, when the start
-// is an uploaded mesh, that mesh normalised to the canonical frame with its surface samples.
+// is an uploaded mesh, that mesh brought into the canonical frame (the frame the service fitted
+// to it) with its surface samples.
 // Every edit pushes the previous state on the undo stack. The spot the user clicked is a
 // question, not an edit: it is not in the history and any edit clears it. Suggestions,
 // auto-completion and alternatives come from the service (/suggest, /assemble); the download
 // from /export.
-import { base64ToFloats, floatsToBase64, getJson, partPath, postForBlob, postJson } from "./api.js";
+import * as THREE from "three";
+import { ApiError, base64ToFloats, floatsToBase64, getJson, partPath, postForBlob, postJson } from "./api.js";
 import { areaWeighted, normalise, parseMeshFile, sampleSurface } from "./geometry.js";
 import { Thumbnailer, Viewer, colourOf } from "./view.js";
 
@@ -16,7 +18,7 @@ const QUERY_POINTS = 2048;       // points sent per query (the service resamples
 const GALLERY_SIZE = 12;         // suggestions shown
 const AUTO_PARTS = 6;            // parts auto-complete may add
 const TREE_DEPTH = 3;            // depth of the alternatives tree
-const UPLOAD_RADIUS = 0.6;       // an uploaded partial mesh is scaled to this radius
+const UPLOAD_RADIUS = 0.6;       // an upload the service cannot fit a frame to is scaled to this radius
 const START_PAGE = 50;           // start parts per page of the picker
 const PROGRESS_AFTER_MS = 300;   // a step taking longer shows the progress indicator
 const SEARCH_DELAY_MS = 250;     // typing pause before the picker searches
@@ -100,7 +102,15 @@ function clearNotice() {
 function describe() {
   const n = state.parts.length + (state.cloud ? 1 : 0);
   return n ? `${state.parts.length} part${state.parts.length === 1 ? "" : "s"}` +
-    (state.cloud ? " on the uploaded mesh" : "") : "Pick a category and a start part, or upload a mesh.";
+    (state.cloud ? " on the uploaded mesh" + fittedNote(state.cloud.frame) : "") :
+    "Pick a category and a start part, or upload a mesh.";
+}
+
+// What the fitted frame of an upload was, in the file's units: the designer can check it.
+function fittedNote(frame) {
+  if (!frame) return " (scaled by its own box: no frame could be fitted)";
+  return ` (read ${frame.up_axis} up, the complete object about ${(2 * frame.radius).toPrecision(3)} ` +
+    "units across)";
 }
 
 function percent(share) {
@@ -566,16 +576,46 @@ async function startFromPart() {
   });
 }
 
-// An uploaded mesh keeps the category chosen in the dropdown ("Any category": none, and the
-// page shows what the service reads from the shape).
+// An uploaded mesh is in the designer's own units and axes, and it is only part of an object:
+// its own box says nothing about the complete object's. So the service fits the complete
+// object's frame (fit_frame: centre, radius, up axis y or z; docs/modeling.md) and the mesh is
+// brought from that frame into the canonical one. A mesh it cannot fit (no extent) is scaled
+// by its own box as before. The upload keeps the category chosen in the dropdown ("Any
+// category": none, and the page shows what the service reads from the shape).
 async function startFromMesh(file) {
-  const geometry = normalise(await parseMeshFile(file), UPLOAD_RADIUS);
+  const geometry = await parseMeshFile(file);
+  const category = $("category-select").value || null;
+  let frame = null;
+  try {
+    const raw = sampleSurface(geometry, QUERY_POINTS, 1);
+    const fit = await postJson("/suggest", {
+      points_base64: floatsToBase64(raw.points), k: 1, fit_frame: true, ...(category ? { category } : {}),
+    });
+    frame = fit.frame;
+    toCanonical(geometry, frame);
+  } catch (err) {
+    if (!(err instanceof ApiError) || err.code !== "frame_unfit") throw err;
+    normalise(geometry, UPLOAD_RADIUS);
+  }
   const { points, area } = sampleSurface(geometry, QUERY_POINTS, 1);
   await edit(() => {
-    state.category = $("category-select").value || null;
+    state.category = category;
     state.parts = [];
-    state.cloud = { geometry, points, area, name: file.name };
+    state.cloud = { geometry, points, area, name: file.name, frame };
   });
+}
+
+// The inverse of the answer's frame (x = scale * rotation @ v + center): v = rotation^T (x - center) / scale.
+function toCanonical(geometry, frame) {
+  const [c, r, s] = [frame.center, frame.rotation, frame.scale];
+  const m = new THREE.Matrix4().set(
+    r[0][0] / s, r[1][0] / s, r[2][0] / s, 0,
+    r[0][1] / s, r[1][1] / s, r[2][1] / s, 0,
+    r[0][2] / s, r[1][2] / s, r[2][2] / s, 0,
+    0, 0, 0, 1);
+  geometry.translate(-c[0], -c[1], -c[2]);
+  geometry.applyMatrix4(m);
+  geometry.computeVertexNormals();
 }
 
 function main() {
