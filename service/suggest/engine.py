@@ -876,6 +876,20 @@ class SuggestionEngine:
             return np.ones((len(raw), 3))
         return np.clip(raw.astype(np.float64), c.scale_min, c.scale_max)
 
+    def frame_familiarity(self, points: np.ndarray, frames: Sequence[Frame]) -> np.ndarray | None:
+        """The familiarity distance of g's answer for the points read in each frame: one g batch,
+        nothing searched or placed (frame fitting, ``service.suggest.frame_fit``); None when the
+        check is off or the artifacts have no bank.
+
+        Shapes:
+            points: (M, 3) caller frame; len(frames) = F -> (F,) float64.
+        """
+        if self.familiarity is None or not frames:
+            return None
+        batch = np.stack([self.prepare(points, f) for f in frames])
+        mix = self.networks.mixture(batch)
+        return self.familiarity_distances(mix.weights, mix.means)
+
     def familiarity_distances(self, weights: np.ndarray, means: np.ndarray) -> np.ndarray | None:
         """Distance of g's answer for each query to the nearest answer for a training partial
         assembly (``service.suggest.familiarity``); None when the check is off or the artifacts

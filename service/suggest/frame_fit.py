@@ -12,7 +12,9 @@ radii from the partial's own radius up to ``fit_frame_max_ratio`` times it. ``be
 keeps the hypothesis in which the partial looks most like the partial assemblies g was trained
 on: the smallest familiarity distance of g's answer (``service.suggest.familiarity``: the
 distance of its means and weights to the nearest answer for a training partial assembly). All
-hypotheses of one upload run as one batch through the engine.
+hypotheses of one upload run as one batch through g alone (``engine.frame_familiarity``):
+nothing is searched or placed until the frame is chosen (90 hypotheses cost about as much as
+one full suggestion batch of 8).
 
 Why not the model's own confidence (the mixture log-likelihood of the best suggestion, the first
 rule): it grows as the partial shrinks in the frame, so it picked the largest radius tried for
@@ -100,22 +102,32 @@ def frame_hypotheses(points: np.ndarray, up_axes: Sequence[UpAxis], ratios: Sequ
     return out
 
 
-def best_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | ServiceError],
-               engine: SuggestionEngine | None = None, radius_prior: float = 0.0) -> FrameFit:
-    """The hypothesis whose answer is most familiar (see the module doc): the score is minus g's
-    familiarity distance under ``engine``'s bank, minus ``radius_prior`` times the log of the
-    hypothesis's radius over the smallest one tried (the partial's own); without an engine or a
-    bank, the mixture log-likelihood of the hypothesis's best suggestion.
+def best_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | ServiceError]) -> FrameFit:
+    """The hypothesis whose best suggestion is most likely under its own mixture (the rule for
+    artifacts without a familiarity bank).
 
     A hypothesis whose query failed, or that found no suggestion, scores -inf.
     """
     assert len(frames) == len(results) and frames, f"{len(frames)} frames, {len(results)} results"
-    scores = None if engine is None else _familiarity(engine, results)
-    if scores is None:
-        scores = _likelihoods(results)
-    else:
-        radii = np.array([f.radius for f in frames], dtype=np.float64)
-        scores = scores - radius_prior * np.log(radii / radii.min())
+    scores = [max((s.score for s in r.suggestions), default=-np.inf) if isinstance(r, SuggestResult)
+              else -np.inf for r in results]
+    return _chosen(frames, np.asarray(scores, dtype=np.float64))
+
+
+def most_familiar(frames: Sequence[Frame], distances: np.ndarray, radius_prior: float) -> FrameFit:
+    """The hypothesis of the smallest familiarity distance plus ``radius_prior`` times the log of
+    its radius over the smallest one tried (the partial's own); the score is minus that sum.
+
+    Shapes:
+        distances: (len(frames),).
+    """
+    assert len(frames) == len(distances) and frames, f"{len(frames)} frames, {len(distances)} distances"
+    radii = np.array([f.radius for f in frames], dtype=np.float64)
+    prior = radius_prior * np.log(radii / radii.min())
+    return _chosen(frames, -np.asarray(distances, dtype=np.float64) - prior)
+
+
+def _chosen(frames: Sequence[Frame], scores: np.ndarray) -> FrameFit:
     best = int(np.argmax(scores))
     return FrameFit(frame=frames[best], score=float(scores[best]), hypotheses=len(frames),
                     scores=[float(s) for s in scores])
@@ -132,56 +144,37 @@ def up_axes_for(frame: Frame | None) -> tuple[UpAxis, ...]:
     return UP_AXES if frame is None else (frame.up_axis,)
 
 
-def fit_queries(settings: Settings, points: np.ndarray, options: SuggestOptions,
-                up_axes: Sequence[UpAxis]) -> tuple[list[Frame], list[tuple[np.ndarray, SuggestOptions]]]:
-    """The hypotheses of one partial and their scoring queries (a few suggestions each, without
-    the costly steps), for ``engine.suggest_batch`` or the micro-batcher."""
+def hypotheses_of(settings: Settings, points: np.ndarray, up_axes: Sequence[UpAxis]) -> list[Frame]:
+    """The frames fitting tries for a partial, from the settings' radii and shifts."""
     s = settings
-    frames = frame_hypotheses(points, up_axes, _ratios(s.fit_frame_max_ratio, s.fit_frame_ratios),
-                              np.linspace(-1.0, 1.0, s.fit_frame_shifts).tolist())
+    return frame_hypotheses(points, up_axes, _ratios(s.fit_frame_max_ratio, s.fit_frame_ratios),
+                            np.linspace(-1.0, 1.0, s.fit_frame_shifts).tolist())
+
+
+def scoring_queries(frames: Sequence[Frame], points: np.ndarray, options: SuggestOptions
+                    ) -> list[tuple[np.ndarray, SuggestOptions]]:
+    """One cheap suggestion query per hypothesis (k = 1, without the costly steps), for
+    ``best_frame``."""
     scoring = replace(options, k=1, refine_contact=False, complement_check=False)
-    return frames, [(points, replace(scoring, frame=f)) for f in frames]
+    return [(points, replace(scoring, frame=f)) for f in frames]
 
 
 def fit_frame(engine: SuggestionEngine, settings: Settings, points: np.ndarray, options: SuggestOptions,
               up_axes: Sequence[UpAxis] = UP_AXES, snapshot: CatalogSnapshot | None = None) -> FrameFit:
-    """Estimate the complete object's frame of a partial (see the module doc); one engine batch
-    on ``snapshot`` (None: the shipped catalog)."""
-    frames, queries = fit_queries(settings, points, options, up_axes)
+    """Estimate the complete object's frame of a partial (see the module doc): one g batch of
+    every hypothesis (``engine.frame_familiarity``); without a familiarity bank, one engine
+    batch of scoring queries on ``snapshot`` (None: the shipped catalog)."""
+    frames = hypotheses_of(settings, points, up_axes)
     if not frames:
         return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
-    return best_frame(frames, engine.suggest_batch(queries, snapshot=snapshot), engine,
-                      settings.fit_frame_radius_prior)
+    distances = engine.frame_familiarity(points, frames)
+    if distances is not None:
+        return most_familiar(frames, distances, settings.fit_frame_radius_prior)
+    answers = engine.suggest_batch(scoring_queries(frames, points, options), snapshot=snapshot)
+    return best_frame(frames, answers)
 
 
 def _ratios(max_ratio: float, n: int) -> list[float]:
     """``n`` radius ratios from 1 to ``max_ratio``, evenly spaced in log scale."""
     return np.geomspace(1.0, max_ratio, n).tolist() if n > 1 else [1.0]
 
-
-def _likelihoods(results: Sequence[SuggestResult | ServiceError]) -> np.ndarray:
-    """Each hypothesis's best suggestion's mixture log-likelihood; -inf where it has none."""
-    return np.array([max((s.score for s in r.suggestions), default=-np.inf) if isinstance(r, SuggestResult)
-                     else -np.inf for r in results])
-
-
-def _familiarity(engine: SuggestionEngine,
-                 results: Sequence[SuggestResult | ServiceError]) -> np.ndarray | None:
-    """Minus each hypothesis's familiarity distance; -inf where its query failed. None when the
-    engine has no familiarity bank (or no query succeeded)."""
-    ok: list[int] = []
-    weights: list[np.ndarray] = []
-    means: list[np.ndarray] = []
-    for i, r in enumerate(results):
-        if isinstance(r, SuggestResult) and r.mode_means is not None:
-            ok.append(i)
-            weights.append(r.mode_weights)
-            means.append(r.mode_means)
-    if not ok:
-        return None
-    distances = engine.familiarity_distances(np.stack(weights), np.stack(means))
-    if distances is None:
-        return None
-    scores = np.full(len(results), -np.inf)
-    scores[ok] = -distances
-    return scores

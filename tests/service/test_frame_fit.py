@@ -19,7 +19,7 @@ from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import best_frame, fit_frame, frame_hypotheses, up_axes_for
+from service.suggest.frame_fit import best_frame, fit_frame, frame_hypotheses, most_familiar, up_axes_for
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj"
 # The example in a designer's units: millimetres (the complete chair about 450 mm in radius),
@@ -69,20 +69,22 @@ def test_best_frame_without_an_engine_keeps_the_most_likely_hypothesis(engine: S
     assert fit.frame is frames[int(np.argmax(scores))] and fit.hypotheses == 2
 
 
-def test_best_frame_keeps_the_most_familiar_hypothesis(engine: SuggestionEngine, catalog: Catalog) -> None:
+def test_most_familiar_keeps_the_smallest_distance_plus_the_radius_prior(engine: SuggestionEngine,
+                                                                          catalog: Catalog) -> None:
     """A catalog shape without its last part, in its own frame or shrunk into a room twice its
-    size: the familiarity distance (plus the radius prior) picks its own frame."""
+    size: its own frame is the more familiar; the prior adds 0.8 log 2 to the larger one."""
+    pts = _shape_but_its_last_part(catalog)
     frames = [Frame(radius=r) for r in (1.0, 2.0)]
-    results = engine.suggest_batch([(_shape_but_its_last_part(catalog), SuggestOptions(k=1, frame=f))
-                                    for f in frames])
+    distances = engine.frame_familiarity(pts, frames)
+    assert distances is not None and distances[0] < distances[1]
+    # g in one batch of hypotheses answers as in full suggestion queries.
+    results = engine.suggest_batch([(pts, SuggestOptions(k=1, frame=f)) for f in frames])
     means = np.stack([r.mode_means for r in results])  # type: ignore[union-attr]
     weights = np.stack([r.mode_weights for r in results])  # type: ignore[union-attr]
-    distances = engine.familiarity_distances(weights, means)
-    assert distances is not None and distances[0] < distances[1]
-    fit = best_frame(frames, results, engine, radius_prior=0.0)
+    assert distances == pytest.approx(engine.familiarity_distances(weights, means), abs=1e-4)
+    fit = most_familiar(frames, distances, radius_prior=0.0)
     assert fit.frame is frames[0] and fit.scores == pytest.approx([-d for d in distances])
-    # The prior on the radius adds 0.8 log 2 to the larger frame's distance.
-    assert best_frame(frames, results, engine, radius_prior=0.8).scores[1] == pytest.approx(
+    assert most_familiar(frames, distances, radius_prior=0.8).scores[1] == pytest.approx(
         -distances[1] - 0.8 * np.log(2.0))
 
 

@@ -3,8 +3,8 @@
 Held-out shapes of the catalog lose parts (one random part; or every part of one kind, the kind
 read from the labels, which this measurement alone reads), are put in a random caller frame (up
 axis y or z, radius 100-1000 units, centre anywhere within 2000 of the origin), and are fitted
-(``service.suggest.frame_fit``) with every hypothesis scored once; each rule then picks from the
-same answers:
+(``service.suggest.frame_fit``), every hypothesis scored by both measures; each rule then picks
+from the same scores:
 
 - ``likelihood``: the best suggestion's mixture log-likelihood (no familiarity bank);
 - ``familiarity``: the familiarity distance alone (radius prior 0);
@@ -28,7 +28,7 @@ from service.artifacts.loading import load_served_artifacts
 from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import UP_AXES, best_frame, fit_queries
+from service.suggest.frame_fit import UP_AXES, best_frame, hypotheses_of, most_familiar, scoring_queries
 
 RULES = ("likelihood", "familiarity", "shipped")
 SETS = ("one part missing", "one kind missing")
@@ -89,12 +89,15 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
         for cloud in clouds:
             true = Frame(center=rng.uniform(-2000, 2000, 3), radius=float(rng.uniform(100, 1000)),
                          up_axis=str(rng.choice(UP_AXES)))  # type: ignore[arg-type]
-            frames, queries = fit_queries(settings, true.from_canonical(cloud.astype(np.float64)),
-                                          SuggestOptions(), UP_AXES)
-            answers = engine.suggest_batch(queries)
+            points = true.from_canonical(cloud.astype(np.float64))
+            frames = hypotheses_of(settings, points, UP_AXES)
+            answers = engine.suggest_batch(scoring_queries(frames, points, SuggestOptions()))
+            distances = engine.frame_familiarity(points, frames)
+            if distances is None:
+                raise ValueError(f"{cfg.artifacts} has no familiarity bank: run `complementme familiarity`")
             picks = {"likelihood": best_frame(frames, answers),
-                     "familiarity": best_frame(frames, answers, engine, 0.0),
-                     "shipped": best_frame(frames, answers, engine, settings.fit_frame_radius_prior)}
+                     "familiarity": most_familiar(frames, distances, 0.0),
+                     "shipped": most_familiar(frames, distances, settings.fit_frame_radius_prior)}
             for rule, fit in picks.items():
                 counts[rule] += _good(fit.frame, true)
         results[name] = {rule: {"up_axis_right": round(float(c[0]) / max(len(clouds), 1), 3),
