@@ -30,6 +30,11 @@ class Mixture:
     sigmas: np.ndarray
     category_probs: np.ndarray | None = None
 
+    def take(self, rows: list[int]) -> Mixture:
+        """The mixtures of some queries of the batch, in the order of ``rows``."""
+        probs = None if self.category_probs is None else self.category_probs[rows]
+        return Mixture(self.weights[rows], self.means[rows], self.sigmas[rows], probs)
+
 
 @dataclass
 class Networks:

@@ -97,6 +97,8 @@ class SuggestOptions:
     styles: tuple[str, ...] = ()             # only parts of these catalog styles (empty: all)
     preferences: Preferences = field(default_factory=Preferences)  # mode weights, exclusions, gallery
     region: Region | None = None             # only parts placed in this spot (caller's frame)
+    mixture_only: bool = False               # g's answer alone, no suggestions (frame fitting's
+                                             # scoring queries; not offered by the API)
 
 
 @dataclass
@@ -169,6 +171,7 @@ class SuggestResult:
     inferred_category: InferredCategory | None = None
     warnings: list[QueryWarning] = field(default_factory=list)
     region: RegionReport | None = None    # set when the query gave a region
+    familiarity: float | None = None      # g's answer's distance to the familiarity bank (None: no check)
 
 
 @dataclass
@@ -553,18 +556,30 @@ class SuggestionEngine:
                     errors[i] = exc
         if not queries:
             return [errors[i] for i in range(len(items))]
-        batch = np.stack([q.points for q in queries])  # (B, N, 3)
+        everything = np.stack([q.points for q in queries])  # (B, N, 3)
+        # Mixture-only queries (frame fitting's) stop after g: the rest go on without them.
+        rest = [b for b, q in enumerate(queries) if not q.options.mixture_only]
+        batch = everything[rest]
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
         beside = (self._runner().submit(_timed, self.networks.query_features, batch)
-                  if len(queries) <= self.config.overlap_max_batch else None)
+                  if rest and len(rest) <= self.config.overlap_max_batch else None)
+        out: dict[int, SuggestResult | ServiceError] = {}
         with timer.stage("g"):
-            mix = self.networks.mixture(batch)
+            mix = self.networks.mixture(everything)
             distances = self.familiarity_distances(mix.weights, mix.means)
             for b, q in enumerate(queries):
                 self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
                 if distances is not None:
                     q.warnings.extend(self._shape_warnings(float(distances[b])))
+                if q.options.mixture_only:
+                    out[q.item] = self._mixture_answer(q, mix, b, distances, timer.timings)
+        familiar = {} if distances is None else {q.item: float(distances[b]) for b, q in enumerate(queries)}
+        if len(rest) < len(queries):
+            queries, mix = [queries[b] for b in rest], mix.take(rest)
+            if not queries:
+                out.update(errors)
+                return [out[i] for i in range(len(items))]
         with timer.stage("search"):
             candidates = self.search(queries, mix.means, snap)
         ranked: dict[int, Ranked] = {}  # query position b -> its ranked candidates
@@ -587,14 +602,26 @@ class SuggestionEngine:
                 q = queries[b]
                 with _own_error(q, errors):
                     offsets[b] = self.refine(q, p, deadlines[q.item] if deadlines is not None else None, snap)
-        out: dict[int, SuggestResult | ServiceError] = dict(errors)
+        out.update(errors)
         for b, off in offsets.items():
             q = queries[b]
             with _own_error(q, errors):
-                out[q.item] = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b].scored, snap,
-                                          timer.timings)
+                answer = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b].scored, snap,
+                                     timer.timings)
+                answer.familiarity = familiar.get(q.item)
+                out[q.item] = answer
         out.update(errors)
         return [out[i] for i in range(len(items))]
+
+    @staticmethod
+    def _mixture_answer(q: Query, mix: Mixture, b: int, distances: np.ndarray | None,
+                        timings: dict[str, float]) -> SuggestResult:
+        """The answer to a mixture-only query: g's modes (and the familiarity distance), no suggestions."""
+        return SuggestResult(suggestions=[], mode_weights=mix.weights[b], frame=q.options.frame,
+                             n_input_points=q.n_input, candidates=0, timings=timings,
+                             mode_means=mix.means[b], mode_sigmas=mix.sigmas[b], inferred_category=q.inferred,
+                             warnings=q.warnings,
+                             familiarity=None if distances is None else float(distances[b]))
 
     def place_ranked(self, query_features: np.ndarray, ranked: dict[int, Ranked], snap: CatalogSnapshot
                      ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
@@ -875,20 +902,6 @@ class SuggestionEngine:
         if not _or_default(asked, c.fit_scale):
             return np.ones((len(raw), 3))
         return np.clip(raw.astype(np.float64), c.scale_min, c.scale_max)
-
-    def frame_familiarity(self, points: np.ndarray, frames: Sequence[Frame]) -> np.ndarray | None:
-        """The familiarity distance of g's answer for the points read in each frame: one g batch,
-        nothing searched or placed (frame fitting, ``service.suggest.frame_fit``); None when the
-        check is off or the artifacts have no bank.
-
-        Shapes:
-            points: (M, 3) caller frame; len(frames) = F -> (F,) float64.
-        """
-        if self.familiarity is None or not frames:
-            return None
-        batch = np.stack([self.prepare(points, f) for f in frames])
-        mix = self.networks.mixture(batch)
-        return self.familiarity_distances(mix.weights, mix.means)
 
     def familiarity_distances(self, weights: np.ndarray, means: np.ndarray) -> np.ndarray | None:
         """Distance of g's answer for each query to the nearest answer for a training partial

@@ -12,9 +12,8 @@ radii from the partial's own radius up to ``fit_frame_max_ratio`` times it. ``be
 keeps the hypothesis in which the partial looks most like the partial assemblies g was trained
 on: the smallest familiarity distance of g's answer (``service.suggest.familiarity``: the
 distance of its means and weights to the nearest answer for a training partial assembly). All
-hypotheses of one upload run as one batch through g alone (``engine.frame_familiarity``):
-nothing is searched or placed until the frame is chosen (90 hypotheses cost about as much as
-one full suggestion batch of 8).
+hypotheses of one upload run as one batch of mixture-only queries (``SuggestOptions.mixture_only``:
+g alone, nothing searched or placed), through the micro-batcher for ``/suggest`` like any query.
 
 Why not the model's own confidence (the mixture log-likelihood of the best suggestion, the first
 rule): it grows as the partial shrinks in the frame, so it picked the largest radius tried for
@@ -151,27 +150,41 @@ def hypotheses_of(settings: Settings, points: np.ndarray, up_axes: Sequence[UpAx
                             np.linspace(-1.0, 1.0, s.fit_frame_shifts).tolist())
 
 
-def scoring_queries(frames: Sequence[Frame], points: np.ndarray, options: SuggestOptions
-                    ) -> list[tuple[np.ndarray, SuggestOptions]]:
-    """One cheap suggestion query per hypothesis (k = 1, without the costly steps), for
-    ``best_frame``."""
-    scoring = replace(options, k=1, refine_contact=False, complement_check=False)
+def scoring_queries(frames: Sequence[Frame], points: np.ndarray, options: SuggestOptions,
+                    mixture_only: bool) -> list[tuple[np.ndarray, SuggestOptions]]:
+    """One query per hypothesis: g's answer alone (``mixture_only``: its familiarity is the
+    score), or a suggestion query without the costly steps (k = 1: its likelihood is)."""
+    scoring = replace(options, k=1, refine_contact=False, complement_check=False, mixture_only=mixture_only)
     return [(points, replace(scoring, frame=f)) for f in frames]
+
+
+def fit_queries(engine: SuggestionEngine, settings: Settings, points: np.ndarray, options: SuggestOptions,
+                up_axes: Sequence[UpAxis]) -> tuple[list[Frame], list[tuple[np.ndarray, SuggestOptions]]]:
+    """The hypotheses of one partial and their scoring queries, for ``engine.suggest_batch`` or
+    the micro-batcher: mixture-only when the engine has a familiarity bank."""
+    frames = hypotheses_of(settings, points, up_axes)
+    return frames, scoring_queries(frames, points, options, engine.familiarity is not None)
+
+
+def choose_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | ServiceError],
+                 radius_prior: float) -> FrameFit:
+    """The most familiar hypothesis (``most_familiar``) when the answers carry familiarity
+    distances (a failed query counts as infinitely far), else the most likely (``best_frame``)."""
+    distances = [r.familiarity if isinstance(r, SuggestResult) else None for r in results]
+    if all(d is None for d in distances):
+        return best_frame(frames, results)
+    return most_familiar(frames, np.array([np.inf if d is None else d for d in distances]), radius_prior)
 
 
 def fit_frame(engine: SuggestionEngine, settings: Settings, points: np.ndarray, options: SuggestOptions,
               up_axes: Sequence[UpAxis] = UP_AXES, snapshot: CatalogSnapshot | None = None) -> FrameFit:
-    """Estimate the complete object's frame of a partial (see the module doc): one g batch of
-    every hypothesis (``engine.frame_familiarity``); without a familiarity bank, one engine
-    batch of scoring queries on ``snapshot`` (None: the shipped catalog)."""
-    frames = hypotheses_of(settings, points, up_axes)
+    """Estimate the complete object's frame of a partial (see the module doc): one engine batch
+    of its scoring queries on ``snapshot`` (None: the shipped catalog)."""
+    frames, queries = fit_queries(engine, settings, points, options, up_axes)
     if not frames:
         return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
-    distances = engine.frame_familiarity(points, frames)
-    if distances is not None:
-        return most_familiar(frames, distances, settings.fit_frame_radius_prior)
-    answers = engine.suggest_batch(scoring_queries(frames, points, options), snapshot=snapshot)
-    return best_frame(frames, answers)
+    answers = engine.suggest_batch(queries, snapshot=snapshot)
+    return choose_frame(frames, answers, settings.fit_frame_radius_prior)
 
 
 def _ratios(max_ratio: float, n: int) -> list[float]:

@@ -18,8 +18,16 @@ from fastapi.testclient import TestClient
 from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
 from service.settings import Settings
-from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import best_frame, fit_frame, frame_hypotheses, most_familiar, up_axes_for
+from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.suggest.frame_fit import (
+    best_frame,
+    choose_frame,
+    fit_frame,
+    frame_hypotheses,
+    most_familiar,
+    scoring_queries,
+    up_axes_for,
+)
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj"
 # The example in a designer's units: millimetres (the complete chair about 450 mm in radius),
@@ -75,13 +83,16 @@ def test_most_familiar_keeps_the_smallest_distance_plus_the_radius_prior(engine:
     size: its own frame is the more familiar; the prior adds 0.8 log 2 to the larger one."""
     pts = _shape_but_its_last_part(catalog)
     frames = [Frame(radius=r) for r in (1.0, 2.0)]
-    distances = engine.frame_familiarity(pts, frames)
-    assert distances is not None and distances[0] < distances[1]
-    # g in one batch of hypotheses answers as in full suggestion queries.
-    results = engine.suggest_batch([(pts, SuggestOptions(k=1, frame=f)) for f in frames])
-    means = np.stack([r.mode_means for r in results])  # type: ignore[union-attr]
-    weights = np.stack([r.mode_weights for r in results])  # type: ignore[union-attr]
-    assert distances == pytest.approx(engine.familiarity_distances(weights, means), abs=1e-4)
+    answers = engine.suggest_batch(scoring_queries(frames, pts, SuggestOptions(), mixture_only=True))
+    assert all(isinstance(r, SuggestResult) and not r.suggestions for r in answers)
+    distances = np.array([r.familiarity for r in answers])  # type: ignore[union-attr]
+    assert distances[0] < distances[1]
+    # g's answer alone is the one of full suggestion queries, in the same batch or not.
+    results = engine.suggest_batch([(pts, SuggestOptions(k=1, frame=f)) for f in frames] + [
+        (pts, SuggestOptions(frame=frames[1], mixture_only=True))])
+    assert [r.familiarity for r in results] == pytest.approx([*distances, distances[1]], abs=1e-4)  # type: ignore[union-attr]
+    assert len(results[0].suggestions) == 1  # type: ignore[union-attr]
+    assert choose_frame(frames, answers, 0.8).frame is frames[0]
     fit = most_familiar(frames, distances, radius_prior=0.0)
     assert fit.frame is frames[0] and fit.scores == pytest.approx([-d for d in distances])
     assert most_familiar(frames, distances, radius_prior=0.8).scores[1] == pytest.approx(

@@ -19,6 +19,7 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from service.api.batched_route import BatchedRoute
+from service.api.batching import Ticket
 from service.api.deps import (
     DeadlineDep,
     MetricsDep,
@@ -45,7 +46,7 @@ from service.api.served import Served
 from service.errors import InputError, ServiceError
 from service.geometry.inputs import mesh_format
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import fit_requested, up_axes_for
+from service.suggest.frame_fit import choose_frame, fit_queries, fit_requested, up_axes_for
 from service.suggest.region import Region
 
 # Stands for any region in a cost estimate (the cost does not depend on where the region is).
@@ -81,21 +82,22 @@ async def post_suggest(body: SuggestRequest, served: ServedDep, settings: Settin
     options = body.to_options()
     served.check(len(points), options)
     if body.fit_frame:
-        options = await fitted(served, points, options, body.frame is not None)
+        options = await fitted(served, points, options, body.frame is not None, ticket, deadline)
     result = await served.suggest(points, options, ticket, deadline)
     return OrjsonResponse(render_suggest(result, served.model_version, bool(body.fit_frame)))
 
 
-async def fitted(served: Served, points: np.ndarray, options: SuggestOptions,
-                 framed: bool) -> SuggestOptions:
+async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, framed: bool,
+                 ticket: Ticket | None, deadline: float | None) -> SuggestOptions:
     """The options with the frame estimated from the partial (``service.suggest.frame_fit``): every
-    hypothesis scored in one engine batch, in a worker thread (as ``/assemble`` fits its start).
-    ``framed``: the caller gave a frame, whose up axis is kept."""
+    hypothesis one query of the request's batch. ``framed``: the caller gave a frame, whose up
+    axis is kept."""
     up_axes = up_axes_for(options.frame if framed else None)
-    fit = await run_in_threadpool(served.fit_frame, points, options, up_axes, served.snapshot)
-    if not fit.hypotheses:
+    frames, queries = fit_queries(served.engine, served.settings, points, options, up_axes)
+    if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
-    return replace(options, frame=fit.frame)
+    answers = await served.suggest_many(queries, ticket, deadline)
+    return replace(options, frame=choose_frame(frames, answers, served.settings.fit_frame_radius_prior).frame)
 
 
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
@@ -131,7 +133,7 @@ async def post_suggest_mesh(
     del data  # the upload's bytes are not needed while the query waits for its batch
     fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
     if fit:
-        options_out = await fitted(served, points, options_out, opts.frame is not None)
+        options_out = await fitted(served, points, options_out, opts.frame is not None, ticket, deadline)
     result = await served.suggest(points, options_out, ticket, deadline)
     return OrjsonResponse(render_suggest(result, served.model_version, fit))
 
