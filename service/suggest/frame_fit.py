@@ -8,9 +8,9 @@ to the size of a whole chair, and the model answers with seats and table tops.
 
 ``frame_hypotheses`` proposes frames the partial could sit in: for each allowed up axis, the
 partial's box centre moved along the up axis (the missing parts may be below or above it) and
-radii from the partial's own radius up to ``fit_frame_max_ratio`` times it. ``best_frame``
+radii from the partial's own radius up to ``fit_frame_max_ratio`` times it. ``choose_frame``
 keeps the hypothesis in which the partial looks most like the partial assemblies g was trained
-on: the smallest familiarity distance of g's answer (``service.suggest.familiarity``: the
+on (``most_familiar``): the smallest familiarity distance of g's answer (``service.suggest.familiarity``: the
 distance of its means and weights to the nearest answer for a training partial assembly). All
 hypotheses of one upload run as one batch of mixture-only queries (``SuggestOptions.mixture_only``:
 g alone, nothing searched or placed), through the micro-batcher for ``/suggest`` like any query.
@@ -18,14 +18,15 @@ g alone, nothing searched or placed), through the micro-batcher for ``/suggest``
 Why not the model's own confidence (the mixture log-likelihood of the best suggestion, the first
 rule): it grows as the partial shrinks in the frame, so it picked the largest radius tried for
 most uploads. On 80 held-out shapes missing one part, put in random frames (up axis y or z,
-radius 100-1000, anywhere), it found the up axis for 0.65 of them and a frame within 25% in
-radius and 0.3 radius in centre for 0.05; the familiarity distance did for 0.88 and 0.57
-(docs/modeling.md "Frames for partial uploads"). The distance alone still liked a partial at
-the bottom of a room much larger than the object, so a prior on the radius is added:
+radius 100-1000, anywhere), it found the up axis for 0.66 of them and a frame within 25% in
+radius and 0.3 radius in centre for 0.05; the familiarity distance did for 0.88 and 0.56
+(``complementme evaluate-frames``; docs/modeling.md "Frames for partial uploads"). The
+distance alone still liked a partial at the bottom of a room much larger than the object, so a
+prior on the radius is added:
 ``fit_frame_radius_prior`` (0.8, chosen on training shapes) times the log of the radius over the
-partial's own, which raised the good frames to 0.93 of held-out shapes missing one part and 0.82
+partial's own, which raised the good frames to 0.93 of held-out shapes missing one part and 0.80
 of those missing every part of one kind. Artifacts without a familiarity bank fall back to the
-likelihood.
+likelihood (``best_frame``).
 
 Shapes: points (M, 3) in the caller's units; frames map them to the canonical frame.
 """
