@@ -55,15 +55,13 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.fixture(scope="session")
-def server(artifacts: Path) -> Iterator[str]:
+def _serve(settings: Settings) -> Iterator[str]:
     """The real app under uvicorn in a thread; yields its base URL once it answers /readyz."""
     import httpx
     import uvicorn
 
     from service.api.app import create_app
 
-    settings = Settings(artifacts=artifacts, onnx_threads=1, faiss_threads=1, seed=0)
     port = _free_port()
     config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning")
     srv = uvicorn.Server(config)
@@ -83,6 +81,21 @@ def server(artifacts: Path) -> Iterator[str]:
     yield base
     srv.should_exit = True
     thread.join(timeout=30)
+
+
+@pytest.fixture(scope="session")
+def server(artifacts: Path) -> Iterator[str]:
+    """The real app on the shipped artifacts with its default settings."""
+    yield from _serve(Settings(artifacts=artifacts, onnx_threads=1, faiss_threads=1, seed=0))
+
+
+@pytest.fixture(scope="session")
+def wary_server(artifacts: Path) -> Iterator[str]:
+    """The real app with a familiarity threshold of 0.1 (COMPLEMENTME_FAMILIARITY_THRESHOLD), so
+    that what it reads warns: with frame fitting, an upload is read in the frame it is most
+    familiar in, where the shipped threshold (1.45) no longer warns (docs/training.md)."""
+    yield from _serve(Settings(artifacts=artifacts, onnx_threads=1, faiss_threads=1, seed=0,
+                               familiarity_threshold=0.1))
 
 
 # Module scope: Playwright's sync API keeps an event loop running in this thread while it is

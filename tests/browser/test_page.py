@@ -69,6 +69,15 @@ def _start_from(page: Any, part_id: str) -> None:
 
 @pytest.fixture()
 def page(browser: Any, server: str) -> Any:
+    yield from _open_page(browser, server)
+
+
+@pytest.fixture()
+def wary_page(browser: Any, wary_server: str) -> Any:
+    yield from _open_page(browser, wary_server)
+
+
+def _open_page(browser: Any, server: str) -> Any:
     context = browser.new_context(viewport={"width": 1400, "height": 900}, accept_downloads=True)
     pg = context.new_page()
     pg.set_default_timeout(60_000)
@@ -438,16 +447,19 @@ def test_start_from_an_uploaded_mesh(page: Any, tmp_path: Path) -> None:
     assert not page.problems, page.problems
 
 
-def test_a_shape_of_no_known_kind_is_called_a_guess(page: Any, tmp_path: Path) -> None:
-    """A torus is "watercraft, 95% sure" to the category head; the answer's unfamiliar_shape
-    warning reaches the designer as a notice instead of staying in the JSON."""
+def test_an_unfamiliar_shape_warning_is_shown_as_a_guess(wary_page: Any, tmp_path: Path) -> None:
+    """An answer's unfamiliar_shape warning reaches the designer as a notice instead of staying
+    in the JSON. The service here warns on nearly everything (threshold 0.1): with the shipped
+    threshold a torus upload is no longer warned, since frame fitting reads it in the frame it
+    is most familiar in (a swivel base's ring: distance 0.32 against 1.45)."""
+    page = wary_page
     path = tmp_path / "torus.obj"
     path.write_text(trimesh.creation.torus(0.6, 0.15).export(file_type="obj"))
     with page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
         page.set_input_files("#mesh-upload", str(path))
     assert answer.value.status == 200
     codes = {w["code"] for w in answer.value.json()["warnings"]}
-    assert codes & {"unfamiliar_shape", "unfamiliar", "frame"}, codes
+    assert "unfamiliar_shape" in codes, codes
     page.wait_for_function(IDLE)
     notice = page.locator("#notice")
     assert notice.is_visible()
