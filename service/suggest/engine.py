@@ -77,6 +77,9 @@ REFINED_PART_COST_MS = 12.0
 # about 5 ms more than the same query without a region (13 ms against 7.7 ms, best of 5, a chair
 # seat with a category filter, trainings running on both cores), most of it in the wider search.
 REGION_PART_COST_MS = 5.0 / 256
+# A mixture-only query (frame fitting's: g alone) cost 0.3 ms: 27 ms for 90 in one batch (2-core
+# AVX-512 host, a training run on the other core).
+MIXTURE_QUERY_COST_MS = 0.3
 
 
 @dataclass(frozen=True)
@@ -474,6 +477,8 @@ class SuggestionEngine:
     # ---------------------------------------------------------------- cost, checked up front
     def query_cost(self, n_points: int, options: SuggestOptions) -> float:
         """Estimated CPU milliseconds of one suggestion query (see ``max_request_cost_ms``)."""
+        if options.mixture_only:
+            return MIXTURE_QUERY_COST_MS + POINT_COST_MS * max(0, n_points)
         k = self.config.default_k if options.k is None else options.k
         refined = max(0, k) if self._refines(options) else 0
         placed = self.config.region_candidates if options.region is not None else 0

@@ -93,6 +93,9 @@ def test_most_familiar_keeps_the_smallest_distance_plus_the_radius_prior(engine:
     assert [r.familiarity for r in results] == pytest.approx([*distances, distances[1]], abs=1e-4)  # type: ignore[union-attr]
     assert len(results[0].suggestions) == 1  # type: ignore[union-attr]
     assert choose_frame(frames, answers, 0.8).frame is frames[0]
+    # Priced as g alone by the batcher's cost model.
+    cost = engine.query_cost
+    assert cost(len(pts), SuggestOptions(mixture_only=True)) < cost(len(pts), SuggestOptions(k=1))
     fit = most_familiar(frames, distances, radius_prior=0.0)
     assert fit.frame is frames[0] and fit.scores == pytest.approx([-d for d in distances])
     assert most_familiar(frames, distances, radius_prior=0.8).scores[1] == pytest.approx(
