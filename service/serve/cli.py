@@ -63,10 +63,10 @@ def _check_catalog(s: Any) -> None:
 
 
 def _options(k: int | None, category: list[str] | None, exclude_shape: list[str] | None,
-             frame: dict[str, Any] | None, fit: bool = False) -> dict[str, Any]:
+             frame: dict[str, Any] | None, fit: bool | None = None) -> dict[str, Any]:
     opts: dict[str, Any] = {"k": k, "frame": frame}
-    if fit:
-        opts["fit_frame"] = True
+    if fit is not None:
+        opts["fit_frame"] = fit
     if category:
         opts["category"] = category
     if exclude_shape:
@@ -155,9 +155,11 @@ def register_service_commands(app: typer.Typer) -> None:
         up_axis: str | None = typer.Option(None, help="The file's up axis: y or z."),
         center: str | None = typer.Option(None, help="Centre of the complete object in file units: x,y,z."),
         radius: float | None = typer.Option(None, help="Radius of the complete object in file units."),
-        fit: bool = typer.Option(False, help=(
+        fit: bool | None = typer.Option(None, "--fit/--no-fit", help=(
             "Let the service estimate the complete object's frame from the file (centre, radius and, "
-            "without --up-axis, the up axis); --center and --radius are then ignored.")),
+            "without --up-axis, the up axis); --center and --radius are then ignored. --no-fit reads "
+            "the file in the given (or canonical) frame. [default: the service's: a mesh sent without "
+            "a frame is fitted (COMPLEMENTME_FIT_FRAME_UPLOADS), points are not]")),
         as_json: bool = typer.Option(False, "--json", help="Print the service's JSON answer."),
         timeout: float = typer.Option(30.0, help="Seconds per request."),
     ) -> None:

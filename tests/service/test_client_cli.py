@@ -141,6 +141,15 @@ def test_suggest_command_prints_a_ranked_table(live_url: str, cli: typer.Typer, 
     assert fitted.exit_code == 0, fitted.output
     assert fitted.output.splitlines()[1].startswith("frame (fitted): centre [")
     assert fitted.output.splitlines()[1].endswith("up y")
+    # A mesh without a frame is fitted by the service's default; --no-fit reads it canonical.
+    mesh = tmp_path / "q.obj"
+    trimesh.PointCloud(query.points).convex_hull.export(mesh)
+    default = CliRunner().invoke(cli, ["suggest", str(mesh), "--url", live_url, "-k", "3"])
+    assert default.exit_code == 0, default.output
+    assert default.output.splitlines()[1].startswith("frame (fitted)"), default.output
+    declined = CliRunner().invoke(cli, ["suggest", str(mesh), "--url", live_url, "-k", "3", "--no-fit"])
+    assert declined.exit_code == 0, declined.output
+    assert declined.output.splitlines()[1].startswith("frame: centre [0, 0, 0], radius 1, up y")
 
 
 def test_batch_command_writes_json_lines(live_url: str, cli: typer.Typer, tmp_path: Path,
