@@ -188,6 +188,27 @@ def main() -> None:
     for obj in bpy.data.objects:
         obj.select_set(obj.name in ("seat", "back"))
 
+    # The frame fitted by the service: only the up axis is sent, with fit_frame; the answer's
+    # frame (fitted, z up) places the imported part.
+    settings.category, settings.frame_mode = "chair", "FIT"
+    assert bpy.ops.complementme.suggest() == {"FINISHED"}
+    _, _, options, answer = calls[-1]
+    assert options["frame"] == {"up_axis": "z"} and options["fit_frame"] is True, options
+    assert answer["frame_fitted"] is True and answer["frame"]["up_axis"] == "z", answer["frame"]
+    fitted_radius = answer["frame"]["scale"]
+    before = set(bpy.data.objects)
+    assert bpy.ops.complementme.import_suggestion(index=0) == {"FINISHED"}
+    (new_obj,) = set(bpy.data.objects) - before
+    first = answer["suggestions"][0]
+    found_lo, found_hi = world_box(new_obj)
+    assert_close(found_lo, first["bbox_min"], BOX_TOLERANCE * fitted_radius, "fitted frame: box min")
+    assert_close(found_hi, first["bbox_max"], BOX_TOLERANCE * fitted_radius, "fitted frame: box max")
+    result["fitted"] = {"frame": answer["frame"], "labels": [s["label"] for s in answer["suggestions"]]}
+    bpy.data.objects.remove(new_obj)
+    settings.frame_mode = "GROUND"
+    for obj in bpy.data.objects:
+        obj.select_set(obj.name in ("seat", "back"))
+
     # Errors, in the report area: the service's 4xx message ...
     settings.category = "no-such-category"
     result["error_4xx"] = expect_error(bpy.ops.complementme.suggest, "422", "unknown_category")

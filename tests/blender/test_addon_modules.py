@@ -86,7 +86,10 @@ def test_request_frame_modes() -> None:
     with pytest.raises(ValueError, match="no extent"):
         geometry.request_frame("SELECTION", (1.0, 1.0, 1.0), (1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="frame mode"):
-        geometry.request_frame("FIT", lo, hi)
+        geometry.request_frame("AUTO", lo, hi)
+    # FIT: only the up axis, and the request asks the service to fit the rest.
+    assert geometry.frame_request("FIT", lo, hi) == {"frame": {"up_axis": "z"}, "fit_frame": True}
+    assert geometry.frame_request("GROUND", lo, hi) == {"frame": ground}
 
 
 def test_parse_obj_reads_the_service_obj_export() -> None:

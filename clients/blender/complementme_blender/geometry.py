@@ -24,6 +24,9 @@ FRAME_MODES = (
     ("SELECTION", "Whole selection",
      "The selection already spans the complete object (its box is the object's box)"),
     ("MANUAL", "Manual", "Give the complete object's centre and radius"),
+    ("FIT", "Fitted by the service",
+     "The service estimates the complete object's centre and radius from the selection (z up): "
+     "for an object that does not stand on the ground"),
 )
 
 
@@ -80,9 +83,12 @@ def request_frame(mode: str, lo: Vec3, hi: Vec3, center: Vec3 = (0.0, 0.0, 0.0),
     was answered with five seats; on the ground (its box extended to z = 0) with five legs.
 
     Args:
-        mode: one of ``FRAME_MODES``: ``GROUND`` (default in the panel), ``SELECTION``, ``MANUAL``.
+        mode: one of ``FRAME_MODES``: ``GROUND`` (default in the panel), ``SELECTION``, ``MANUAL``,
+            ``FIT`` (only the up axis: the request then asks ``fit_frame``, see ``frame_request``).
         lo, hi: the selection's box; center, radius: used by ``MANUAL`` only.
     """
+    if mode == "FIT":
+        return {"up_axis": "z"}
     if mode == "MANUAL":
         c, r = tuple(center), float(radius)
     else:
@@ -97,6 +103,16 @@ def request_frame(mode: str, lo: Vec3, hi: Vec3, center: Vec3 = (0.0, 0.0, 0.0),
         raise ValueError("the frame's radius must be > 0: the selection has no extent" if mode != "MANUAL"
                          else "the frame's radius must be > 0")
     return {"center": [float(x) for x in c], "radius": r, "up_axis": "z"}
+
+
+def frame_request(mode: str, lo: Vec3, hi: Vec3, center: Vec3 = (0.0, 0.0, 0.0),
+                  radius: float = 1.0) -> dict[str, object]:
+    """The request options that say where the complete object is: its ``frame``
+    (``request_frame``) and, in ``FIT`` mode, ``fit_frame`` (the service fits centre and radius)."""
+    options: dict[str, object] = {"frame": request_frame(mode, lo, hi, center, radius)}
+    if mode == "FIT":
+        options["fit_frame"] = True
+    return options
 
 
 def parse_obj(text: str) -> tuple[list[Vec3], list[tuple[int, ...]]]:

@@ -23,7 +23,7 @@ from bpy.props import (
 )
 from mathutils import Matrix
 
-from .geometry import FRAME_MODES, glb_bytes, parse_obj, part_scale, placement_matrix, request_frame
+from .geometry import FRAME_MODES, frame_request, glb_bytes, parse_obj, part_scale, placement_matrix
 from .service_client import Client, ServiceError
 
 ADDON = __package__ or "complementme_blender"
@@ -138,9 +138,9 @@ def _selection_glb(context: bpy.types.Context) -> tuple[bytes, tuple[Any, Any]]:
     return glb_bytes(positions, indices), (lo, hi)
 
 
-def _frame_option(settings: ComplementMeSettings, box: tuple[Any, Any]) -> dict[str, object]:
+def _frame_options(settings: ComplementMeSettings, box: tuple[Any, Any]) -> dict[str, object]:
     try:
-        return request_frame(settings.frame_mode, box[0], box[1], tuple(settings.frame_center),
+        return frame_request(settings.frame_mode, box[0], box[1], tuple(settings.frame_center),
                              settings.frame_radius)
     except ValueError as exc:
         raise ServiceError(str(exc)) from None
@@ -220,7 +220,7 @@ class COMPLEMENTME_OT_suggest(_ServiceOperator):  # noqa: N801 - Blender\'s nami
         settings = context.scene.complementme
         client = _client(context)
         glb, box = _selection_glb(context)
-        options: dict[str, Any] = {"k": settings.k, "frame": _frame_option(settings, box)}
+        options: dict[str, Any] = {"k": settings.k, **_frame_options(settings, box)}
         if settings.category.strip():
             options["category"] = settings.category.strip()
         answer = client.suggest_mesh(glb, options)
@@ -276,7 +276,7 @@ class COMPLEMENTME_OT_autocomplete(_ServiceOperator):  # noqa: N801 - Blender\'s
         settings = context.scene.complementme
         client = _client(context)
         glb, box = _selection_glb(context)
-        options: dict[str, Any] = {"frame": _frame_option(settings, box)}
+        options: dict[str, Any] = {**_frame_options(settings, box)}
         if settings.category.strip():
             options["category"] = settings.category.strip()
         if settings.max_parts > 0:
