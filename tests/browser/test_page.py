@@ -185,7 +185,7 @@ def test_upload_keeps_the_chosen_category(page: Any, artifact_dir: Path) -> None
         page.set_input_files("#mesh-upload", str(EXAMPLE))
     # The first request fits the complete object's frame to the upload (a chair without legs).
     assert sent.value.post_data_json["category"] == "chair"
-    assert sent.value.post_data_json["fit_frame"] is True
+    assert sent.value.post_data_json["fit_frame"] is True and "frame" not in sent.value.post_data_json
     assert answer.value.status == 200
     fitted = answer.value.json()["frame"]
     assert answer.value.json()["frame_fitted"] is True and fitted["up_axis"] == "y"
@@ -444,6 +444,21 @@ def test_start_from_an_uploaded_mesh(page: Any, tmp_path: Path) -> None:
     _wait_parts(page, 1)
     page.click("#undo-button")
     _wait_parts(page, 0)
+    assert not page.problems, page.problems
+
+
+def test_an_upload_keeps_the_up_axis_chosen(page: Any) -> None:
+    """With "Z up" chosen, the fit keeps z up and fits the rest; the status line says so."""
+    page.select_option("#upload-up-axis", "z")
+    with page.expect_request(lambda r: r.url.endswith("/suggest")) as sent, \
+            page.expect_response(lambda r: r.url.endswith("/suggest")) as answer:
+        page.set_input_files("#mesh-upload", str(EXAMPLE))
+    assert sent.value.post_data_json["frame"] == {"up_axis": "z"}
+    assert sent.value.post_data_json["fit_frame"] is True
+    assert answer.value.json()["frame"]["up_axis"] == "z" and answer.value.json()["frame_fitted"] is True
+    page.wait_for_selector(CARDS)
+    page.wait_for_function(IDLE)
+    assert "uploaded mesh (read z up" in page.inner_text("#status")
     assert not page.problems, page.problems
 
 

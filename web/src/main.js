@@ -579,7 +579,8 @@ async function startFromPart() {
 // An uploaded mesh is in the designer's own units and axes, and it is only part of an object:
 // its own box says nothing about the complete object's. So the service fits the complete
 // object's frame (fit_frame: centre, radius, up axis y or z; docs/modeling.md) and the mesh is
-// brought from that frame into the canonical one. A mesh it cannot fit (no extent) is scaled
+// brought from that frame into the canonical one; the "its up axis" choice keeps the axis the
+// designer knows, the rest is fitted. A mesh it cannot fit (no extent) is scaled
 // by its own box as before. The upload keeps the category chosen in the dropdown ("Any
 // category": none, and the page shows what the service reads from the shape).
 async function startFromMesh(file) {
@@ -588,8 +589,10 @@ async function startFromMesh(file) {
   let frame = null;
   try {
     const raw = sampleSurface(geometry, QUERY_POINTS, 1);
+    const up = $("upload-up-axis").value;  // "": the service finds it too
     const fit = await postJson("/suggest", {
       points_base64: floatsToBase64(raw.points), k: 1, fit_frame: true, ...(category ? { category } : {}),
+      ...(up ? { frame: { up_axis: up } } : {}),
     });
     frame = fit.frame;
     toCanonical(geometry, frame);
