@@ -579,7 +579,7 @@ async function startFromPart() {
 // An uploaded mesh is in the designer's own units and axes, and it is only part of an object:
 // its own box says nothing about the complete object's. So the service fits the complete
 // object's frame (fit_frame: centre, radius, up axis y or z; docs/modeling.md) and the mesh is
-// brought from that frame into the canonical one; the "its up axis" choice keeps the axis the
+// brought from that frame into the canonical one; the up-axis choice keeps the axis the
 // designer knows, the rest is fitted. A mesh it cannot fit (no extent) is scaled
 // by its own box as before. The upload keeps the category chosen in the dropdown ("Any
 // category": none, and the page shows what the service reads from the shape).
