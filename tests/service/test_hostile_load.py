@@ -110,6 +110,24 @@ def test_a_heavy_batch_does_not_delay_a_concurrent_suggest(live: LiveServer, que
     print(f"\n/suggest took at most {max(waits):.2f} s beside a {heavy_took:.1f} s batch")
 
 
+def test_a_flood_of_fitted_requests_leaves_plain_ones_their_turn(live: LiveServer,
+                                                                 query: AssemblyQuery) -> None:
+    """32 concurrent /suggest with fit_frame (90 mixture-only queries each, 2,880 in all) and,
+    meanwhile, three plain /suggest: the plain ones are answered while the flood still runs,
+    since frame fitting's queries wait in the micro-batcher's queue in chunks like any query."""
+    fitted = _suggest(query, k=5, fit_frame=True)
+    with httpx.Client(base_url=live.url, timeout=120) as client, ThreadPoolExecutor(32) as pool:
+        warm = client.post("/suggest", json=fitted)
+        assert warm.status_code == 200 and warm.json()["frame_fitted"] is True, warm.text
+        flood = [pool.submit(client.post, "/suggest", json=fitted) for _ in range(32)]
+        time.sleep(0.3)  # the flood is in the batcher
+        for _ in range(3):
+            assert client.post("/suggest", json=_suggest(query, k=5)).status_code == 200
+        assert not all(f.done() for f in flood), "the flood finished too soon to show anything"
+        answers = [f.result() for f in flood]
+    assert all(a.status_code == 200 and a.json()["frame_fitted"] is True for a in answers)
+
+
 # ------------------------------------------------------------------ finding 2: poisoned batches
 
 
