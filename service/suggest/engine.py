@@ -564,7 +564,7 @@ class SuggestionEngine:
         everything = np.stack([q.points for q in queries])  # (B, N, 3)
         # Mixture-only queries (frame fitting's) stop after g: the rest go on without them.
         rest = [b for b, q in enumerate(queries) if not q.options.mixture_only]
-        batch = everything[rest]
+        batch = everything if len(rest) == len(queries) else everything[rest]
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
         beside = (self._runner().submit(_timed, self.networks.query_features, batch)
@@ -573,13 +573,15 @@ class SuggestionEngine:
         with timer.stage("g"):
             mix = self.networks.mixture(everything)
             distances = self.familiarity_distances(mix.weights, mix.means)
+            familiar = ({} if distances is None
+                        else {q.item: float(distances[b]) for b, q in enumerate(queries)})
             for b, q in enumerate(queries):
                 self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
-                if distances is not None:
-                    q.warnings.extend(self._shape_warnings(float(distances[b])))
+                if q.item in familiar:
+                    q.warnings.extend(self._shape_warnings(familiar[q.item]))
                 if q.options.mixture_only:
-                    out[q.item] = self._mixture_answer(q, mix, b, distances, timer.timings)
-        familiar = {} if distances is None else {q.item: float(distances[b]) for b, q in enumerate(queries)}
+                    out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
+                                                       timer.timings)
         if len(rest) < len(queries):
             queries, mix = [queries[b] for b in rest], mix.take(rest)
             if not queries:
@@ -619,14 +621,13 @@ class SuggestionEngine:
         return [out[i] for i in range(len(items))]
 
     @staticmethod
-    def _mixture_answer(q: Query, mix: Mixture, b: int, distances: np.ndarray | None,
+    def _mixture_answer(q: Query, mix: QueryMixture, familiarity: float | None,
                         timings: dict[str, float]) -> SuggestResult:
         """The answer to a mixture-only query: g's modes (and the familiarity distance), no suggestions."""
-        return SuggestResult(suggestions=[], mode_weights=mix.weights[b], frame=q.options.frame,
+        return SuggestResult(suggestions=[], mode_weights=mix.weights, frame=q.options.frame,
                              n_input_points=q.n_input, candidates=0, timings=timings,
-                             mode_means=mix.means[b], mode_sigmas=mix.sigmas[b], inferred_category=q.inferred,
-                             warnings=q.warnings,
-                             familiarity=None if distances is None else float(distances[b]))
+                             mode_means=mix.means, mode_sigmas=mix.sigmas, inferred_category=q.inferred,
+                             warnings=q.warnings, familiarity=familiarity)
 
     def place_ranked(self, query_features: np.ndarray, ranked: dict[int, Ranked], snap: CatalogSnapshot
                      ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:

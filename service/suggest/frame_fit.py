@@ -52,7 +52,7 @@ class FrameFit:
     """The frame chosen for a partial upload, and how sure the model was under each hypothesis."""
 
     frame: Frame
-    score: float                                   # the chosen hypothesis's score (``best_frame``)
+    score: float                                   # the chosen hypothesis's score (``choose_frame``)
     hypotheses: int                                # frames scored
     scores: list[float] = field(default_factory=list)
 
@@ -171,10 +171,23 @@ def choose_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | Serv
                  radius_prior: float) -> FrameFit:
     """The most familiar hypothesis (``most_familiar``) when the answers carry familiarity
     distances (a failed query counts as infinitely far), else the most likely (``best_frame``)."""
-    distances = [r.familiarity if isinstance(r, SuggestResult) else None for r in results]
-    if all(d is None for d in distances):
+    distances = familiarity_of(results)
+    if distances is None:
         return best_frame(frames, results)
-    return most_familiar(frames, np.array([np.inf if d is None else d for d in distances]), radius_prior)
+    return most_familiar(frames, distances, radius_prior)
+
+
+def familiarity_of(results: Sequence[SuggestResult | ServiceError]) -> np.ndarray | None:
+    """Each answer's familiarity distance (inf where its query failed); None when no answer
+    carries one (the engine has no familiarity bank).
+
+    Shapes:
+        returns (len(results),) float64.
+    """
+    found = [r.familiarity if isinstance(r, SuggestResult) else None for r in results]
+    if all(d is None for d in found):
+        return None
+    return np.array([np.inf if d is None else d for d in found], dtype=np.float64)
 
 
 def fit_frame(engine: SuggestionEngine, settings: Settings, points: np.ndarray, options: SuggestOptions,

@@ -27,8 +27,15 @@ from service.artifacts.catalog import Catalog, partial_assemblies, split_shapes
 from service.artifacts.loading import load_served_artifacts
 from service.geometry.frames import Frame
 from service.settings import Settings
-from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
-from service.suggest.frame_fit import UP_AXES, best_frame, hypotheses_of, most_familiar, scoring_queries
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import (
+    UP_AXES,
+    best_frame,
+    familiarity_of,
+    hypotheses_of,
+    most_familiar,
+    scoring_queries,
+)
 
 RULES = ("likelihood", "familiarity", "shipped")
 SETS = ("one part missing", "one kind missing")
@@ -91,11 +98,10 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
                          up_axis=str(rng.choice(UP_AXES)))  # type: ignore[arg-type]
             points = true.from_canonical(cloud.astype(np.float64))
             frames = hypotheses_of(settings, points, UP_AXES)
+            # The k = 1 answers carry both scores: the best suggestion's likelihood and g's familiarity.
             answers = engine.suggest_batch(scoring_queries(frames, points, SuggestOptions(), False))
-            mixtures = engine.suggest_batch(scoring_queries(frames, points, SuggestOptions(), True))
-            distances = np.array([r.familiarity if isinstance(r, SuggestResult) and r.familiarity is not None
-                                  else np.inf for r in mixtures])
-            if not np.isfinite(distances).any():
+            distances = familiarity_of(answers)
+            if distances is None:
                 raise ValueError(f"{cfg.artifacts} has no familiarity bank: run `complementme familiarity`")
             picks = {"likelihood": best_frame(frames, answers),
                      "familiarity": most_familiar(frames, distances, 0.0),
