@@ -1,0 +1,300 @@
+"""A fast reader of the plain OBJ files most tools write: numpy over the bytes, no loop over lines.
+
+trimesh reads an OBJ with Python list work per line: 225 ms of a 240 ms ``/suggest/mesh`` for a
+100k-triangle file (docs/performance.md, issue 20), against 21 ms for the same mesh as GLB. Most
+OBJ files are plain: ``v x y z`` lines, ``f`` lines of vertex references (``i``, ``i/t``,
+``i//n``, ``i/t/n``, negative = relative), and lines the surface does not need (``vt``, ``vn``,
+``vp``, ``g``, ``o``, ``s``, comments, blank lines; material lines when the caller drops them),
+each keyword at the start of its line and ``v`` and ``f`` followed by a space, as trimesh wants.
+``read_plain_obj`` reads those; any other file (another keyword, a line starting with blanks, a
+line continuation, a vertex with other than three coordinates, a number it cannot read, an index
+out of range) gets ``None`` and is left to trimesh, so every refusal and error message stays the
+one ``service.geometry.mesh`` gives.
+
+The surface is the one trimesh reads: the same vertices (those some face uses) and the same
+triangles, a polygon split into a fan from its first corner (a quad's second triangle
+``(0, 2, 3)`` is trimesh's ``(2, 3, 0)``). Coordinates with at most 15 significant digits and no
+exponent are read exactly as ``float()`` reads them (an integer over a power of ten, both exact in
+float64, is one correctly rounded division); longer ones and exponents to within a few ulps.
+
+Shapes: vertices (V, 3) float64, faces (F, 3) int64.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+# Keywords whose lines the surface does not need; the material ones only when the caller drops them.
+_SKIPPED = (b"vt", b"vn", b"vp", b"g", b"o", b"s")
+_MATERIAL = (b"mtllib", b"usemtl", b"maplib", b"usemap")
+# Longest number token read (longer ones go to trimesh), and the most digits an int64 holds exactly.
+_MAX_TOKEN = 32
+_MAX_DIGITS = 18
+_NEWLINE, _HASH, _SLASH, _DOT, _MINUS, _PLUS = 10, 35, 47, 46, 45, 43
+
+
+@dataclass(frozen=True)
+class ObjLayout:
+    """Where a plain OBJ's vertex and face data lie (``obj_layout``), counted before anything is parsed.
+
+    Shapes:
+        tok_start, tok_end: (T,) byte offsets of every word; v_first: (V,) the first coordinate
+        word of each ``v`` line; f_first, f_corners: (P,) the first corner word and the corner
+        count of each ``f`` line; f_vertices: (P,) how many ``v`` lines precede it (for negative
+        references).
+    """
+
+    data: np.ndarray
+    tok_start: np.ndarray
+    tok_end: np.ndarray
+    v_first: np.ndarray
+    f_first: np.ndarray
+    f_corners: np.ndarray
+    f_vertices: np.ndarray
+    groups: int
+
+    @property
+    def vertices(self) -> int:
+        return len(self.v_first)
+
+    @property
+    def triangles(self) -> int:
+        """Triangles after splitting polygons (a polygon of k corners is k - 2)."""
+        return int(np.maximum(self.f_corners - 2, 1).sum())
+
+
+def obj_layout(data: bytes, drop_materials: bool) -> ObjLayout | None:
+    """The layout of a plain OBJ (see the module doc), or None when the file is not one."""
+    if not data or b"\\" in data:            # a backslash continues a line: trimesh's reading
+        return None
+    a = np.frombuffer(data, dtype=np.uint8)
+    low = a[a < 32]                          # control bytes: tabs and line ends only
+    if np.any((low != 9) & (low != _NEWLINE) & (low != 13)):
+        return None
+    cr = np.count_nonzero(low == 13)
+    if cr and cr != data.count(b"\r\n"):
+        return None                          # a lone CR ends a line for trimesh, not here
+    word = a > 32
+    # Word edges alternate (start, end, start, ...) once the bytes are framed by blanks.
+    edges = np.flatnonzero(word[1:] != word[:-1]) + 1
+    if word[0]:
+        edges = np.concatenate(([0], edges))
+    if word[-1]:
+        edges = np.concatenate((edges, [len(a)]))
+    starts, ends = edges[0::2], edges[1::2]
+    newline = np.flatnonzero(a == _NEWLINE)
+    line_start = np.concatenate(([0], newline + 1))
+    first = np.searchsorted(starts, line_start)          # each line's first word (words never span lines)
+    n_words = np.diff(np.concatenate((first, [len(starts)])))
+    lines = np.flatnonzero(n_words > 0)
+    kw = first[lines]
+    if np.any(starts[kw] != line_start[lines]):
+        return None                          # a line that starts with blanks: trimesh skips it
+    kw_len = ends[kw] - starts[kw]
+    c0 = a[starts[kw]]
+    c1 = a[np.minimum(starts[kw] + 1, len(a) - 1)]
+    is_v = (kw_len == 1) & (c0 == ord("v"))
+    is_f = (kw_len == 1) & (c0 == ord("f"))
+    known = is_v | is_f | (c0 == _HASH)
+    for keyword in _SKIPPED + (_MATERIAL if drop_materials else ()):
+        known |= (kw_len == len(keyword)) & (c0 == keyword[0]) & (
+            c1 == keyword[1] if len(keyword) > 1 else True)
+    long = starts[kw[known & (kw_len > 2) & (c0 != _HASH)]]   # material keywords: checked in full
+    if len(long):
+        spelled = a[np.minimum(long[:, None] + np.arange(6), len(a) - 1)]
+        names = np.frombuffer(b"".join(_MATERIAL), dtype=np.uint8).reshape(-1, 6)
+        if not (spelled[:, None, :] == names[None]).all(axis=2).any(axis=1).all():
+            return None
+    if not known.all():
+        return None
+    after = a[np.minimum(ends[kw[is_v | is_f]], len(a) - 1)]
+    if np.any(after != 32):
+        return None                          # 'v' then a tab: trimesh does not take it for a vertex
+    words = n_words[lines]
+    if np.any(words[is_v] != 4) or np.any(words[is_f] < 4):
+        return None                          # colours or w after a vertex, or a face of < 3 corners
+    groups = int(np.count_nonzero((kw_len == 1) & ((c0 == ord("g")) | (c0 == ord("o")))))
+    return ObjLayout(data=a, tok_start=starts, tok_end=ends, v_first=kw[is_v] + 1, f_first=kw[is_f] + 1,
+                     f_corners=words[is_f] - 1, f_vertices=np.cumsum(is_v)[is_f], groups=groups)
+
+
+def read_plain_obj(layout: ObjLayout) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertices some face uses and the triangles of a plain OBJ, or None (see the module doc).
+
+    Shapes:
+        returns vertices (V, 3) float64, faces (F, 3) int64 indexing them.
+    """
+    if not layout.vertices or not len(layout.f_first):
+        return None                          # nothing to read: trimesh's path says what is missing
+    coords = _numbers(layout, (layout.v_first[:, None] + np.arange(3)).ravel())
+    if coords is None:
+        return None
+    vertices = coords.reshape(-1, 3)
+    corner_words = _ranges(layout.f_first, layout.f_corners)
+    refs = _references(layout, corner_words)
+    if refs is None:
+        return None
+    before = np.repeat(layout.f_vertices, layout.f_corners)
+    corners = np.where(refs > 0, refs - 1, before + refs)      # 1-based, or relative when negative
+    if np.any((refs == 0) | (corners < 0) | (corners >= len(vertices))):
+        return None
+    faces = _fans(corners, layout.f_corners)
+    used = np.zeros(len(vertices), dtype=bool)
+    used[faces.ravel()] = True
+    index = np.cumsum(used) - 1
+    return vertices[used], index[faces]
+
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``arange(s, s + c)`` for every start and count, concatenated."""
+    ends = np.cumsum(counts)
+    return np.repeat(starts - (ends - counts), counts) + np.arange(int(ends[-1]) if len(ends) else 0)
+
+
+def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Each polygon's corners split into a fan of triangles from its first corner.
+
+    Shapes:
+        corners (sum(counts),), counts (P,) >= 3 -> (sum(counts - 2), 3).
+    """
+    if np.all(counts == 3):
+        return corners.reshape(-1, 3)
+    first = np.cumsum(counts) - counts
+    tris = counts - 2
+    at = np.repeat(first, tris)                                  # each triangle's polygon start
+    i = _ranges(np.zeros(len(tris), dtype=np.int64), tris) + 1   # its second corner, 1..k-2
+    return np.stack([corners[at], corners[at + i], corners[at + i + 1]], axis=1)
+
+
+def _columns(layout: ObjLayout, words: np.ndarray) -> Iterator[np.ndarray] | None:
+    """The words' bytes column by column: column j holds byte j of every word (0 past its end).
+
+    Column-major because every step of the readers below is a vector operation across all words,
+    repeated for the few columns a number has (about 10), not a reduction along each short row;
+    made one at a time, so a reader that is done early reads no more of them.
+
+    Shapes:
+        words (N,) -> W arrays (N,) uint8, W the longest word's length (None past ``_MAX_TOKEN``).
+    """
+    s, e = layout.tok_start[words], layout.tok_end[words]
+    width = int((e - s).max()) if len(s) else 0
+    if width > _MAX_TOKEN:
+        return None
+    data = np.concatenate((layout.data, np.zeros(_MAX_TOKEN, dtype=np.uint8)))
+    length = e - s
+    return (np.where(length > j, data[s + j], np.uint8(0)) for j in range(width))
+
+
+def _numbers(layout: ObjLayout, words: np.ndarray) -> np.ndarray | None:
+    """Decimal numbers (``[+-]digits[.digits][(e|E)[+-]digits]``) of the given words, or None.
+
+    Read left to right like ``strtod``: the mantissa's digits accumulate in an int64 (at most
+    ``_MAX_DIGITS`` of them), the digits after the dot are counted, the exponent's accumulate
+    apart; any other byte, or a byte out of place, makes the whole file trimesh's.
+    """
+    found = _columns(layout, words)
+    if found is None:
+        return None
+    cols = list(found)
+    if any(np.any((c | 32) == ord("e")) for c in cols):     # 'e' or 'E' somewhere: exponents
+        return _scientific(cols)
+    n = len(words)
+    mantissa = np.zeros(n, dtype=np.int64)
+    digits = np.zeros(n, dtype=np.int64)
+    fraction = np.zeros(n, dtype=np.int64)
+    dot = np.zeros(n, dtype=bool)
+    bad = np.zeros(n, dtype=bool)
+    negative = cols[0] == _MINUS
+    for j, c in enumerate(cols):
+        d = c - np.uint8(48)                                  # wraps above 9 for every non-digit
+        is_digit = d < 10
+        is_dot = c == _DOT
+        other = ~is_digit & (c != 0)
+        if j == 0:
+            other &= (c != _MINUS) & (c != _PLUS)
+        bad |= other & ~(is_dot & ~dot)
+        mantissa = np.where(is_digit, mantissa * 10 + d, mantissa)
+        digits += is_digit
+        fraction += is_digit & dot
+        dot |= is_dot
+    if bad.any() or np.any(digits == 0) or np.any(digits > _MAX_DIGITS):
+        return None
+    # Exact (at most 22 digits after the dot): an integer over a power of ten, one division.
+    out = mantissa / 10.0 ** fraction
+    return np.where(negative, -out, out)
+
+
+def _scientific(cols: list[np.ndarray]) -> np.ndarray | None:
+    """``_numbers`` for words some of which carry an exponent (``e`` or ``E``, signed)."""
+    n = len(cols[0])
+    mantissa = np.zeros(n, dtype=np.int64)
+    exponent = np.zeros(n, dtype=np.int64)
+    digits = np.zeros(n, dtype=np.int64)
+    fraction = np.zeros(n, dtype=np.int64)
+    exp_digits = np.zeros(n, dtype=np.int64)
+    dot = np.zeros(n, dtype=bool)
+    in_exp = np.zeros(n, dtype=bool)
+    exp_negative = np.zeros(n, dtype=bool)
+    negative = cols[0] == _MINUS
+    for j, c in enumerate(cols):
+        d = c - np.uint8(48)                                  # wraps above 9 for every non-digit
+        is_digit = d < 10
+        ok = is_digit | (c == 0)
+        if j == 0:
+            ok |= (c == _MINUS) | (c == _PLUS)
+        else:
+            after_e = in_exp & (exp_digits == 0) & (cols[j - 1] > 57)   # the byte right after e/E
+            ok |= ((c == _MINUS) | (c == _PLUS)) & after_e
+            exp_negative |= (c == _MINUS) & after_e
+        is_e = ((c | 32) == ord("e")) & ~in_exp & (digits > 0)
+        is_dot = (c == _DOT) & ~dot & ~in_exp
+        if not np.all(ok | is_e | is_dot):
+            return None
+        in_mantissa = is_digit & ~in_exp
+        mantissa = np.where(in_mantissa, mantissa * 10 + d, mantissa)
+        digits += in_mantissa
+        fraction += in_mantissa & dot
+        in_exponent = is_digit & in_exp
+        exponent = np.where(in_exponent, exponent * 10 + d, exponent)
+        exp_digits += in_exponent
+        dot |= is_dot
+        in_exp |= is_e
+    if np.any(digits == 0) or np.any(digits > _MAX_DIGITS) or np.any(in_exp & (exp_digits == 0)) \
+            or np.any(exp_digits > 4):
+        return None
+    power = np.where(exp_negative, -exponent, exponent) - fraction
+    with np.errstate(over="ignore", under="ignore", divide="ignore"):
+        # Exact where the power is down to -22 (one division); within a few ulps elsewhere.
+        out = np.where(power <= 0, mantissa / 10.0 ** np.minimum(-power, 308),
+                       mantissa * 10.0 ** np.minimum(power, 400).astype(np.float64))
+    return np.where(negative, -out, out)
+
+
+def _references(layout: ObjLayout, words: np.ndarray) -> np.ndarray | None:
+    """The vertex reference of each corner word (the integer before its first '/'), or None."""
+    cols = _columns(layout, words)
+    if cols is None:
+        return None
+    n = len(words)
+    value = np.zeros(n, dtype=np.int32)          # int32 is twice as fast, and 9 digits is plenty
+    digits = np.zeros(n, dtype=np.int32)
+    head = np.ones(n, dtype=bool)                            # before the first '/' (and the end)
+    negative = np.zeros(n, dtype=bool)
+    for j, c in enumerate(cols):
+        if j == 0:
+            negative = c == _MINUS
+        d = c - np.uint8(48)
+        is_digit = (d < 10) & head
+        head &= (c != _SLASH) & (c != 0)
+        if not np.all(is_digit | ~head | (negative & (j == 0))):
+            return None
+        value = np.where(is_digit, value * 10 + d.astype(np.int32), value)
+        digits += is_digit
+        if not head.any():
+            break                                             # texture and normal indices: unread
+    if np.any(digits == 0) or np.any(digits > 9):
+        return None
+    return np.where(negative, -value, value).astype(np.int64)

@@ -1,0 +1,192 @@
+"""The fast OBJ reader (``service.geometry.obj``): the surface trimesh reads, for the files it takes.
+
+trimesh is the reference: every plain file below must give the same triangles (as coordinates)
+through the fast reader as through trimesh's own OBJ loader, and every file the reader does not
+take must go back to trimesh's path, so that its refusals and errors stay what they were.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import trimesh
+
+from service.geometry.mesh import MeshError, load_mesh_surface, sample_surface
+from service.geometry.obj import _numbers, obj_layout, read_plain_obj
+
+MAX = 1_000_000
+
+
+def fast(text: bytes, drop_materials: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
+    layout = obj_layout(text, drop_materials)
+    return None if layout is None else read_plain_obj(layout)
+
+
+def trimesh_mesh(text: bytes) -> trimesh.Trimesh:
+    mesh = trimesh.load(io.BytesIO(text), file_type="obj", process=False, force="mesh", skip_materials=True)
+    assert isinstance(mesh, trimesh.Trimesh)
+    return mesh
+
+
+def trimesh_triangles(text: bytes) -> np.ndarray:
+    """trimesh's reading, as each triangle's corners sorted: (F, 9), rows sorted."""
+    mesh = trimesh_mesh(text)
+    return _canonical(np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
+
+
+def _canonical(tris: np.ndarray) -> np.ndarray:
+    """Triangles (F, 3, 3) as rows of their corners in sorted order, the rows sorted: an order-free form."""
+    point = [("x", tris.dtype), ("y", tris.dtype), ("z", tris.dtype)]
+    corners = np.sort(np.ascontiguousarray(tris).view(point).reshape(len(tris), 3), axis=1)
+    rows = corners.view(tris.dtype).reshape(len(tris), 9)
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+QUAD_FAN = b"""# a cube of quads, a pentagon, groups, smoothing, texture and normal data
+o box
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 0 0 1
+v 1 0 1
+v 1 1 1
+v 0 1 1
+vt 0 0
+vt 1 0
+vt 1 1
+vn 0 0 1
+g bottom
+s off
+f 1 4 3 2
+g top
+f 5/1 6/2 7/3 8/1
+g sides
+f 1//1 2//1 6//1 5//1
+f 2/1/1 3/2/1 7/3/1 6/1/1
+v 2 0 0
+v 3 0 0.5
+v 3 1 1
+v 2.5 1.5 1.25
+v 2 1 1
+f -5 -4 -3 -2 -1
+"""
+
+PLAIN = {
+    "triangles": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\n",
+    "quads, polygons, references": QUAD_FAN,
+    "crlf and tabs": b"v 0\t0 0\r\nv 1\t0 0\r\nv 0 1 0\r\n\r\nf 1 2\t3\r\n",
+    "signs and dots": b"v -.5 +1.25 3.\nv 1e2 -2.5E-1 0\nv 0.125 1 -0\nf 1 2 3\n",
+    "materials dropped": b"mtllib parts.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemap x\nf 1 2 3\n",
+    "unused vertices": b"v 9 9 9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 7 7 7\nf 2 3 4\n",
+    "no final newline": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3",
+}
+
+
+@pytest.mark.parametrize("name", list(PLAIN))
+def test_plain_files_read_as_trimesh_reads_them(name: str) -> None:
+    text = PLAIN[name]
+    read = fast(text)
+    assert read is not None, "the fast reader should take this file"
+    vertices, faces = read
+    assert faces.dtype == np.int64 and faces.min() >= 0 and faces.max() < len(vertices)
+    assert np.unique(faces).size == len(vertices)            # only the vertices a face uses
+    assert np.array_equal(_canonical(vertices[faces]), trimesh_triangles(text))
+
+
+def test_a_large_exported_mesh_reads_exactly_as_trimesh_reads_it() -> None:
+    """A trimesh-written OBJ (one group, triangles): the same vertices and faces in the same order,
+    so an upload samples the same points whichever reader took it."""
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    sphere.vertices *= np.array([310.25, 120.5, 77.125])     # caller units, not a unit sphere
+    text = trimesh.exchange.obj.export_obj(sphere).encode()
+    read = fast(text)
+    assert read is not None
+    mesh = trimesh_mesh(text)
+    assert np.array_equal(read[0][read[1]], np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
+    surface = load_mesh_surface(text, "obj", max_vertices=MAX, max_faces=MAX)
+    ours = sample_surface(surface.vertices, surface.faces, 512, seed=3, areas=surface.areas)
+    theirs = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), 512, seed=3)
+    assert np.array_equal(ours, theirs)
+
+
+NOT_PLAIN = {
+    "a tab after the keyword": b"v\t0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "leading blanks": b"  v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "line continuation": b"v 0 0 \\\n0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "vertex colours": b"v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 0 1 0 1 0 0\nf 1 2 3\n",
+    "polyline": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\nf 1 2 3\n",
+    "unknown keyword": b"v 0 0 0\nv 1 0 0\nv 0 1 0\ncurv 0 1 1 2\nf 1 2 3\n",
+    "not a number": b"v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "hex": b"v 0x1 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "two dots": b"v 1.2.3 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "reference out of range": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n",
+    "reference zero": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n",
+    "relative before the first vertex": b"v 0 0 0\nv 1 0 0\nf -1 -2 -3\nv 0 1 0\n",
+    "a face of two corners": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n",
+    "lone carriage returns": b"v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 3\r",
+    "control byte": b"v 0 0 0\x00\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "shell call": b"v 0 0 0\nv 1 0 0\nv 0 1 0\ncsh rm -rf x\nf 1 2 3\n",
+    "no faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\n",
+}
+
+
+@pytest.mark.parametrize("name", list(NOT_PLAIN))
+def test_other_files_are_left_to_trimesh(name: str) -> None:
+    assert fast(NOT_PLAIN[name]) is None
+
+
+def test_material_library_goes_to_trimesh_unless_dropped() -> None:
+    text = PLAIN["materials dropped"]
+    assert fast(text, drop_materials=False) is None
+    with pytest.raises(MeshError) as err:          # trimesh's path refuses the external file, as before
+        load_mesh_surface(text, "obj", name="m.obj", max_vertices=MAX, max_faces=MAX)
+    assert err.value.code == "external_reference"
+
+
+@pytest.mark.parametrize("text, code", [
+    (b"v 1e999 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "non_finite"),
+    (b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "zero_area"),
+    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "corrupt_mesh"),
+])
+def test_unusable_plain_files_get_trimesh_paths_errors(text: bytes, code: str) -> None:
+    with pytest.raises(MeshError) as err:
+        load_mesh_surface(text, "obj", name="m.obj", max_vertices=MAX, max_faces=MAX)
+    assert err.value.code == code and "m.obj" in str(err.value)
+
+
+def test_limits_are_checked_on_the_counted_lines() -> None:
+    text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3 4\n"           # a quad: two triangles
+    assert fast(text) is not None
+    with pytest.raises(MeshError) as err:
+        load_mesh_surface(text, "obj", name="m.obj", max_vertices=3, max_faces=10)
+    assert err.value.code == "too_large" and "vertices" in str(err.value)
+    with pytest.raises(MeshError) as err:
+        load_mesh_surface(text, "obj", name="m.obj", max_vertices=10, max_faces=1)
+    assert err.value.code == "too_large" and "faces" in str(err.value)
+
+
+def test_numbers_read_as_float_reads_them() -> None:
+    """Decimals of up to 15 significant digits: exactly ``float()``; with exponents: within 2 ulps."""
+    rng = np.random.default_rng(0)
+    words = []
+    for _ in range(3000):
+        whole = str(int(rng.integers(0, 10 ** int(rng.integers(1, 8)))))
+        frac = "".join(map(str, rng.integers(0, 10, size=int(rng.integers(0, 8)))))
+        sign = str(rng.choice(["", "-", "+"]))
+        words.append(f"{sign}{whole}.{frac}" if frac or rng.random() < 0.5 else f"{sign}{whole}")
+    scientific = [f"{x:.{int(rng.integers(1, 12))}e}" for x in rng.normal(scale=1e3, size=1000)]
+    for batch, exact in ((words, True), (scientific, False)):
+        rows = [" ".join(batch[i:i + 3]) for i in range(0, len(batch) - 2, 3)]
+        text = ("".join(f"v {r}\n" for r in rows) + "f 1 2 3\n").encode()
+        layout = obj_layout(text, True)
+        assert layout is not None
+        got = _numbers(layout, (layout.v_first[:, None] + np.arange(3)).ravel())
+        assert got is not None
+        want = np.array([float(w) for r in rows for w in r.split()])
+        if exact:
+            assert np.array_equal(got, want)
+        else:
+            assert np.all(np.abs(got - want) <= 2 * np.spacing(np.abs(want)))
