@@ -73,7 +73,7 @@ from service.errors import InputError
 from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
-from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult, scaled_surface
+from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.preferences import Preferences
 from service.suggest.snapshot import CatalogSnapshot
@@ -281,7 +281,7 @@ class Assembler:
         contacts = self.engine.contacts
 
         def surface() -> Surface:
-            return scaled_surface(contacts.part_surface(cat, i), sc).moved(t)
+            return contacts.part_surface(cat, i).scaled(sc).moved(t)
 
         return _Placed(pts, surface, max(float(cat.records[i]["area"]) * float(np.prod(sc)) ** (2 / 3), 1e-9),
                        cat.bbox_min[i].astype(np.float64) * sc + t,

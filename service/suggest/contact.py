@@ -76,6 +76,24 @@ class Surface:
     def moved(self, offset: np.ndarray) -> Surface:
         return Surface(self.points + np.asarray(offset, dtype=np.float64).reshape(1, 3), self.normals)
 
+    def scaled(self, scale: np.ndarray | None) -> Surface:
+        """A centred part's samples scaled per axis about its centre (normals transformed by the
+        inverse scale and renormalised); itself for None or a scale of ones.
+
+        Shapes:
+            scale: (3,).
+        """
+        if scale is None:
+            return self
+        s = np.asarray(scale, dtype=np.float64).reshape(1, 3)
+        if np.all(s == 1.0):
+            return self
+        normals = None
+        if self.normals is not None:
+            n = self.normals / s
+            normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        return Surface(self.points * s, normals)
+
     @staticmethod
     def union(surfaces: list[Surface]) -> Surface:
         """All samples of several surfaces (normals NaN for those that have none)."""
@@ -750,14 +768,15 @@ class PartContacts:
             pts = pts[_subsample(np.arange(len(pts)), self.assembly_points, self.params.seed)]
         return Assembly(Surface(pts))
 
-    def refine(self, catalog: Catalog, rows: np.ndarray, translations: np.ndarray,
-               assembly: Assembly) -> list[Refinement]:
-        """Refine each part ``rows[j]`` placed at ``translations[j]`` against the assembly.
+    def placed(self, catalog: Catalog, rows: np.ndarray, translations: np.ndarray,
+               scales: np.ndarray | None = None) -> list[Surface]:
+        """Oriented samples of catalog parts ``rows[j]`` fitted to ``scales[j]`` (None: catalog
+        size) and placed at ``translations[j]``: what ``refine_offsets`` refines.
 
         Shapes:
-            rows: (n,) catalog rows; translations: (n, 3) canonical.
+            rows: (n,) catalog rows; translations: (n, 3) canonical; scales: (n, 3) or None.
         """
-        tr = np.asarray(translations, dtype=np.float64)
-        rows_ = np.asarray(rows).tolist()
-        moved = [self.part_surface(catalog, int(i)).moved(t) for i, t in zip(rows_, tr, strict=True)]
-        return refine_offsets(moved, assembly, self.params)
+        tr = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+        sc = None if scales is None else np.asarray(scales, dtype=np.float64).reshape(-1, 3)
+        return [self.part_surface(catalog, int(i)).scaled(None if sc is None else sc[j]).moved(tr[j])
+                for j, i in enumerate(np.asarray(rows).tolist())]

@@ -53,7 +53,7 @@ from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
 from service.settings import Settings
 from service.suggest.complement import complement_order, covered_share
-from service.suggest.contact import Assembly, ContactParams, PartContacts, Surface, refine_offsets
+from service.suggest.contact import Assembly, ContactParams, PartContacts, refine_offsets
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
@@ -758,12 +758,7 @@ class SuggestionEngine:
             rows: (n,); translations: (n, 3) canonical; scales: (n, 3) -> (n, 3) float64 offsets.
         """
         cat = catalog if catalog is not None else self.catalog
-        t = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-        surfaces = [self.contacts.part_surface(cat, int(i)) for i in np.asarray(rows).tolist()]
-        if scales is not None and not np.all(np.asarray(scales) == 1.0):
-            sc = np.asarray(scales, dtype=np.float64).reshape(-1, 3)
-            surfaces = [scaled_surface(sf, sc[j]) for j, sf in enumerate(surfaces)]
-        moved = [sf.moved(t[j]) for j, sf in enumerate(surfaces)]
+        moved = self.contacts.placed(cat, rows, translations, scales)
         # All parts in one search (refine_offsets answers as one part at a time would, faster).
         params = self.contacts.params
         found = refine_offsets(moved, assembly, params)
@@ -1010,23 +1005,6 @@ def _caller_scale(scales: np.ndarray, frame: Frame) -> np.ndarray:
 def _timed(fn: Any, *args: Any) -> tuple[Any, float]:
     t = time.perf_counter()
     return fn(*args), time.perf_counter() - t
-
-
-def scaled_surface(surface: Surface, scale: np.ndarray) -> Surface:
-    """A centred part's oriented samples scaled per axis about its centre (normals transformed
-    by the inverse scale and renormalised).
-
-    Shapes:
-        scale: (3,).
-    """
-    s = np.asarray(scale, dtype=np.float64).reshape(1, 3)
-    if np.all(s == 1.0):
-        return surface
-    normals = None
-    if surface.normals is not None:
-        n = surface.normals / s
-        normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    return Surface(surface.points * s, normals)
 
 
 def _or_default(asked: bool | None, setting: bool) -> bool:

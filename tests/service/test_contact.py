@@ -199,7 +199,7 @@ def test_batched_search_matches_the_reference_on_catalog_parts(engine: Suggestio
                 contacts.part_surface(catalog, i).moved(catalog.translations[i]) for i in present])))
         for assembly in assemblies:
             for tr in placements:
-                fast = contacts.refine(catalog, idx, tr, assembly)
+                fast = refine_offsets(contacts.placed(catalog, idx, tr), assembly, contacts.params)
                 slow = [contact_reference.refine_offset(contacts.part_surface(catalog, int(i)).moved(t),
                                                         assembly, contacts.params)
                         for i, t in zip(idx, tr, strict=True)]
