@@ -74,6 +74,20 @@ export function normalise(geometry, radius) {
   return geometry;
 }
 
+// Bring a geometry from an answer's frame into the canonical one: the inverse of the frame
+// (x = scale * rotation @ v + center), v = rotation^T (x - center) / scale.
+export function toCanonical(geometry, frame) {
+  const [c, r, s] = [frame.center, frame.rotation, frame.scale];
+  const m = new THREE.Matrix4().set(
+    r[0][0] / s, r[1][0] / s, r[2][0] / s, 0,
+    r[0][1] / s, r[1][1] / s, r[2][1] / s, 0,
+    r[0][2] / s, r[1][2] / s, r[2][2] / s, 0,
+    0, 0, 0, 1);
+  geometry.translate(-c[0], -c[1], -c[2]);
+  geometry.applyMatrix4(m);
+  geometry.computeVertexNormals();
+}
+
 // Area-weighted surface samples of a non-indexed geometry: {points: Float32Array(3n), area}.
 export function sampleSurface(geometry, n, seed) {
   const pos = geometry.attributes.position.array;

@@ -9,9 +9,8 @@
 // question, not an edit: it is not in the history and any edit clears it. Suggestions,
 // auto-completion and alternatives come from the service (/suggest, /assemble); the download
 // from /export.
-import * as THREE from "three";
 import { ApiError, base64ToFloats, floatsToBase64, getJson, partPath, postForBlob, postJson } from "./api.js";
-import { areaWeighted, normalise, parseMeshFile, sampleSurface } from "./geometry.js";
+import { areaWeighted, normalise, parseMeshFile, sampleSurface, toCanonical } from "./geometry.js";
 import { Thumbnailer, Viewer, colourOf } from "./view.js";
 
 const QUERY_POINTS = 2048;       // points sent per query (the service resamples to its N)
@@ -606,19 +605,6 @@ async function startFromMesh(file) {
     state.parts = [];
     state.cloud = { geometry, points, area, name: file.name, frame };
   });
-}
-
-// The inverse of the answer's frame (x = scale * rotation @ v + center): v = rotation^T (x - center) / scale.
-function toCanonical(geometry, frame) {
-  const [c, r, s] = [frame.center, frame.rotation, frame.scale];
-  const m = new THREE.Matrix4().set(
-    r[0][0] / s, r[1][0] / s, r[2][0] / s, 0,
-    r[0][1] / s, r[1][1] / s, r[2][1] / s, 0,
-    r[0][2] / s, r[1][2] / s, r[2][2] / s, 0,
-    0, 0, 0, 1);
-  geometry.translate(-c[0], -c[1], -c[2]);
-  geometry.applyMatrix4(m);
-  geometry.computeVertexNormals();
 }
 
 function main() {
