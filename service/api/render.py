@@ -58,7 +58,7 @@ def render_suggest(result: SuggestResult, model_version: str, frame_fitted: bool
             "category": result.inferred_category.category,
             "confidence": result.inferred_category.confidence,
             "applied": result.inferred_category.applied}),
-        "warnings": [{"code": w.code, "message": w.message} for w in result.warnings],
+        "warnings": [{"code": w.code, "message": w.message, "guess": w.guess} for w in result.warnings],
         "region": (None if result.region is None else {
             "placed": result.region.placed, "inside": result.region.inside,
             "nearest_gap": result.region.nearest_gap}),

@@ -304,6 +304,9 @@ class WarningOut(BaseModel):
         "category and suggestions are guesses) or `region_empty` (no candidate is placed in the "
         "request's region)."))
     message: str = Field(..., description="What is wrong and how to fix it.")
+    guess: bool = Field(default=False, description=(
+        "True when the warning makes the suggestions guesses (`frame`, `category_unsure`, "
+        "`unfamiliar`, `unfamiliar_shape`): what a client shows beside them."))
 
 
 class RegionOut(BaseModel):

@@ -145,6 +145,18 @@ class QueryWarning:
     code: str             # "frame", "category_unsure", "unfamiliar", "unfamiliar_shape", "region_empty"
     message: str          # what is wrong and how to fix it
 
+    @property
+    def guess(self) -> bool:
+        """Whether the warning makes the answer's suggestions guesses (``GUESS_CODES``): what a
+        client shows beside them. The page and the Blender add-on read this flag, not a list of
+        codes of their own."""
+        return self.code in GUESS_CODES
+
+
+# Warnings that make the suggestions guesses: a shape, a frame or a category the model cannot
+# vouch for. ``region_empty`` only says that the region held no candidate.
+GUESS_CODES = frozenset({"frame", "category_unsure", "unfamiliar", "unfamiliar_shape"})
+
 
 @dataclass(frozen=True)
 class RegionReport:

@@ -107,8 +107,9 @@ def test_the_warning_reaches_the_answer(client: TestClient):
     body = client.post("/suggest", json={"points": np.round(torus, 5).tolist(), "k": 3}).json()
     codes = [w["code"] for w in body["warnings"]]
     assert "unfamiliar_shape" in codes, body["warnings"]
-    message = next(w["message"] for w in body["warnings"] if w["code"] == "unfamiliar_shape")
-    assert "training shape" in message and "threshold" in message
+    warning = next(w for w in body["warnings"] if w["code"] == "unfamiliar_shape")
+    assert "training shape" in warning["message"] and "threshold" in warning["message"]
+    assert warning["guess"] is True       # what the page and the Blender add-on show beside the answer
     assert len(body["suggestions"]) == 3  # a warning, not a refusal
 
 

@@ -125,6 +125,7 @@ def test_an_empty_spot_says_why(client: TestClient, seat: np.ndarray, settings: 
     # The gap is in the caller's units: the spot is about 60 units from the chair.
     assert 30 < report["nearest_gap"] < 70
     (warning,) = [w for w in answer["warnings"] if w["code"] == "region_empty"]
+    assert warning["guess"] is False      # it says where the candidates are, not that they are guesses
     assert str(report["placed"]) in warning["message"] and "larger region" in warning["message"]
 
 

@@ -390,7 +390,7 @@ async function refreshSuggestions() {
   if (token !== refreshToken) return;
   renderInferred(answer);
   // What the service cannot vouch for (a shape of no kind it knows, a frame far off) is said, not hidden.
-  const doubt = answer.warnings.find((w) => ["unfamiliar_shape", "unfamiliar", "frame"].includes(w.code));
+  const doubt = answer.warnings.find((w) => w.guess);
   if (doubt) notify(`These suggestions are guesses: ${doubt.message}.`, "warn");
   if (spot && answer.region) {
     $("spot-text").textContent = `Parts for ${spotName(spot)}: ` +

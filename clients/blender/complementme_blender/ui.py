@@ -90,10 +90,6 @@ class ComplementMeSettings(bpy.types.PropertyGroup):
     warning: StringProperty()  # type: ignore[valid-type]
 
 
-# Warnings of an answer that the panel shows (the others, such as an empty region, cannot occur here).
-WARNED_CODES = ("unfamiliar_shape", "unfamiliar", "frame", "category_unsure")
-
-
 # -- helpers -----------------------------------------------------------------------------------
 
 def _client(context: bpy.types.Context) -> Client:
@@ -234,8 +230,8 @@ class COMPLEMENTME_OT_suggest(_ServiceOperator):  # noqa: N801 - Blender\'s nami
             item.bbox_min, item.bbox_max = s["bbox_min"], s["bbox_max"]
         _store_frame(settings, answer["frame"])
         settings.model_version = str(answer.get("model_version", ""))
-        doubts = [str(w.get("message", "")) for w in answer.get("warnings", [])
-                  if w.get("code") in WARNED_CODES]
+        # The service marks the warnings that make its suggestions guesses (``guess``).
+        doubts = [str(w.get("message", "")) for w in answer.get("warnings", []) if w.get("guess")]
         settings.warning = " ".join(doubts)
         if doubts:
             self.report({"WARNING"}, f"ComplementMe: the suggestions are guesses: {doubts[0]}")
