@@ -548,7 +548,13 @@ def _scene_leaves(scene: trimesh.Scene, name: str, max_vertices: int, max_faces:
         transform, geom_name = scene.graph[node]
         geom = scene.geometry[geom_name]
         vertices = np.asarray(geom.vertices, dtype=np.float64)
-        faces = np.asarray(geom.faces, dtype=np.int64).reshape(-1, 3)
+        faces = np.asarray(geom.faces, dtype=np.int64)
+        # A damaged file can leave trimesh with vertices of other than 3 coordinates (an OBJ
+        # vertex line with two numbers) or a ragged face array; refuse it here, not in numpy.
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.size % 3:
+            raise MeshError("corrupt_mesh", f"{name}: node {node!r} has vertices of shape {vertices.shape} "
+                            f"and faces of shape {faces.shape}; expected (V, 3) and (F, 3)")
+        faces = faces.reshape(-1, 3)
         if len(faces) == 0:
             continue
         if not np.isfinite(vertices).all():

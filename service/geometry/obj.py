@@ -15,7 +15,8 @@ The surface is the one trimesh reads: the same vertices (those some face uses) a
 triangles, a polygon split into a fan from its first corner (a quad's second triangle
 ``(0, 2, 3)`` is trimesh's ``(2, 3, 0)``). Coordinates with at most 15 significant digits and no
 exponent are read exactly as ``float()`` reads them (an integer over a power of ten, both exact in
-float64, is one correctly rounded division); longer ones and exponents to within a few ulps.
+float64, is one correctly rounded division); longer ones (up to 18 significant digits) and
+exponents to within a few ulps.
 
 Shapes: vertices (V, 3) float64, faces (F, 3) int64.
 """
@@ -203,9 +204,10 @@ def _numbers(layout: ObjLayout, words: np.ndarray) -> np.ndarray | None:
         return _scientific(cols)
     n = len(words)
     mantissa = np.zeros(n, dtype=np.int64)
-    digits = np.zeros(n, dtype=np.int64)
+    digits = np.zeros(n, dtype=np.int64)                      # significant: from the first non-zero
     fraction = np.zeros(n, dtype=np.int64)
     dot = np.zeros(n, dtype=bool)
+    seen = np.zeros(n, dtype=bool)                            # a digit, zero or not
     bad = np.zeros(n, dtype=bool)
     negative = cols[0] == _MINUS
     for j, c in enumerate(cols):
@@ -217,10 +219,11 @@ def _numbers(layout: ObjLayout, words: np.ndarray) -> np.ndarray | None:
             other &= (c != _MINUS) & (c != _PLUS)
         bad |= other & ~(is_dot & ~dot)
         mantissa = np.where(is_digit, mantissa * 10 + d, mantissa)
-        digits += is_digit
+        digits += is_digit & ((mantissa > 0) | (digits > 0))
+        seen |= is_digit
         fraction += is_digit & dot
         dot |= is_dot
-    if bad.any() or np.any(digits == 0) or np.any(digits > _MAX_DIGITS):
+    if bad.any() or not seen.all() or np.any(digits > _MAX_DIGITS):
         return None
     # Exact (at most 22 digits after the dot): an integer over a power of ten, one division.
     out = mantissa / 10.0 ** fraction
@@ -238,6 +241,7 @@ def _scientific(cols: list[np.ndarray]) -> np.ndarray | None:
     dot = np.zeros(n, dtype=bool)
     in_exp = np.zeros(n, dtype=bool)
     exp_negative = np.zeros(n, dtype=bool)
+    seen = np.zeros(n, dtype=bool)
     negative = cols[0] == _MINUS
     for j, c in enumerate(cols):
         d = c - np.uint8(48)                                  # wraps above 9 for every non-digit
@@ -249,20 +253,21 @@ def _scientific(cols: list[np.ndarray]) -> np.ndarray | None:
             after_e = in_exp & (exp_digits == 0) & (cols[j - 1] > 57)   # the byte right after e/E
             ok |= ((c == _MINUS) | (c == _PLUS)) & after_e
             exp_negative |= (c == _MINUS) & after_e
-        is_e = ((c | 32) == ord("e")) & ~in_exp & (digits > 0)
+        is_e = ((c | 32) == ord("e")) & ~in_exp & seen
         is_dot = (c == _DOT) & ~dot & ~in_exp
         if not np.all(ok | is_e | is_dot):
             return None
         in_mantissa = is_digit & ~in_exp
         mantissa = np.where(in_mantissa, mantissa * 10 + d, mantissa)
-        digits += in_mantissa
+        digits += in_mantissa & ((mantissa > 0) | (digits > 0))
+        seen |= in_mantissa
         fraction += in_mantissa & dot
         in_exponent = is_digit & in_exp
         exponent = np.where(in_exponent, exponent * 10 + d, exponent)
         exp_digits += in_exponent
         dot |= is_dot
         in_exp |= is_e
-    if np.any(digits == 0) or np.any(digits > _MAX_DIGITS) or np.any(in_exp & (exp_digits == 0)) \
+    if not seen.all() or np.any(digits > _MAX_DIGITS) or np.any(in_exp & (exp_digits == 0)) \
             or np.any(exp_digits > 4):
         return None
     power = np.where(exp_negative, -exponent, exponent) - fraction

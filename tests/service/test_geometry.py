@@ -193,6 +193,7 @@ def test_instancing_cannot_exceed_the_limits() -> None:
     ("stl", b"hello world", "corrupt_mesh"),
     ("obj", b"v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "non_finite"),
     ("obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "zero_area"),
+    ("obj", b"v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n", "corrupt_mesh"),  # a vertex of two numbers: was a 500
     ("ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
             b"property float z\nend_header\n0 0 0\n1 1 1\n", "empty_mesh"),
     ("fbx", b"whatever", "unsupported_format"),

@@ -12,6 +12,8 @@ import io
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from service.geometry.mesh import MeshError, load_mesh_surface, sample_surface
 from service.geometry.obj import _numbers, obj_layout, read_plain_obj
@@ -190,3 +192,64 @@ def test_numbers_read_as_float_reads_them() -> None:
             assert np.array_equal(got, want)
         else:
             assert np.all(np.abs(got - want) <= 2 * np.spacing(np.abs(want)))
+
+
+# -- generated files ------------------------------------------------------------------------------
+
+_FUZZ = settings(max_examples=60, deadline=None)
+
+
+@st.composite
+def plain_objs(draw: st.DrawFn) -> bytes:
+    """A random plain OBJ: random vertices written in a random number format, random polygons in
+    a random corner form (absolute or relative references), comments, groups and blank lines."""
+    n = draw(st.integers(3, 12))
+    coords = draw(st.lists(st.floats(-1e3, 1e3, allow_nan=False, width=32), min_size=3 * n, max_size=3 * n))
+    style = draw(st.sampled_from(["{:.6f}", "{:.3g}", "{:.4e}", "{}"]))
+    lines = [f"v {' '.join(style.format(c) for c in coords[3 * i:3 * i + 3])}" for i in range(n)]
+    # One corner form per file, as tools write them (trimesh misreads some mixes of forms).
+    form = draw(st.sampled_from(["{}", "{}/1", "{}//1", "{}/1/1"]))
+    for _ in range(draw(st.integers(1, 6))):
+        k = draw(st.integers(3, min(6, n)))
+        corners = draw(st.lists(st.integers(0, n - 1), min_size=k, max_size=k, unique=True))
+        relative = draw(st.booleans())
+        lines.append("f " + " ".join(form.format(c - n if relative else c + 1) for c in corners))
+        if draw(st.booleans()):
+            lines.append(draw(st.sampled_from(["# note", "g part", "o thing", "s 1", "", "vt 0.5 0.5",
+                                               "vn 0 0 1"])))
+    end = draw(st.sampled_from(["\n", "\r\n"]))
+    return (end.join(lines) + end).encode()
+
+
+@_FUZZ
+@given(plain_objs())
+def test_generated_plain_files_read_as_trimesh_reads_them(text: bytes) -> None:
+    read = fast(text)
+    assert read is not None
+    vertices, faces = read
+    # Exponents and 16-17 significant digits are read to within a few ulps of strtod.
+    assert np.allclose(_canonical(vertices[faces]), trimesh_triangles(text), rtol=1e-14, atol=0)
+
+
+@_FUZZ
+@given(plain_objs(), st.data())
+def test_damaged_files_get_a_surface_or_a_mesh_error(text: bytes, data: st.DataObject) -> None:
+    """Bytes changed, cut or repeated anywhere: a surface or a ``MeshError``, never another error."""
+    raw = bytearray(text)
+    for _ in range(data.draw(st.integers(1, 4))):
+        at = data.draw(st.integers(0, len(raw) - 1))
+        how = data.draw(st.sampled_from(["byte", "cut", "repeat"]))
+        if how == "byte":
+            raw[at] = data.draw(st.sampled_from(list(b"0123456789-+.eE/ \t\r\n#vfgx\\\x00\xff")))
+        elif how == "cut":
+            del raw[at:at + data.draw(st.integers(1, 8))]
+        else:
+            raw[at:at] = raw[max(0, at - 8):at]
+        if not raw:
+            return
+    try:
+        surface = load_mesh_surface(bytes(raw), "obj", name="m.obj", max_vertices=MAX, max_faces=MAX)
+    except MeshError:
+        return
+    assert np.isfinite(surface.vertices).all() and surface.areas.sum() > 0
+    assert surface.faces.min() >= 0 and surface.faces.max() < len(surface.vertices)
