@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.arrays import concat_ranges
+
 # Keywords whose lines the surface does not need; the material ones only when the caller drops them.
 _SKIPPED = (b"vt", b"vn", b"vp", b"g", b"o", b"s")
 _MATERIAL = (b"mtllib", b"usemtl", b"maplib", b"usemap")
@@ -134,7 +136,7 @@ def read_plain_obj(layout: ObjLayout) -> tuple[np.ndarray, np.ndarray] | None:
     if coords is None:
         return None
     vertices = coords.reshape(-1, 3)
-    corner_words = _ranges(layout.f_first, layout.f_corners)
+    corner_words = concat_ranges(layout.f_first, layout.f_corners)
     refs = _references(layout, corner_words)
     if refs is None:
         return None
@@ -149,12 +151,6 @@ def read_plain_obj(layout: ObjLayout) -> tuple[np.ndarray, np.ndarray] | None:
     return vertices[used], index[faces]
 
 
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """``arange(s, s + c)`` for every start and count, concatenated."""
-    ends = np.cumsum(counts)
-    return np.repeat(starts - (ends - counts), counts) + np.arange(int(ends[-1]) if len(ends) else 0)
-
-
 def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Each polygon's corners split into a fan of triangles from its first corner.
 
@@ -166,7 +162,7 @@ def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
     first = np.cumsum(counts) - counts
     tris = counts - 2
     at = np.repeat(first, tris)                                  # each triangle's polygon start
-    i = _ranges(np.zeros(len(tris), dtype=np.int64), tris) + 1   # its second corner, 1..k-2
+    i = concat_ranges(np.zeros(len(tris), dtype=np.int64), tris) + 1   # its second corner, 1..k-2
     return np.stack([corners[at], corners[at + i], corners[at + i + 1]], axis=1)
 
 

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from service.arrays import concat_ranges
 from service.artifacts.catalog import Catalog
 from service.geometry.mesh import sample_surface_faces
 
@@ -213,14 +214,6 @@ def _closest(idx: np.ndarray, dist: np.ndarray, m: int) -> np.ndarray:
     return idx[np.sort(np.argsort(dist, kind="stable")[:m])]
 
 
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """``arange(s, s + c)`` for every start and count, concatenated (no Python loop)."""
-    counts = np.asarray(counts, dtype=np.int64)
-    ends = np.cumsum(counts)
-    total = int(ends[-1]) if len(ends) else 0
-    return np.repeat(np.asarray(starts, dtype=np.int64) - (ends - counts), counts) + np.arange(total)
-
-
 def _segments(counts: np.ndarray) -> np.ndarray:
     """Start of each consecutive segment of the given (positive) lengths, for ``ufunc.reduceat``."""
     return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
@@ -379,7 +372,7 @@ class _Batch:
         found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for side, s in enumerate(self.sides):
             counts = s.count[blocks]
-            rows = _ranges(s.start[blocks], counts)
+            rows = concat_ranges(s.start[blocks], counts)
             x, d, i, inside = self.measure(side, rows, np.repeat(offsets, counts, axis=0))
             seg = _segments(counts)
             dep = np.where(inside, d, 0.0)
@@ -403,7 +396,7 @@ class _Batch:
         # Per side: the distance and the vector to the nearest other-side sample at each block's closest.
         nearest: list[tuple[np.ndarray, np.ndarray]] = []
         for side, (s, (x, d, i, dep, seg)) in enumerate(zip(self.sides, measured, strict=True)):
-            own = s.pts_start[s.block[_ranges(s.start[blocks], s.count[blocks])]]
+            own = s.pts_start[s.block[concat_ranges(s.start[blocks], s.count[blocks])]]
             j = np.where(i < len(s.pts), i, own)  # where none is in range: the block's first (unused)
             if s.nrm is not None:
                 push += s.sign * np.add.reduceat(np.nan_to_num(s.nrm[j]) * dep[:, None], seg, axis=0)
@@ -631,7 +624,7 @@ class _Witnesses:
         counts = np.clip(self.count[blocks] - first, 0, last - first)
         if not counts.sum():
             return rows
-        w = _ranges(self.start[blocks] + first, counts)
+        w = concat_ranges(self.start[blocks] + first, counts)
         at = np.repeat(rows, counts)
         for side in (0, 1):
             sel = self.side[w] == side
