@@ -319,12 +319,18 @@ class _Batch:
         a_pts = np.concatenate([a_all[b[1]] + self.shift[k] for k, b in enumerate(blocks)])
         a_nrm = np.concatenate([a_nrm_all[b[1]] for b in blocks]) if a_nrm_all is not None else None
         # The samples measured are those nearest the other side: gap and penetration live there.
-        da, _ = p_tree.query(a_pts, k=1, distance_upper_bound=self.spacing / 2)
+        # Searched within ub first (a bounded query prunes most of the tree); a block with fewer
+        # than m samples that near gets its exact distances, so the m chosen are the same.
+        da, _ = p_tree.query(a_pts, k=1, distance_upper_bound=self.ub)
+        a_ends = np.cumsum(a_sizes)
         q1, q2 = [], []
         for k, (_, near_a, pts, d) in enumerate(blocks):
             near_p = np.flatnonzero(np.isfinite(d))
             q1.append(pts[_closest(near_p, d[near_p], m)])                                 # part -> asm
-            da_k = da[a_sizes[:k].sum():a_sizes[:k + 1].sum()]
+            rows = slice(a_ends[k] - a_sizes[k], a_ends[k])
+            da_k = da[rows]
+            if len(da_k) > m and np.count_nonzero(np.isfinite(da_k)) < m:
+                da_k, _ = p_tree.query(a_pts[rows], k=1, distance_upper_bound=self.spacing / 2)
             q2.append(a_all[near_a][_closest(np.arange(len(near_a)), da_k, m)])            # asm -> part
         self.sides = (_side(q1, _tree(a_pts), a_pts, a_nrm, a_sizes, +1.0),
                       _side(q2, p_tree, p_pts, p_nrm, p_sizes, -1.0))
