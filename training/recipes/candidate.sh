@@ -6,8 +6,8 @@
 #
 #   RUN=runs/v3-32k LOSO_RUN=runs/v3-32k-loso training/recipes/candidate.sh
 #
-# About 30 minutes on a 2-core host beside two one-thread trainings (the benchmark 11, the
-# service tests 9, the rest 10; the 16,000-step candidate, 2026-12-03). The
+# About 30 minutes on a 2-core host beside two one-thread trainings (the benchmark 13, its twin 5,
+# the service tests 9, the rest 3; the 16,000-step candidate, 2026-12-03). The
 # service tests skip the goldens (pinned to the shipped model; re-pin them with
 # `python tests/service/golden_testkit.py` once the candidate ships). Labels are read only by the
 # measurements, as everywhere.
