@@ -13,7 +13,9 @@ one ``service.geometry.mesh`` gives.
 
 The surface is the one trimesh reads: the same vertices (those some face uses) and the same
 triangles, a polygon split into a fan from its first corner (a quad's second triangle
-``(0, 2, 3)`` is trimesh's ``(2, 3, 0)``). Coordinates with at most 15 significant digits and no
+``(0, 2, 3)`` is trimesh's ``(2, 3, 0)``). One exception: a relative reference (``-1``) counts
+back from its face line, as the OBJ format says; trimesh counts from the file's last vertex, which
+differs only where vertex lines follow face lines. Coordinates with at most 15 significant digits and no
 exponent are read exactly as ``float()`` reads them (an integer over a power of ten, both exact in
 float64, is one correctly rounded division); longer ones (up to 18 significant digits) and
 exponents to within a few ulps.
