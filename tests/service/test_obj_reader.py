@@ -253,3 +253,13 @@ def test_damaged_files_get_a_surface_or_a_mesh_error(text: bytes, data: st.DataO
         return
     assert np.isfinite(surface.vertices).all() and surface.areas.sum() > 0
     assert surface.faces.min() >= 0 and surface.faces.max() < len(surface.vertices)
+
+
+def test_relative_references_count_back_from_their_face() -> None:
+    """As the OBJ format says (trimesh counts from the file's last vertex: both triangles would be
+    the second one)."""
+    text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\nv 5 5 5\nv 6 5 5\nv 5 6 5\nf -3 -2 -1\n"
+    read = fast(text)
+    assert read is not None
+    vertices, faces = read
+    assert vertices[faces].tolist() == [[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[5, 5, 5], [6, 5, 5], [5, 6, 5]]]
