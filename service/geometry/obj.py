@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.arrays import concat_ranges
+from service.geometry.arrays import concat_ranges
 
 # Keywords whose lines the surface does not need; the material ones only when the caller drops them.
 _SKIPPED = (b"vt", b"vn", b"vp", b"g", b"o", b"s")

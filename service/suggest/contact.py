@@ -51,8 +51,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.arrays import concat_ranges
 from service.artifacts.catalog import Catalog
+from service.geometry.arrays import concat_ranges
 from service.geometry.mesh import sample_surface_faces
 
 # cos(45 deg): a sample counts as inside only if it lies roughly behind the nearest sample.

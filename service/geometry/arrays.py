@@ -1,4 +1,4 @@
-"""Small numpy helpers shared by packages that must not import each other (pure functions)."""
+"""Small numpy helpers of the geometry readers, shared with contact refinement (pure functions)."""
 
 from __future__ import annotations
 
