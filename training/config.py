@@ -107,7 +107,9 @@ class TrainConfig:
     # Budget: training stops at whichever comes first. `minutes` counts this invocation only,
     # so a resumed run gets a fresh budget; `steps` is the total over all invocations.
     steps: int = field(default=20000, metadata=_help("Total optimisation steps (over all resumes)."))
-    minutes: float = field(default=0.0, metadata=_help("Wall-clock budget of this invocation; 0 = none."))
+    minutes: float = field(default=0.0, metadata=_help(
+        "Wall-clock budget of this invocation; 0 = none. The learning-rate schedule follows it "
+        "(the model then depends on the host's speed); --max-minutes is the guard that does not."))
     # A guard, not a budget: the run stops if this invocation passes it, but the learning rate
     # follows the steps alone, so the same seed gives the same model on a faster or slower host.
     max_minutes: float = field(default=0.0,
