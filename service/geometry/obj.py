@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -60,6 +61,12 @@ class ObjLayout:
     f_corners: np.ndarray
     f_vertices: np.ndarray
     groups: int
+
+    @cached_property
+    def padded(self) -> np.ndarray:
+        """The bytes followed by ``_MAX_TOKEN`` zeros, so a word's column j can be read past the
+        end of the file: made once, for both readers (coordinates and corners)."""
+        return np.concatenate((self.data, np.zeros(_MAX_TOKEN, dtype=np.uint8)))
 
     @property
     def vertices(self) -> int:
@@ -182,8 +189,7 @@ def _columns(layout: ObjLayout, words: np.ndarray) -> Iterator[np.ndarray] | Non
     width = int((e - s).max()) if len(s) else 0
     if width > _MAX_TOKEN:
         return None
-    data = np.concatenate((layout.data, np.zeros(_MAX_TOKEN, dtype=np.uint8)))
-    length = e - s
+    data, length = layout.padded, e - s
     return (np.where(length > j, data[s + j], np.uint8(0)) for j in range(width))
 
 
