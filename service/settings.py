@@ -283,10 +283,13 @@ class Settings(BaseSettings):
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
         "`/assemble` skips a candidate whose placed box overlaps a placed part's box with more than "
         "this IoU when the two parts do the same job (see `assemble_same_job_sigmas`)."))
-    assemble_same_job_sigmas: float = Field(default=0.9, ge=0, description=(
+    assemble_same_job_sigmas: float = Field(default=1.8, ge=0, description=(
         "Two overlapping parts do the same job when their embeddings lie within this root-mean-square "
         "distance of each other, in the standard deviations g predicts for the candidate's mode "
-        "at that step (g would take either for the other)."))
+        "at that step (g would take either for the other). With the 24,000-step model a second "
+        "wheel, hood or seat over the first lies 0.95-1.15 away and a wheel in a car body's box "
+        "1.75-2.1: 1.8 was chosen on seeded runs that the committed evaluation does not draw "
+        "(docs/modeling.md)."))
     assemble_complete_margin: float = Field(default=0.0, description=(
         "`/assemble` stops (`complete`) when no eligible candidate's mixture log-likelihood "
         "exceeds the most likely placed part's by more than this: g's most wanted complement is "
