@@ -610,17 +610,23 @@ class Assembler:
         # A branch never reaches a set of parts another branch already has (A then B, B then A).
         fresh = likely if n == 1 else [
             c for c in likely if state.groups | {int(cat.group[c.suggestion.part_index])} not in reached]
+        least, most = self._part_counts
+        if len(state.parts) >= most:
+            return [], "complete"
+        # Complete when the best pick is no more likely than a placed part. Tested first on the
+        # most likely candidate: no pick, nor any candidate of a later round (the next, less
+        # likely ones), can beat it, so the rounds that would find only parts doing placed
+        # parts' jobs are skipped.
+        can_end = len(state.parts) >= least and self._fills_frame(state)
+        margin = self.settings.assemble_complete_margin
+        placed = self._best_placed(result, weights, state) + margin if can_end else np.inf
+        if can_end and likely[0].suggestion.score < placed:
+            return [], "complete"
         picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
                              options.temperature, rng)
         if not picks:
             return [], "duplicates"
-        best = max(c.suggestion.score for c in picks)
-        s = self.settings
-        least, most = self._part_counts
-        if len(state.parts) >= most:
-            return [], "complete"
-        if (len(state.parts) >= least and self._fills_frame(state)
-                and best < self._best_placed(result, weights, state) + s.assemble_complete_margin):
+        if can_end and max(c.suggestion.score for c in picks) < placed:
             return [], "complete"
         return picks, ""
 

@@ -450,3 +450,34 @@ def test_the_cover_rule_follows_each_categorys_own_parts(shipped_engine: Suggest
     assert np.mean(rifle < asm.cover_share("rifle")) >= 0.89  # real rifle parts pass the rule
     off = Assembler(shipped_engine, s.model_copy(update={"assemble_cover_quantile": 0.0}))
     assert off.cover_share("rifle") == s.assemble_cover_share
+
+
+def test_a_complete_object_ends_without_asking_for_more_candidates(shipped_engine: SuggestionEngine,
+                                                                   shipped_settings: Settings) -> None:
+    """Once g's most likely candidate is no more likely than a placed part, the chain ends
+    "complete" on that step's one engine call, rather than asking round after round for less
+    likely candidates that do placed parts' jobs (a guitar's body, neck and head)."""
+    engine, cat = shipped_engine, shipped_engine.catalog
+    asm = Assembler(engine, shipped_settings)
+    calls: list[int] = []
+    suggest = engine.suggest
+
+    def counted(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        return suggest(*args, **kwargs)  # type: ignore[arg-type]
+
+    guitars = np.flatnonzero(cat.category_of == cat.categories.index("guitar"))
+    ended = 0
+    for i in guitars[:: max(1, len(guitars) // 6)][:6]:
+        calls.clear()
+        engine.suggest = counted  # type: ignore[method-assign]
+        try:
+            result = asm.assemble(Start(kind="part", part_index=int(i)), AssembleOptions())
+        finally:
+            engine.suggest = suggest  # type: ignore[method-assign]
+        if result.stop_reason == "complete":
+            ended += 1
+            # One call per added part, one for the step that found the object complete, and at
+            # most one extra round for steps whose first candidates all did placed parts' jobs.
+            assert len(calls) <= 2 * len(result.steps) + 1, (len(calls), len(result.steps))
+    assert ended >= 4, f"{ended} of 6 guitar runs ended complete"
