@@ -1,17 +1,18 @@
 #!/usr/bin/env bash
 # The shipped model, end to end: data (if missing), training for a fixed number of steps, export;
-# beside it the leave-one-style-out model of the benchmark (docs/benchmark.md), trained with the
+# then the leave-one-style-out model of the benchmark (docs/benchmark.md), trained with the
 # same recipe on a split that holds out one style per category, and exported for evaluation only.
 #
 #   training/recipes/shipped.sh                 # defaults below
 #   OUT=exported training/recipes/shipped.sh
 #
 # The preset fixes the number of steps (24,000): the same seed and thread count give the same
-# model. Both runs train on two threads, one after the other: the shipped run took 104 min alone
-# on a 2-core AVX-512 host (0.19 s a step, against 0.45-0.6 s for one thread beside other work),
-# and the thread count is part of the recipe because torch's reductions may round differently on
-# another count. The preset's time guard (max_minutes, 480) only stops a run far slower than
-# planned, with a warning in the log. If one is interrupted,
+# model on the same kind of host (CPU kernels differ between AVX2 and AVX-512). Both runs train
+# on two threads, one after the other: the shipped run took 104 min alone on a 2-core AVX-512
+# host (0.19 s a step, against 0.45-0.6 s for one thread beside other work), and the thread
+# count is part of the recipe because torch's reductions may round differently on another
+# count. The preset's time guard (max_minutes, 480) only stops a run far slower than planned,
+# with a warning in the log. If one is interrupted,
 # `python -m training train --resume --run "$RUN"` continues it.
 set -euo pipefail
 
