@@ -15,6 +15,7 @@ from service.modeling.assembly import AssembleResult, Node, Start
 from service.suggest.engine import Suggestion
 from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
+    data_stacked,
     measure_run,
     report_markers,
     summarize,
@@ -63,14 +64,29 @@ def test_measure_run_complete_stacked_and_empty() -> None:
     assert empty["empty"] and not empty["complete"] and empty["missing"] == ["back"]
 
 
+def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
+    """A shape whose two wheel parts (tyres, hubs) share one box is stacked, as a run would be;
+    parts of one label apart, or of two labels in one box, are not."""
+    index = _Index(["wheel", "wheel", "body", "roof", "roof"])
+    index.catalog.records = [{"shape_id": "car"}] * 3 + [{"shape_id": "other"}] * 2
+    index.catalog.translations = np.array([[0, 0, 0], [0.02, 0, 0], [0, 0, 0], [0, 1, 0], [0, -1, 0]], float)
+    index.rows = {"car": np.array([0, 1, 2]), "other": np.array([3, 4])}
+    settings = AssemblyEvalSettings(contact=False)
+    assert data_stacked(index, 2, settings)  # type: ignore[arg-type]
+    assert not data_stacked(index, 3, settings)  # type: ignore[arg-type]
+
+
 def test_summary_and_report_block(tmp_path: Path) -> None:
     runs = [{"category": "chair", "good": True, "complete": True, "stacked": [], "empty": False,
              "parts": ["a"], "stop_reason": "complete", "seconds": 0.1, "floating": [False],
              "interpenetrating": [True]},
             {"category": "chair", "good": False, "complete": False, "stacked": [], "empty": True, "parts": [],
              "stop_reason": "unlikely", "seconds": 0.2}]
-    summary = summarize(runs, [{"category": "chair", "floating": False, "interpenetrating": True}], ["chair"])
+    data = [{"category": "chair", "floating": False, "interpenetrating": True, "stacked": True},
+            {"category": "chair", "stacked": False}]   # a one-part shape: no contact measured
+    summary = summarize(runs, data, ["chair"])
     assert summary["chair"]["good"] == 0.5 and summary["chair"]["empty"] == 0.5
+    assert summary["chair"]["data_stacked"] == 0.5 and summary["chair"]["data_floating"] == 0.0
     assert summary["chair"]["interpenetrating"] == 1.0 and summary["all"]["data_interpenetrating"] == 1.0
     results = {"command": "complementme evaluate-assembly", "seconds": 1.0, "model_version": "m",
                "artifacts": "exported", "date": "2026-12-02", "essential_labels": {"chair": ["back", "seat"]},
@@ -85,6 +101,7 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
         start, end = report_markers(tag)
         assert text.count(start) == 1 and text.count(end) == 1
     assert "before" in text and text.count("| chair | 2 | 50% |") == 2
+    assert "Data: stacked" in text and "| 100% | 50% | complete 1, unlikely 1 |" in text
 
 
 @pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="no trained artifacts in exported/ yet")
