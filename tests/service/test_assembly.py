@@ -453,7 +453,8 @@ def test_the_cover_rule_follows_each_categorys_own_parts(shipped_engine: Suggest
 
 
 def test_a_complete_object_ends_without_asking_for_more_candidates(shipped_engine: SuggestionEngine,
-                                                                   shipped_settings: Settings) -> None:
+                                                                   shipped_settings: Settings,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Once g's most likely candidate is no more likely than a placed part, the chain ends
     "complete" on that step's one engine call, rather than asking round after round for less
     likely candidates that do placed parts' jobs (a guitar's body, neck and head)."""
@@ -466,15 +467,12 @@ def test_a_complete_object_ends_without_asking_for_more_candidates(shipped_engin
         calls.append(1)
         return suggest(*args, **kwargs)  # type: ignore[arg-type]
 
+    monkeypatch.setattr(engine, "suggest", counted)
     guitars = np.flatnonzero(cat.category_of == cat.categories.index("guitar"))
     ended = 0
     for i in guitars[:: max(1, len(guitars) // 6)][:6]:
         calls.clear()
-        engine.suggest = counted  # type: ignore[method-assign]
-        try:
-            result = asm.assemble(Start(kind="part", part_index=int(i)), AssembleOptions())
-        finally:
-            engine.suggest = suggest  # type: ignore[method-assign]
+        result = asm.assemble(Start(kind="part", part_index=int(i)), AssembleOptions())
         if result.stop_reason == "complete":
             ended += 1
             # One call per added part, one for the step that found the object complete, and at
