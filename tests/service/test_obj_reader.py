@@ -1,8 +1,10 @@
 """The fast OBJ reader (``service.geometry.obj``): the surface trimesh reads, for the files it takes.
 
 trimesh is the reference: every plain file below must give the same triangles (as coordinates)
-through the fast reader as through trimesh's own OBJ loader, and every file the reader does not
-take must go back to trimesh's path, so that its refusals and errors stay what they were.
+through the fast readers as through trimesh's own OBJ loader, and every file the readers do not
+take must go back to trimesh's path, so that its refusals and errors stay what they were. The
+block reader (``obj_blocks``) takes a subset of what the numpy reader (``obj_layout``) takes, and
+where it takes a file it reads the surface the numpy reader reads.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.geometry.mesh import MeshError, load_mesh_surface, sample_surface
-from service.geometry.obj import _numbers, obj_layout, read_plain_obj
+from service.geometry.obj import _numbers, obj_blocks, obj_layout, read_obj_blocks, read_plain_obj
 
 MAX = 1_000_000
 
@@ -24,6 +26,23 @@ MAX = 1_000_000
 def fast(text: bytes, drop_materials: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
     layout = obj_layout(text, drop_materials)
     return None if layout is None else read_plain_obj(layout)
+
+
+def blocks(text: bytes, drop_materials: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
+    found = obj_blocks(text, drop_materials)
+    return None if found is None else read_obj_blocks(found)
+
+
+def same_or_left(text: bytes, drop_materials: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
+    """The block reader's surface, checked to be the numpy reader's wherever it takes the file."""
+    read = blocks(text, drop_materials)
+    if read is not None:
+        numpy_read = fast(text, drop_materials)
+        assert numpy_read is not None, "the block reader took a file the numpy reader leaves to trimesh"
+        assert np.array_equal(read[1], numpy_read[1])
+        # Correctly rounded (Arrow) against within a few ulps (numpy, exponents, 16+ digits).
+        assert np.allclose(read[0], numpy_read[0], rtol=1e-14, atol=0)
+    return read
 
 
 def trimesh_mesh(text: bytes) -> trimesh.Trimesh:
@@ -85,6 +104,8 @@ PLAIN = {
     "unused vertices": b"v 9 9 9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 7 7 7\nf 2 3 4\n",
     "no final newline": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3",
 }
+# The files of PLAIN the block reader takes (the others go on to the numpy reader).
+IN_BLOCKS = {"triangles", "signs and dots", "materials dropped", "unused vertices", "no final newline"}
 
 
 @pytest.mark.parametrize("name", list(PLAIN))
@@ -96,6 +117,28 @@ def test_plain_files_read_as_trimesh_reads_them(name: str) -> None:
     assert faces.dtype == np.int64 and faces.min() >= 0 and faces.max() < len(vertices)
     assert np.unique(faces).size == len(vertices)            # only the vertices a face uses
     assert np.array_equal(_canonical(vertices[faces]), trimesh_triangles(text))
+    assert (same_or_left(text) is not None) == (name in IN_BLOCKS)
+
+
+LEFT_TO_NUMPY = {
+    "corners with slashes": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n",
+    "triangles and quads": b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 2 3 4\n",
+    "a group between faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\ng a\nf 1 2 3\ng b\nf 1 3 4\n",
+    "vertices between faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nv 0 0 1\nf 1 3 4\n",
+    "a blank line among vertices": b"v 0 0 0\n\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "two blanks": b"v 0  0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "a tab": b"v 0 0\t0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    "a blank at a line's end": b"v 0 0 0 \nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+}
+
+
+@pytest.mark.parametrize("name", list(LEFT_TO_NUMPY))
+def test_files_the_block_reader_leaves_are_read_by_the_next_reader(name: str) -> None:
+    text = LEFT_TO_NUMPY[name]
+    assert blocks(text) is None
+    assert fast(text) is not None
+    surface = load_mesh_surface(text, "obj", max_vertices=MAX, max_faces=MAX)
+    assert np.array_equal(_canonical(surface.vertices[surface.faces]), trimesh_triangles(text))
 
 
 def test_a_large_exported_mesh_reads_exactly_as_trimesh_reads_it() -> None:
@@ -104,10 +147,10 @@ def test_a_large_exported_mesh_reads_exactly_as_trimesh_reads_it() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=4)
     sphere.vertices *= np.array([310.25, 120.5, 77.125])     # caller units, not a unit sphere
     text = trimesh.exchange.obj.export_obj(sphere).encode()
-    read = fast(text)
-    assert read is not None
     mesh = trimesh_mesh(text)
-    assert np.array_equal(read[0][read[1]], np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
+    for read in (fast(text), same_or_left(text)):
+        assert read is not None
+        assert np.array_equal(read[0][read[1]], np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
     surface = load_mesh_surface(text, "obj", max_vertices=MAX, max_faces=MAX)
     ours = sample_surface(surface.vertices, surface.faces, 512, seed=3, areas=surface.areas)
     theirs = sample_surface(np.asarray(mesh.vertices), np.asarray(mesh.faces), 512, seed=3)
@@ -132,17 +175,21 @@ NOT_PLAIN = {
     "control byte": b"v 0 0 0\x00\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
     "shell call": b"v 0 0 0\nv 1 0 0\nv 0 1 0\ncsh rm -rf x\nf 1 2 3\n",
     "no faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    "a quoted number": b'v "0" 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n',
+    "infinity": b"v inf 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
 }
 
 
 @pytest.mark.parametrize("name", list(NOT_PLAIN))
 def test_other_files_are_left_to_trimesh(name: str) -> None:
     assert fast(NOT_PLAIN[name]) is None
+    assert blocks(NOT_PLAIN[name]) is None
 
 
 def test_material_library_goes_to_trimesh_unless_dropped() -> None:
     text = PLAIN["materials dropped"]
     assert fast(text, drop_materials=False) is None
+    assert blocks(text, drop_materials=False) is None
     with pytest.raises(MeshError) as err:          # trimesh's path refuses the external file, as before
         load_mesh_surface(text, "obj", name="m.obj", max_vertices=MAX, max_faces=MAX)
     assert err.value.code == "external_reference"
@@ -161,7 +208,7 @@ def test_unusable_plain_files_get_trimesh_paths_errors(text: bytes, code: str) -
 
 def test_limits_are_checked_on_the_counted_lines() -> None:
     text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3 4\n"           # a quad: two triangles
-    assert fast(text) is not None
+    assert fast(text) is not None and blocks(text) is not None
     with pytest.raises(MeshError) as err:
         load_mesh_surface(text, "obj", name="m.obj", max_vertices=3, max_faces=10)
     assert err.value.code == "too_large" and "vertices" in str(err.value)
@@ -229,6 +276,7 @@ def test_generated_plain_files_read_as_trimesh_reads_them(text: bytes) -> None:
     vertices, faces = read
     # Exponents and 16-17 significant digits are read to within a few ulps of strtod.
     assert np.allclose(_canonical(vertices[faces]), trimesh_triangles(text), rtol=1e-14, atol=0)
+    same_or_left(text)
 
 
 @_FUZZ
