@@ -229,9 +229,8 @@ class Settings(BaseSettings):
     familiarity_threshold: float | None = Field(default=None, gt=0, description=(
         "The distance past which `familiarity_check` warns; unset: the threshold calibrated at "
         "export (the 0.99 quantile of the training bank's distances to another shape's nearest "
-        "answer: with the shipped model 0.2% of held-out lone parts, none of 648 held-out partial "
-        "assemblies and 79% of shapes of "
-        "no known category lie past it)."))
+        "answer: with the shipped model 0.2% of held-out lone parts and of 648 held-out partial "
+        "assemblies, and 55% of 33 shapes of no known category lie past it)."))
     diversity_min_mode_weight: float = Field(default=0.02, ge=0, le=1, description=(
         "In a `diversity` gallery, modes lighter than this join the round-robin only after the others "
         "ran out of parts."))
