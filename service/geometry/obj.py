@@ -22,12 +22,13 @@ exponents to within a few ulps.
 
 Two readers, tried in this order (``service.geometry.mesh`` asks for both):
 
-* ``obj_blocks`` / ``read_obj_blocks``: the file as most exporters write it (trimesh, and any tool
-  writing geometry only), all ``v`` lines in one run, then all ``f`` lines in one run, every face
-  of the same corner count without ``/``. Each run is read by Arrow's CSV reader (``pyarrow.csv``:
-  C++, one pass, numbers parsed correctly rounded), 15 ms for the 100k-triangle bench file against
-  47 ms for the reader below. Any byte it cannot take (a tab, two blanks, a ``/``, a number it
-  cannot read, a row of another length) makes it give None and the next reader runs.
+* ``obj_blocks`` / ``read_obj_blocks``: the file as most exporters write one object (trimesh,
+  Blender), all ``v`` lines in one run, then all ``f`` lines in one run, every face of the same
+  corner count and corner form (``i``, ``i/t``, ``i//n`` or ``i/t/n``). Each run is read by
+  Arrow's CSV reader (``pyarrow.csv``: C++, one pass, numbers parsed correctly rounded): the
+  100k-triangle bench file's surface in 20 ms against 47 with the reader below. Any byte it
+  cannot take (a tab, two blanks, a corner of another form, a number it cannot read, a row of
+  another length) makes it give None and the next reader runs.
 * ``obj_layout`` / ``read_plain_obj``: any plain file, in numpy.
 
 Shapes: vertices (V, 3) float64, faces (F, 3) int64.
@@ -344,6 +345,7 @@ class ObjBlocks:
     vertices: int
     faces: int          # ``f`` lines
     corners: int        # corners of every face
+    slashes: int        # '/' in each corner word: 0 (``i``), 1 (``i/t``) or 2 (``i//n``, ``i/t/n``)
     groups: int
 
     @property
@@ -374,7 +376,9 @@ def obj_blocks(data: bytes, drop_materials: bool) -> ObjBlocks | None:
     """The runs of a file laid out as one ``v`` run then one ``f`` run, or None (see the module doc).
 
     Every other line must be one ``obj_layout`` takes and reads as neither vertex nor face (a
-    comment, ``vt``, ``vn``, ``g``, ...): checked by ``obj_layout`` on those lines alone.
+    comment, ``vt``, ``vn``, ``g``, ...): checked by ``obj_layout`` on those lines alone. Corner
+    words are counted, and their ``/`` too, on the first face line: every other line must match it
+    (``read_obj_blocks`` checks).
     """
     v, f = _runs(data, (b"v", b"f"))
     if v is None or f is None or v[1] > f[0]:
@@ -387,34 +391,55 @@ def obj_blocks(data: bytes, drop_materials: bool) -> ObjBlocks | None:
             return None
         groups = layout.groups
     line_end = data.find(b"\n", f[0], f[1])
-    head = data[f[0]:f[1] if line_end < 0 else line_end].rstrip(b"\r")
-    corners = len(head.split(b" ")) - 1
-    if corners < 3:
+    words = data[f[0]:f[1] if line_end < 0 else line_end].rstrip(b"\r").split(b" ")[1:]
+    if len(words) < 3 or words[0].count(b"/") > 2:
         return None
-    return ObjBlocks(data, v[0], v[1], f[0], f[1], vertices=v[2], faces=f[2], corners=corners, groups=groups)
+    return ObjBlocks(data, v[0], v[1], f[0], f[1], vertices=v[2], faces=f[2], corners=len(words),
+                     slashes=words[0].count(b"/"), groups=groups)
 
 
-def _read_run(data: bytes, start: int, end: int, rows: int, columns: int,
-              kind: pa.DataType) -> np.ndarray | None:
-    """One run of lines (a keyword, then ``columns`` numbers, single blanks) as numbers, or None.
+def _uniform_corners(run: np.ndarray, faces: int, corners: int, slashes: int) -> bool:
+    """Whether every line of a face run is ``f``, a blank, then ``corners`` words of ``slashes``
+    slashes each, one blank between them: its blanks, slashes and line ends, in byte order, repeat
+    one line's pattern exactly (a line's last word ends at its line end or the run's end).
+
+    What makes a corner's vertex reference a fixed column once each '/' is a blank: the words'
+    first fields. (A line of the same width but other words, ``1/2/3/4 5 6/7`` against
+    ``1/2 3/4 5/6``, would put other numbers in those columns.)
 
     Shapes:
-        -> (rows, columns).
+        run (n,) uint8, the run's bytes.
     """
-    names = [f"c{j}" for j in range(columns + 1)]
+    tokens = run[np.flatnonzero((run == 32) | (run == _NEWLINE) | (run == _SLASH))]
+    pattern = np.concatenate((np.full(1, 32, np.uint8),
+                              np.tile(np.concatenate((np.full(slashes, _SLASH, np.uint8), [32])), corners)))
+    pattern[-1] = _NEWLINE
+    if len(tokens) == faces * len(pattern) - 1 and run[-1] != _NEWLINE:
+        tokens = np.concatenate((tokens, [_NEWLINE]))
+    return len(tokens) == faces * len(pattern) and bool(np.all(tokens.reshape(faces, -1) == pattern))
+
+
+def _read_run(run: bytes | memoryview, rows: int, fields: int, used: list[int],
+              kind: pa.DataType) -> np.ndarray | None:
+    """The ``used`` fields (1 is the first after the keyword) of one run of lines, each a keyword
+    then ``fields`` fields one blank apart, as numbers; or None.
+
+    Shapes:
+        -> (rows, len(used)).
+    """
+    names = [f"c{j}" for j in range(fields + 1)]
     try:
         table = pa_csv.read_csv(
-            pa.py_buffer(memoryview(data)[start:end]),
+            pa.py_buffer(run),
             # One block for the whole run: 4 and 5.5 ms for the bench file's two runs, against 7.4
             # and 9.5 in Arrow's default 1 MB blocks.
-            read_options=pa_csv.ReadOptions(column_names=names, use_threads=False,
-                                            block_size=end - start + 1),
+            read_options=pa_csv.ReadOptions(column_names=names, use_threads=False, block_size=len(run) + 1),
             # No quoting, no escapes: a '"' is a byte like any other (and no number).
             parse_options=pa_csv.ParseOptions(delimiter=" ", quote_char=False, escape_char=False,
                                               ignore_empty_lines=False),
             # No null spellings: an empty field or "NA" is not a number, so the file goes on.
             convert_options=pa_csv.ConvertOptions(
-                column_types={name: kind for name in names[1:]}, include_columns=names[1:],
+                column_types={names[j]: kind for j in used}, include_columns=[names[j] for j in used],
                 null_values=[], strings_can_be_null=False))
     except pa.ArrowException:
         return None
@@ -427,18 +452,32 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     """The vertices some face uses and the triangles of a file ``obj_blocks`` laid out, or None
     (the numpy reader then runs). The same surface as ``read_plain_obj`` reads.
 
+    Corners with texture or normal references (``i/t``, ``i//n``, ``i/t/n``) are read with every
+    '/' made a blank (``i//n`` then has an empty middle field): each corner is ``slashes + 1``
+    fields, the first its vertex reference, the others not read (as the numpy reader does not).
+
     Shapes:
         returns vertices (V, 3) float64, faces (F, 3) int64 indexing them.
     """
-    vertices = _read_run(blocks.data, blocks.v_start, blocks.v_end, blocks.vertices, 3, pa.float64())
+    data = blocks.data
+    vertices = _read_run(memoryview(data)[blocks.v_start:blocks.v_end], blocks.vertices, 3, [1, 2, 3],
+                         pa.float64())
     if vertices is None or not np.isfinite(vertices).all():
         return None                          # 'nan', 'inf': words the numpy reader does not take
-    refs = _read_run(blocks.data, blocks.f_start, blocks.f_end, blocks.faces, blocks.corners, pa.int64())
+    k, per = blocks.corners, blocks.slashes + 1
+    run: bytes | memoryview = memoryview(data)[blocks.f_start:blocks.f_end]
+    if blocks.slashes:
+        if not _uniform_corners(np.frombuffer(run, dtype=np.uint8), blocks.faces, k, blocks.slashes):
+            return None
+        run = data[blocks.f_start:blocks.f_end].replace(b"/", b" ")
+    elif data.find(b"/", blocks.f_start, blocks.f_end) >= 0:
+        return None                          # the first line plain, another not
+    refs = _read_run(run, blocks.faces, k * per, [1 + j * per for j in range(k)], pa.int64())
     if refs is None:
         return None
     n = len(vertices)
     corners = np.where(refs > 0, refs - 1, n + refs)       # every vertex line precedes every face
     if np.any((refs == 0) | (corners < 0) | (corners >= n)):
         return None
-    counts = np.full(len(corners), blocks.corners, dtype=np.int64)
+    counts = np.full(len(corners), k, dtype=np.int64)
     return _used_surface(np.ascontiguousarray(vertices, dtype=np.float64), _fans(corners.ravel(), counts))

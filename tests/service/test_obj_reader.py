@@ -105,7 +105,14 @@ PLAIN = {
     "no final newline": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3",
 }
 # The files of PLAIN the block reader takes (the others go on to the numpy reader).
-IN_BLOCKS = {"triangles", "signs and dots", "materials dropped", "unused vertices", "no final newline"}
+IN_BLOCKS = {"triangles", "signs and dots", "materials dropped", "unused vertices", "no final newline",
+             "corner forms", "corner forms, crlf, quads"}
+PLAIN.update({
+    "corner forms": (b"o thing\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvn 0 0 1\n"
+                     b"s off\nf 1/1/1 2/2/1 3/1/1\nf -4/1/1 -2/2/1 -1/1/1\n"),
+    "corner forms, crlf, quads": (b"v 0 0 0\r\nv 1 0 0\r\nv 1 1 0\r\nv 0 1 0\r\nv 0 0 1\r\nvn 0 0 1\r\n"
+                                  b"f 1//1 2//1 3//1 4//1\r\nf 1//1 2//1 5//1 4//1"),
+})
 
 
 @pytest.mark.parametrize("name", list(PLAIN))
@@ -121,7 +128,9 @@ def test_plain_files_read_as_trimesh_reads_them(name: str) -> None:
 
 
 LEFT_TO_NUMPY = {
-    "corners with slashes": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n",
+    "corner forms mixed": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nf 1/1 2/1 3/1\nf 1 3 4\n",
+    "as wide, other words": (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 1 1\nv 2 2 2\nv 3 3 3\nvt 0 0\n"
+                             b"vt 1 1\nvn 0 0 1\nf 1/1/1 2/1/1 3/1/1\nf 4/1/1/1 5 6/1/1\n"),
     "triangles and quads": b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 2 3 4\n",
     "a group between faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\ng a\nf 1 2 3\ng b\nf 1 3 4\n",
     "vertices between faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nv 0 0 1\nf 1 3 4\n",
@@ -139,6 +148,14 @@ def test_files_the_block_reader_leaves_are_read_by_the_next_reader(name: str) ->
     assert fast(text) is not None
     surface = load_mesh_surface(text, "obj", max_vertices=MAX, max_faces=MAX)
     assert np.array_equal(_canonical(surface.vertices[surface.faces]), trimesh_triangles(text))
+
+
+def test_corners_of_two_slashes_are_read_alike_whatever_lies_between() -> None:
+    """``i//n`` and ``i/t/n`` both put the vertex reference first: a line mixing them reads as the
+    numpy reader reads it."""
+    text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf 1/1/1 2//1 3/1/1\n"
+    read = same_or_left(text)
+    assert read is not None and read[0][read[1]].tolist() == [[[0, 0, 0], [1, 0, 0], [0, 1, 0]]]
 
 
 def test_a_large_exported_mesh_reads_exactly_as_trimesh_reads_it() -> None:
