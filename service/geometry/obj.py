@@ -380,6 +380,8 @@ def obj_blocks(data: bytes, drop_materials: bool) -> ObjBlocks | None:
     words are counted, and their ``/`` too, on the first face line: every other line must match it
     (``read_obj_blocks`` checks).
     """
+    if not data:
+        return None
     v, f = _runs(data, (b"v", b"f"))
     if v is None or f is None or v[1] > f[0]:
         return None                          # vertices after faces: relative references differ

@@ -192,6 +192,7 @@ NOT_PLAIN = {
     "control byte": b"v 0 0 0\x00\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
     "shell call": b"v 0 0 0\nv 1 0 0\nv 0 1 0\ncsh rm -rf x\nf 1 2 3\n",
     "no faces": b"v 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    "empty": b"",
     "a quoted number": b'v "0" 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n',
     "infinity": b"v inf 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
 }
