@@ -359,6 +359,7 @@ def test_autocomplete_from_a_lone_part_says_what_it_did(page: Any, artifact_dir:
     assert notice.is_visible()
     text = notice.inner_text()
     assert f"({body['stop_reason']})" in text, text
+    assert body["stop_message"] in text, text        # the service's own words: one owner
     if body["steps"]:
         n = len(body["steps"])
         assert f"added {n} part" in text, text

@@ -23,14 +23,6 @@ const PROGRESS_AFTER_MS = 300;   // a step taking longer shows the progress indi
 const SEARCH_DELAY_MS = 250;     // typing pause before the picker searches
 
 // What /assemble's stop_reason means, for a designer (the codes: docs/api.md).
-const STOP_REASONS = {
-  max_parts: "it added as many parts as it may in one go",
-  unlikely: "the model sees no part likely enough to come next",
-  duplicates: "every likely part would repeat one already there",
-  no_candidates: "no catalog part passes the filters (category)",
-  node_budget: "the tree reached its size limit",
-};
-
 const $ = (id) => document.getElementById(id);
 
 const state = { category: null, parts: [], cloud: null };
@@ -421,15 +413,17 @@ async function assembleBody(extra) {
   return body;
 }
 
-function stopReason(code) {
-  return `${STOP_REASONS[code] ?? "it stopped"} (${code})`;
+// Why an assembly stopped: the service's own words (service.modeling.assembly.STOP_REASONS,
+// sent as stop_message), so the page has no second copy to fall behind.
+function stopReason(answer) {
+  return `${answer.stop_message ?? "it stopped"} (${answer.stop_reason})`;
 }
 
 async function autoComplete() {
   clearNotice();
   const answer = await postJson("/assemble", await assembleBody({}));
   if (!answer.steps.length) {
-    notify(`Auto-complete added nothing: ${stopReason(answer.stop_reason)}. Add a suggestion by hand, ` +
+    notify(`Auto-complete added nothing: ${stopReason(answer)}. Add a suggestion by hand, ` +
       "or click the model where a part should go.", "warn");
     return;
   }
@@ -438,7 +432,7 @@ async function autoComplete() {
     adoptCategory(answer.category);
   });
   const n = answer.steps.length;
-  notify(`Auto-complete added ${n} part${n === 1 ? "" : "s"}; it stopped because ${stopReason(answer.stop_reason)}.`);
+  notify(`Auto-complete added ${n} part${n === 1 ? "" : "s"}; it stopped because ${stopReason(answer)}.`);
 }
 
 function clearTree() {
@@ -481,7 +475,7 @@ async function showAlternatives() {
     return ul;
   };
   tree.replaceChildren(answer.nodes.length ? build("root")
-    : `No alternatives: ${stopReason(answer.stop_reason)}.`);
+    : `No alternatives: ${stopReason(answer)}.`);
 }
 
 async function download() {
