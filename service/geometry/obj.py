@@ -162,11 +162,23 @@ def read_plain_obj(layout: ObjLayout) -> tuple[np.ndarray, np.ndarray] | None:
     refs = _references(layout, corner_words)
     if refs is None:
         return None
-    before = np.repeat(layout.f_vertices, layout.f_corners)
-    corners = np.where(refs > 0, refs - 1, before + refs)      # 1-based, or relative when negative
-    if np.any((refs == 0) | (corners < 0) | (corners >= len(vertices))):
+    corners = _vertex_indices(refs, np.repeat(layout.f_vertices, layout.f_corners), len(vertices))
+    if corners is None:
         return None
     return _used_surface(vertices, _fans(corners, layout.f_corners))
+
+
+def _vertex_indices(refs: np.ndarray, before: np.ndarray | int, vertices: int) -> np.ndarray | None:
+    """0-based vertex indices of OBJ corner references (1-based, or relative to the ``before``
+    vertex lines read before the face when negative), or None when one is 0 or out of range.
+
+    Shapes:
+        refs (...,) int64, before broadcast to it -> same as refs.
+    """
+    corners = np.where(refs > 0, refs - 1, before + refs)
+    if np.any((refs == 0) | (corners < 0) | (corners >= vertices)):
+        return None
+    return corners
 
 
 def _used_surface(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -394,10 +406,11 @@ def obj_blocks(data: bytes, drop_materials: bool) -> ObjBlocks | None:
         groups = layout.groups
     line_end = data.find(b"\n", f[0], f[1])
     words = data[f[0]:f[1] if line_end < 0 else line_end].rstrip(b"\r").split(b" ")[1:]
-    if len(words) < 3 or words[0].count(b"/") > 2:
+    slashes = words[0].count(b"/") if words else 0
+    if len(words) < 3 or slashes > 2:
         return None
     return ObjBlocks(data, v[0], v[1], f[0], f[1], vertices=v[2], faces=f[2], corners=len(words),
-                     slashes=words[0].count(b"/"), groups=groups)
+                     slashes=slashes, groups=groups)
 
 
 def _uniform_corners(run: np.ndarray, faces: int, corners: int, slashes: int) -> bool:
@@ -477,9 +490,9 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     refs = _read_run(run, blocks.faces, k * per, [1 + j * per for j in range(k)], pa.int64())
     if refs is None:
         return None
-    n = len(vertices)
-    corners = np.where(refs > 0, refs - 1, n + refs)       # every vertex line precedes every face
-    if np.any((refs == 0) | (corners < 0) | (corners >= n)):
+    # Every vertex line precedes every face: a relative reference counts back from the last.
+    corners = _vertex_indices(refs, len(vertices), len(vertices))
+    if corners is None:
         return None
     counts = np.full(len(corners), k, dtype=np.int64)
     return _used_surface(np.ascontiguousarray(vertices, dtype=np.float64), _fans(corners.ravel(), counts))

@@ -22,7 +22,6 @@ const START_PAGE = 50;           // start parts per page of the picker
 const PROGRESS_AFTER_MS = 300;   // a step taking longer shows the progress indicator
 const SEARCH_DELAY_MS = 250;     // typing pause before the picker searches
 
-// What /assemble's stop_reason means, for a designer (the codes: docs/api.md).
 const $ = (id) => document.getElementById(id);
 
 const state = { category: null, parts: [], cloud: null };
