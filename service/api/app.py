@@ -23,6 +23,7 @@ import fastapi_offline
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.staticfiles import StaticFiles
+from starlette.formparsers import MultiPartParser
 from starlette.responses import HTMLResponse
 
 from service import __version__
@@ -142,6 +143,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.served = None
     app.state.ready = False
     app.state.uploads = MeshUploads(settings)
+    # Starlette spools a form's file part to disk past its class-wide bound (1 MiB): most of a
+    # typical mesh upload's form parse was that write and its read back. The bound is a process
+    # global, like the server it configures.
+    MultiPartParser.spool_max_size = settings.upload_memory_bytes
     install_access_log_redaction()
     install_error_handlers(app)
     app.include_router(suggest.router)

@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from service_testkit import TRIANGLE, glb, make_settings
+from starlette.formparsers import MultiPartParser
 
 from service.api.app import create_app
 from service.geometry.mesh import MeshError, load_mesh_bytes
+from service.settings import Settings
 
 
 def triangle_tree(nodes: list[dict[str, Any]], roots: list[int]) -> dict[str, Any]:
@@ -153,6 +155,26 @@ def test_large_uploads_leave_memory_behind_no_more_than_150_mb(big_client: TestC
           f"{after[-1]:.0f} MB at the end")
     assert max(after) - start < 150, f"RSS grew from {start:.0f} MB to {max(after):.0f} MB"
     assert "process_resident_memory_bytes" in big_client.get("/metrics").text
+
+
+def test_an_upload_spilled_to_disk_is_answered_as_one_kept_in_memory(artifacts: Path) -> None:
+    """``upload_memory_bytes`` only decides where a form's file waits while it is received: the
+    example upload gets the same answer spilled to a temporary file (a bound of 1 byte; Python's
+    spooled file never spills at 0) and kept in memory."""
+    obj = (Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj").read_bytes()
+    answers = {}
+    try:
+        for bound in (1, len(obj) + 4096):
+            with TestClient(create_app(make_settings(artifacts, upload_memory_bytes=bound))) as c:
+                assert MultiPartParser.spool_max_size == bound
+                response = c.post("/suggest/mesh", files={"file": ("chair.obj", obj)},
+                                  data={"options": '{"k": 5, "fit_frame": false}'})
+                assert response.status_code == 200, response.text
+                answers[bound] = [(s["part_id"], s["translation"]) for s in response.json()["suggestions"]]
+    finally:
+        MultiPartParser.spool_max_size = Settings().upload_memory_bytes
+    first, second = answers.values()
+    assert first == second and len(first) == 5
 
 
 def test_catalog_uploads_take_the_structure_limits_from_the_settings(artifacts: Path, tmp_path: Path) -> None:
