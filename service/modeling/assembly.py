@@ -70,6 +70,7 @@ from scipy.spatial import cKDTree
 
 from service.artifacts.catalog import Catalog, split_shapes
 from service.errors import InputError
+from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
@@ -231,17 +232,6 @@ def estimate_area(points: np.ndarray) -> float:
         return 0.0
     d, _ = cKDTree(pts).query(pts, k=2)
     return float(4.0 * len(pts) * np.mean(d[:, 1]) ** 2)
-
-
-def box_iou(lo: np.ndarray, hi: np.ndarray, los: np.ndarray, his: np.ndarray) -> np.ndarray:
-    """IoU of one axis-aligned box with many.
-
-    Shapes:
-        lo, hi: (3,); los, his: (P, 3) -> (P,) float64.
-    """
-    inter = np.prod(np.clip(np.minimum(hi, his) - np.maximum(lo, los), 0, None), axis=1)
-    union = np.prod(hi - lo) + np.prod(his - los, axis=1) - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
 class Assembler:

@@ -307,3 +307,16 @@ def test_obj_prescan_drops_only_material_lines() -> None:
     assert kept.splitlines() == [b"v 0 0 0", b"v 1 0 0", b"v 0 1 0", b"f 1 2 3"]
     with pytest.raises(MeshError, match=r"'csh x\.sh' refers to an external file"):
         _prepare_obj(b"v 0 0 0\n\tcsh\x0bx.sh \nmtllib b.mtl\n", "m.obj", 10, 10, True)
+
+
+def test_box_iou_of_one_box_with_many() -> None:
+    from service.geometry.boxes import box_iou
+
+    lo, hi = np.zeros(3), np.ones(3)
+    los = np.array([[0, 0, 0], [0.5, 0, 0], [2, 2, 2], [0, 0, 0]], dtype=np.float64)
+    his = np.array([[1, 1, 1], [1.5, 1, 1], [3, 3, 3], [0.5, 1, 1]], dtype=np.float64)
+    iou = box_iou(lo, hi, los, his)
+    # The same box, half shifted (0.5 / 1.5), apart, half inside (0.5 / 1).
+    assert np.allclose(iou, [1.0, 1 / 3, 0.0, 0.5])
+    flat = box_iou(np.zeros(3), np.array([1.0, 1.0, 0.0]), np.zeros((1, 3)), np.array([[1.0, 1.0, 0.0]]))
+    assert np.isnan(flat[0]) and not flat[0] > 0.25   # no volume: nothing to measure, never "stacked"

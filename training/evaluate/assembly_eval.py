@@ -41,11 +41,11 @@ from tqdm import tqdm
 
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_artifacts
+from service.geometry.boxes import box_iou
 from service.modeling.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
 from training.evaluate.contact import Mesh, contact
-from training.evaluate.evaluation import box_iou
 from training.evaluate.protocol import ShapeIndex, setting_rng
 
 log = logging.getLogger(__name__)
@@ -133,7 +133,7 @@ def stacked_pairs(labels: list[str | None], lo: list[np.ndarray], hi: list[np.nd
     """
     return [[a, b, round(iou, 3)] for a in range(len(labels)) for b in range(a)
             if labels[a] is not None and labels[a] == labels[b]
-            and (iou := box_iou(lo[a], hi[a], lo[b], hi[b])) > iou_above]
+            and (iou := float(box_iou(lo[a], hi[a], lo[b], hi[b])[0])) > iou_above]
 
 
 def data_stacked(index: ShapeIndex, start: int, settings: AssemblyEvalSettings) -> bool:

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.artifacts.catalog import Catalog
+from service.geometry.boxes import box_iou
 from training.evaluate.baselines import Method, rank_by_scores
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.metrics import (
@@ -312,17 +313,6 @@ def evaluate_coverage(method: Method, queries: list[Query], index: ShapeIndex, s
     return out
 
 
-def box_iou(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> float:
-    """Intersection over union of two axis-aligned boxes.
-
-    Shapes:
-        each (3,) -> float.
-    """
-    inter = np.prod(np.clip(np.minimum(hi_a, hi_b) - np.maximum(lo_a, lo_b), 0, None))
-    union = np.prod(hi_a - lo_a) + np.prod(hi_b - lo_b) - inter
-    return float(inter / union) if union > 0 else math.nan
-
-
 def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str, Any]], index: ShapeIndex,
                       progress: bool = False) -> list[dict[str, Any]]:
     """Size fitting of the top suggestion of each all-but-one query, on and off.
@@ -345,7 +335,7 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
         rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "part_id": top[0]}
         for name, fit in (("on", True), ("off", False)):
             p = ours.engine.place(q.points, [top[0]], refine_contact=False, fit_scale=fit).placements[0]
-            rec[f"iou_{name}"] = box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)
+            rec[f"iou_{name}"] = float(box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)[0])
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
             true_ext = np.maximum(true_hi - true_lo, 1e-6)
             rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
