@@ -344,12 +344,14 @@ class Settings(BaseSettings):
     max_mesh_nesting: int = Field(default=64, ge=4, description=(
         "Deepest nesting of an uploaded glTF's JSON and of its node tree, checked before either is "
         "read: a 4 KB glTF nested 2,000 deep crashed the JSON reader, a 40k-deep node chain took 34 s."))
-    upload_memory_bytes: int = Field(default=8 * 1024 * 1024, ge=1, description=(
+    upload_memory_bytes: int = Field(default=1024 * 1024, ge=1, description=(
         "A multipart upload's file part stays in memory while it is received up to this size; a "
-        "larger one spills to a temporary file (Starlette's default is 1 MiB). The bench's 3.8 MB "
-        "OBJ took 17.5 ms to receive and parse as a form spilled to disk, 6.6 ms in memory. Uploads "
-        "read their bodies only once admitted (`max_inflight`, `max_inflight_writes`), so this "
-        "times those bounds is the memory bodies in reception can take."))
+        "larger one spills to a temporary file (Starlette's own bound, 1 MiB, is the default). "
+        "Bodies are read before a request takes its place in the overload gate, so every upload "
+        "being received may hold this much: only the proxy's connection limit bounds how many. "
+        "Raising it saves the spill: the bench's 3.8 MB OBJ took 17.5 ms to receive and parse as "
+        "a form spilled to disk, 6.6 ms in memory (in process), and its request 33.1 against "
+        "29.6 ms p50 at 8 MiB (docs/performance.md, section e)."))
     max_concurrent_uploads: int = Field(default=2, ge=1, description=(
         "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per server process; more "
         "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "
