@@ -143,9 +143,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.served = None
     app.state.ready = False
     app.state.uploads = MeshUploads(settings)
-    # Starlette spools a form's file part to disk past its class-wide bound (1 MiB): most of a
-    # typical mesh upload's form parse was that write and its read back. The bound is a process
-    # global, like the server it configures.
+    # Starlette spools a form's file part to disk past a class-wide bound (1 MiB): for a few-MB
+    # mesh most of the form's parse is that write and its read back. A setting, not a higher
+    # default: bodies are read before the overload gate, so each upload in reception may hold it
+    # (docs/settings.md). The bound is a process global, like the server it configures.
     MultiPartParser.spool_max_size = settings.upload_memory_bytes
     install_access_log_redaction()
     install_error_handlers(app)
