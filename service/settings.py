@@ -344,14 +344,22 @@ class Settings(BaseSettings):
     max_mesh_nesting: int = Field(default=64, ge=4, description=(
         "Deepest nesting of an uploaded glTF's JSON and of its node tree, checked before either is "
         "read: a 4 KB glTF nested 2,000 deep crashed the JSON reader, a 40k-deep node chain took 34 s."))
-    upload_memory_bytes: int = Field(default=1024 * 1024, ge=1, description=(
+    upload_memory_bytes: int = Field(default=8 * 1024 * 1024, ge=1, description=(
         "A multipart upload's file part stays in memory while it is received up to this size; a "
-        "larger one spills to a temporary file (Starlette's own bound, 1 MiB, is the default). "
-        "Bodies are read before a request takes its place in the overload gate, so every upload "
-        "being received may hold this much: only the proxy's connection limit bounds how many. "
-        "Raising it saves the spill: the bench's 3.8 MB OBJ took 17.5 ms to receive and parse as "
-        "a form spilled to disk, 6.6 ms in memory (in process), and its request 33.1 against "
-        "29.6 ms p50 at 8 MiB (docs/performance.md, section e)."))
+        "larger one spills to a temporary file (Starlette's own bound is 1 MiB). The spill is "
+        "what a few-MB mesh's form costs: the bench's 3.8 MB OBJ took 17.5 ms to receive and "
+        "parse as a form spilled to disk, 6.6 ms in memory (in process), and its request 33.1 "
+        "against 29.6 ms p50 at 8 MiB (docs/performance.md, section e). The uploads being "
+        "received hold at most `max_receiving_bytes` together."))
+    max_receiving_bytes: int = Field(default=256 * 1024 * 1024, ge=1024, description=(
+        "Bytes that request bodies being received may hold at once, per server process. Bodies "
+        "are read before a request takes its place in the overload gate; each reserves what it "
+        "can bring (its Content-Length, or its limit, `max_body_bytes` or `max_upload_bytes`, "
+        "when it sends none) until it is in, and a request that finds the reservations full is "
+        "refused 503 `overloaded` with Retry-After before a byte of its body is read. A body "
+        "larger than this is let in when no other is being received. Without it only the proxy's "
+        "connection limit bounded the memory (or, past `upload_memory_bytes`, disk) held by "
+        "bodies in reception."))
     max_concurrent_uploads: int = Field(default=2, ge=1, description=(
         "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per server process; more "
         "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "
@@ -448,7 +456,7 @@ class Settings(BaseSettings):
         "Seconds a request body may go without a byte arriving; past this it is answered 408 "
         "`body_timeout` (a client that stalls, or declared a Content-Length longer than what it "
         "sent). Bodies are read before a request takes its place in the overload gate, so slow "
-        "clients never hold a slot."))
+        "clients never hold a slot (only their body's share of `max_receiving_bytes`)."))
     request_timeout: float = Field(default=30.0, gt=0, description=(
         "Seconds a request may take (queueing included); past this it is answered 504 (503 if it "
         "was still queued) and its late answer is dropped."))

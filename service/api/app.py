@@ -16,6 +16,7 @@ import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 from pathlib import Path
 
 import anyio
@@ -33,7 +34,7 @@ from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
 from service.api.json_body import JsonBodyMiddleware
 from service.api.metrics import Metrics
-from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, MetricsMiddleware
+from service.api.middleware import BodyLimitMiddleware, JsonCorsMiddleware, MetricsMiddleware, body_bound
 from service.api.openapi_extras import add_common_responses, add_limits
 from service.api.overload import ErrorBudgetMiddleware, OverloadMiddleware
 from service.api.routes import assemble, catalog_write, parts, probes, suggest
@@ -144,9 +145,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.ready = False
     app.state.uploads = MeshUploads(settings)
     # Starlette spools a form's file part to disk past a class-wide bound (1 MiB): for a few-MB
-    # mesh most of the form's parse is that write and its read back. A setting, not a higher
-    # default: bodies are read before the overload gate, so each upload in reception may hold it
-    # (docs/settings.md). The bound is a process global, like the server it configures.
+    # mesh most of the form's parse is that write and its read back. The uploads in reception
+    # hold at most max_receiving_bytes together (the overload middleware's reception budget).
+    # The bound is a process global, like the server it configures.
     MultiPartParser.spool_max_size = settings.upload_memory_bytes
     install_access_log_redaction()
     install_error_handlers(app)
@@ -169,6 +170,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        timeout=settings.request_timeout, max_inflight_writes=settings.max_inflight_writes,
                        max_inflight_suggest=settings.max_inflight_suggest,
                        refusal_delay=settings.overload_refusal_delay,
+                       max_receiving_bytes=settings.max_receiving_bytes,
+                       body_bound=partial(body_bound, max_body_bytes=settings.max_body_bytes,
+                                          max_upload_bytes=settings.max_upload_bytes),
                        metrics=app.state.metrics)
     app.add_middleware(JsonBodyMiddleware, max_body_points=settings.max_body_points)
     app.add_middleware(BodyLimitMiddleware, max_body_bytes=settings.max_body_bytes,

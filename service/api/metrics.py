@@ -77,6 +77,9 @@ class Metrics:
                                        registry=r)
         self.queued_requests = Gauge("complementme_queued_requests", "Gated requests waiting for a slot.",
                                      registry=r)
+        self.receiving_bytes = Gauge("complementme_receiving_body_bytes", "Bytes reserved by request "
+                                     "bodies being received now (COMPLEMENTME_MAX_RECEIVING_BYTES).",
+                                     registry=r)
 
     def watch_replication(self, replication: Callable[[], dict[str, Any] | None]) -> None:
         """Gauges of a postgres-backed replica's place in the database's changes (registered only

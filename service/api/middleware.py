@@ -76,7 +76,7 @@ class BodyLimitMiddleware:
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
             await self.app(scope, receive, send)
             return
-        limit = self.max_upload_bytes if scope["path"] in MESH_UPLOAD_PATHS else self.max_body_bytes
+        limit = body_limit(scope, self.max_body_bytes, self.max_upload_bytes)
         declared = _content_length(scope)
         seen = 0
         reading = True  # until the last body chunk: later receives wait for a disconnect, unbounded
@@ -119,6 +119,19 @@ class BodyLimitMiddleware:
                         "headers": [(b"content-type", b"application/json"),
                                     (b"content-length", str(len(data)).encode())]})
             await send({"type": "http.response.body", "body": data})
+
+
+def body_limit(scope: Scope, max_body_bytes: int, max_upload_bytes: int) -> int:
+    """The most bytes this request's body may bring: mesh uploads get their own limit."""
+    return max_upload_bytes if scope["path"] in MESH_UPLOAD_PATHS else max_body_bytes
+
+
+def body_bound(scope: Scope, max_body_bytes: int, max_upload_bytes: int) -> int:
+    """The bytes a request's body can bring before ``BodyLimitMiddleware`` refuses it: its
+    Content-Length, or its path's limit when it declares none (chunked) or more than the limit."""
+    limit = body_limit(scope, max_body_bytes, max_upload_bytes)
+    declared = _content_length(scope)
+    return limit if declared is None or declared < 0 else min(declared, limit)
 
 
 def _content_length(scope: Scope) -> int | None:

@@ -7,10 +7,21 @@ once and at most ``max_queue`` wait for a slot; past that the service answers 50
 
 A request takes its place in the gate only once its body is in (when the app receives the body's
 last chunk; a request without a body, and every DELETE, at once): a client that sends its body
-slowly holds no slot and keeps no other request waiting (the body's own limits bound it:
-``body_read_timeout`` without a byte, 408; the deadline below, 408 while still reading). A
+slowly holds no slot and keeps no other request waiting (it holds only its body's reservation,
+below; the body's own limits bound it: ``body_read_timeout`` without a byte, 408; the deadline
+below, 408 while still reading). A
 request that finds the gate full when it arrives is refused at once, before a byte of its body
 is read or parsed, so that shedding under overload costs next to nothing.
+
+Bodies being received are bounded too, by their bytes: ``max_receiving_bytes`` a process. A
+gated request with a body reserves what its body can bring (its Content-Length, or its path's
+limit when chunked: ``service.api.middleware.body_bound``) from its arrival until the body is in
+(or the request ends); one that finds the reservation over the budget is refused 503 at once,
+before a byte is read, like a full gate. Without it, only the proxy's connection limit bounded
+how many bodies were held in memory (a JSON body whole, an upload's file part up to
+``upload_memory_bytes``, then on disk) while they arrived: HAProxy's ``maxconn`` of 4096 times
+8 MB. A body larger than the whole budget is let in when no other is being received, so every
+body within the limits can be sent.
 
 Catalog writes (``POST /parts``, ``DELETE /parts/...``) have a gate of their own
 (``max_inflight_writes``): they wait for each other on the database, and must not take the slots
@@ -130,6 +141,30 @@ class InferenceGate:
         return int(min(60, max(1, math.ceil(drain))))
 
 
+class ReceptionBudget:
+    """Bytes of request bodies being received at once, at most ``max_bytes`` (asyncio, one loop)."""
+
+    def __init__(self, max_bytes: int):
+        assert max_bytes > 0, f"max_bytes must be positive, found {max_bytes}"
+        self.max_bytes = max_bytes
+        self.held = 0
+        self.bodies = 0
+
+    def take(self, nbytes: int) -> bool:
+        """Reserve ``nbytes`` for a body about to be received; False when that would pass the
+        budget (a body larger than the whole budget is let in alone)."""
+        if self.bodies and self.held + nbytes > self.max_bytes:
+            return False
+        self.held += nbytes
+        self.bodies += 1
+        return True
+
+    def give(self, nbytes: int) -> None:
+        """A body reserved with ``take`` is in (or its request ended)."""
+        self.held -= nbytes
+        self.bodies -= 1
+
+
 class ClientErrorBudget:
     """Token buckets of error answers, one per client key (asyncio, one loop: no locking).
 
@@ -225,8 +260,13 @@ class OverloadMiddleware:
 
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
                  max_inflight_writes: int = 2, metrics: Metrics | None = None,
-                 max_inflight_suggest: int | None = None, refusal_delay: float = 0.0):
+                 max_inflight_suggest: int | None = None, refusal_delay: float = 0.0,
+                 max_receiving_bytes: int | None = None,
+                 body_bound: Callable[[Scope], int] | None = None):
         self.app = app
+        # None: bodies being received are not bounded here (tests of the gate alone).
+        self.reception = ReceptionBudget(max_receiving_bytes) if max_receiving_bytes else None
+        self.body_bound = body_bound or (lambda scope: 0)
         self.refusal_delay = refusal_delay
         self.gate = InferenceGate(max_inflight, max_queue)
         self.write_gate = InferenceGate(max_inflight_writes, max_queue)
@@ -239,6 +279,9 @@ class OverloadMiddleware:
         gates = {id(g): g for g in (self.gate, self.write_gate, self.suggest_gate)}.values()
         self.metrics.watch(self.metrics.inflight_requests, lambda: sum(g.inflight for g in gates))
         self.metrics.watch(self.metrics.queued_requests, lambda: sum(g.waiting for g in gates))
+        reception = self.reception
+        if reception is not None:
+            self.metrics.watch(self.metrics.receiving_bytes, lambda: reception.held)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -260,6 +303,8 @@ class OverloadMiddleware:
                     return
                 admission.running()
             else:
+                if not await self._reserve(admission, scope, send):
+                    return
                 receive = self._admitting(admission, receive)
         answered = started = False
 
@@ -274,6 +319,7 @@ class OverloadMiddleware:
         task = asyncio.ensure_future(self.app(scope, receive, guarded_send))
         if admission is not None:
             task.add_done_callback(admission.leave)
+            task.add_done_callback(admission.body_in)
         try:
             done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
         except asyncio.CancelledError:  # the server is shutting down or the client went away
@@ -313,6 +359,7 @@ class OverloadMiddleware:
             message = await receive()
             if admission.state == "reading" and not (
                     message["type"] == "http.request" and message.get("more_body", False)):
+                admission.body_in()
                 if message["type"] == "http.request":
                     await self._admit(admission)
                 else:  # the client left: the request ends with no work to gate
@@ -338,6 +385,23 @@ class OverloadMiddleware:
                 gate.abandon(fut)
                 raise
         admission.running()
+
+    async def _reserve(self, admission: _Admission, scope: Scope, send: Send) -> bool:
+        """Reserve the reception budget for the request's body; answer 503 and return False when
+        the bodies being received already hold it."""
+        reception = self.reception
+        if reception is None:
+            return True
+        nbytes = self.body_bound(scope)
+        if reception.take(nbytes):
+            admission.receiving(reception, nbytes)
+            return True
+        self.rejected.labels("receiving_full").inc()
+        await self._overloaded(admission.gate, send, (
+            f"{reception.bodies} request bodies of {reception.held} bytes are being received, and "
+            f"this one may bring {nbytes} more: the most this server holds at once is "
+            f"{reception.max_bytes} (COMPLEMENTME_MAX_RECEIVING_BYTES)"))
+        return False
 
     @staticmethod
     def _why_full(gate: InferenceGate) -> str:
@@ -402,6 +466,18 @@ class _Admission:
         self.gate = gate
         self.state = "reading"
         self.entered: float | None = None
+        self._reception: ReceptionBudget | None = None
+        self._reserved = 0
+
+    def receiving(self, reception: ReceptionBudget, nbytes: int) -> None:
+        """The body's bytes are reserved in ``reception`` until ``body_in``."""
+        self._reception, self._reserved = reception, nbytes
+
+    def body_in(self, _: object = None) -> None:
+        """The body is in, or the request ended without it: give its reservation back (once)."""
+        if self._reception is not None:
+            self._reception.give(self._reserved)
+            self._reception = None
 
     def running(self) -> None:
         self.state = "running"

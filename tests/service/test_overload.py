@@ -5,18 +5,27 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import anyio
 import httpx
+import orjson
 import pytest
 from fastapi.testclient import TestClient
 from service_testkit import AssemblyQuery, make_settings
 from starlette.types import Receive, Scope, Send
 
 from service.api.app import create_app
-from service.api.overload import ClientErrorBudget, ErrorBudgetMiddleware, InferenceGate, OverloadMiddleware
+from service.api.middleware import body_bound
+from service.api.overload import (
+    ClientErrorBudget,
+    ErrorBudgetMiddleware,
+    InferenceGate,
+    OverloadMiddleware,
+    ReceptionBudget,
+)
 
 
 def test_gate_admits_queues_and_refuses() -> None:
@@ -181,6 +190,133 @@ def test_a_full_gate_refuses_before_reading_and_slow_bodies_hold_no_slot() -> No
     assert statuses[:2] == [200, 503]
     assert statuses[2] in (200, 503)  # its body came in while the fast one still ran
     assert "/refused" not in reads, "the refused request's body was never read"
+
+
+# ------------------------------------------------------------------ bodies being received
+
+
+def test_reception_budget_lets_a_body_larger_than_itself_in_alone() -> None:
+    budget = ReceptionBudget(1000)
+    assert budget.take(600) and budget.take(400)
+    assert not budget.take(1), "full: nothing more, however small"
+    budget.give(600)
+    assert budget.take(601) is False and budget.take(600)
+    budget.give(400)
+    budget.give(600)
+    assert budget.held == 0 and budget.bodies == 0
+    assert budget.take(5000), "alone, a body over the whole budget may still be sent"
+    assert not budget.take(1)
+
+
+def _reading_app(reads: list[str]) -> Any:
+    """An app that reads its whole body, then answers 200."""
+    async def app(scope: Scope, receive: Receive, send: Send) -> None:
+        while True:
+            message = await receive()
+            reads.append(scope["path"])
+            if not message.get("more_body", False):
+                break
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"done"})
+    return app
+
+
+def test_bodies_being_received_are_bounded_by_their_bytes() -> None:
+    """A request whose body would take the bodies in reception past the budget is refused 503
+    before a byte is read; one that fits goes on; a chunked body reserves its path's limit."""
+    reads: list[str] = []
+    mw = OverloadMiddleware(_reading_app(reads), max_inflight=8, max_queue=8, timeout=10,
+                            max_receiving_bytes=1000,
+                            body_bound=partial(body_bound, max_body_bytes=600, max_upload_bytes=5000))
+    reception = mw.reception
+    assert reception is not None
+
+    async def main() -> None:
+        transport = httpx.ASGITransport(app=mw)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            release = asyncio.Event()
+
+            async def slow_body() -> Any:
+                yield b"x" * 250
+                await release.wait()
+                yield b"x" * 250
+
+            async def chunked() -> Any:
+                yield b"{}"
+
+            slow = asyncio.ensure_future(client.post("/slow", content=slow_body(),
+                                                     headers={"content-length": "500"}))
+            await asyncio.sleep(0.05)
+            assert (reception.held, reception.bodies) == (500, 1), "reserved by its Content-Length"
+            big = await client.post("/big", content=b"x" * 600)
+            assert big.status_code == 503 and big.json()["error"]["code"] == "overloaded"
+            assert "being received" in big.json()["error"]["message"] and "retry-after" in big.headers
+            assert (await client.post("/small", content=b"x" * 300)).status_code == 200, "it fits"
+            refused = await client.post("/chunked", content=chunked())
+            assert refused.status_code == 503, "no length: it reserves its limit, 600"
+            release.set()
+            assert (await slow).status_code == 200
+            assert (reception.held, reception.bodies) == (0, 0)
+            # Alone, a chunked upload whose limit (5000) is over the whole budget goes in.
+            assert (await client.post("/suggest/mesh", content=chunked())).status_code == 200
+
+    asyncio.run(main())
+    assert "/big" not in reads and "/chunked" not in reads, "refused bodies are never read"
+    assert mw.metrics.rejections.labels("receiving_full")._value.get() == 2
+
+
+def test_a_body_cut_at_its_deadline_gives_its_reservation_back() -> None:
+    mw = OverloadMiddleware(_reading_app([]), max_inflight=1, max_queue=1, timeout=0.2,
+                            max_receiving_bytes=1000, body_bound=lambda scope: 700)
+    reception = mw.reception
+    assert reception is not None
+
+    async def main() -> int:
+        transport = httpx.ASGITransport(app=mw)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            async def stalled() -> Any:
+                yield b"x"
+                await asyncio.sleep(5)
+                yield b"x"
+
+            answer = await client.post("/stalled", content=stalled())
+            return answer.status_code
+
+    assert asyncio.run(main()) == 408
+    assert (reception.held, reception.bodies) == (0, 0)
+
+
+def test_the_real_app_bounds_bodies_in_reception(artifacts: Path, query: AssemblyQuery) -> None:
+    """The app's reception budget is the setting: while a slow body holds it, a query whose
+    body would pass it is refused 503; alone, the same query is answered."""
+    settings = make_settings(artifacts, max_receiving_bytes=4096, verify_checksums=False)
+    body = orjson.dumps({"points": query.points[:64].tolist(), "k": 3})
+    assert len(body) > 2048
+    with TestClient(create_app(settings)) as c:
+        async def main() -> int:
+            transport = httpx.ASGITransport(app=c.app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+                release = asyncio.Event()
+
+                async def slow_body() -> Any:
+                    yield b"{"
+                    await release.wait()
+                    yield b" " * 2047 + b"}"
+
+                # It holds its 2049 bytes while they arrive (and is then refused: no points).
+                slow = asyncio.ensure_future(client.post("/suggest", content=slow_body(), headers={
+                    "content-length": "2049", "content-type": "application/json"}))
+                await asyncio.sleep(0.05)
+                refused = await client.post("/suggest", content=body,
+                                            headers={"content-type": "application/json"})
+                release.set()
+                assert (await slow).status_code == 422
+                return refused.status_code
+
+        assert asyncio.run(main()) == 503
+        alone = c.post("/suggest", content=body, headers={"content-type": "application/json"})
+        assert alone.status_code == 200
+        assert "complementme_receiving_body_bytes 0.0" in c.get("/metrics").text
 
 
 # ------------------------------------------------------------------ per-client error budget
