@@ -6,8 +6,11 @@ Against our service on the shipped artifacts, started as the HTTP benchmark star
 summarised (count, p50, p99):
 
 - ``suggest_mesh_glb`` / ``suggest_mesh_obj``: ``/suggest/mesh`` with one ~100k-triangle mesh,
-  as GLB and as OBJ (k = 10), read in the frame it is in (``fit_frame`` false: the caller knows
-  it, as the page's own parts are);
+  as GLB and as OBJ (k = 10) in a multipart form, read in the frame it is in (``fit_frame``
+  false: the caller knows it, as the page's own parts are);
+- ``suggest_mesh_glb_body`` / ``suggest_mesh_obj_body``: the same meshes sent as the request body
+  (``Content-Type: model/gltf-binary`` / ``model/obj``, the options in the query string), as the
+  project's clients send them (``service.api.mesh_upload``);
 - ``suggest_mesh_glb_fit``: the GLB sent as a designer's file is, without a frame, so the service
   fits one (``COMPLEMENTME_FIT_FRAME_UPLOADS``, on by default; ``service.suggest.frame_fit``);
 - ``place_5``: ``/place`` of five parts (the first five suggestions of the query) next to the
@@ -53,8 +56,8 @@ from service.artifacts.catalog import Catalog
 
 log = logging.getLogger(__name__)
 
-PATHS = ("suggest_mesh_glb", "suggest_mesh_obj", "suggest_mesh_glb_fit", "place_5", "suggest_contact_off",
-         "suggest_contact_on", "assemble")
+PATHS = ("suggest_mesh_glb", "suggest_mesh_obj", "suggest_mesh_glb_body", "suggest_mesh_obj_body",
+         "suggest_mesh_glb_fit", "place_5", "suggest_contact_off", "suggest_contact_on", "assemble")
 METRIC_PREFIX = "complementme_"
 # Requests that are not the timed path's: the snapshots' own, and HAProxy's health checks.
 PROBE_ROUTES = ("/metrics", "/readyz", "/healthz")
@@ -314,12 +317,16 @@ def time_path(client: httpx.Client, make: Callable[[], httpx.Request], requests:
             "server_metrics": histogram_means(before, after), "last_answer": last}
 
 
-def _mesh_request(client: httpx.Client, data: bytes, fmt: str, k: int,
-                  fit: bool = False) -> Callable[[], httpx.Request]:
+def _mesh_request(client: httpx.Client, data: bytes, fmt: str, k: int, fit: bool = False,
+                  body: bool = False) -> Callable[[], httpx.Request]:
+    """``/suggest/mesh`` of ``data``: a multipart form, or (``body``) the file as the body."""
     mime = {"glb": "model/gltf-binary", "obj": "model/obj"}[fmt]
     options = json.dumps({"k": k} if fit else {"k": k, "fit_frame": False})
 
     def make() -> httpx.Request:
+        if body:
+            return client.build_request("POST", "/suggest/mesh", content=data, params={"options": options},
+                                        headers={"Content-Type": mime})
         return client.build_request("POST", "/suggest/mesh", files={"file": (f"query.{fmt}", data, mime)},
                                     data={"options": options})
     return make
@@ -378,6 +385,8 @@ def run_interactive_bench(query: BenchQuery, cfg: InteractiveBenchConfig, cache:
         makers = {
             "suggest_mesh_glb": _mesh_request(client, files["glb"], "glb", cfg.k),
             "suggest_mesh_obj": _mesh_request(client, files["obj"], "obj", cfg.k),
+            "suggest_mesh_glb_body": _mesh_request(client, files["glb"], "glb", cfg.k, body=True),
+            "suggest_mesh_obj_body": _mesh_request(client, files["obj"], "obj", cfg.k, body=True),
             "suggest_mesh_glb_fit": _mesh_request(client, files["glb"], "glb", cfg.k, fit=True),
             "place_5": _json_request(client, "/place", place_body),
             "suggest_contact_off": _json_request(client, "/suggest", suggest_bodies["suggest_contact_off"]),

@@ -13,7 +13,7 @@ from fastapi import Depends, FastAPI, Request
 from service.api.batching import Ticket
 from service.api.metrics import Metrics
 from service.api.served import Served
-from service.errors import InputError, NotReadyError
+from service.errors import NotReadyError
 from service.geometry.inputs import MeshUploads
 from service.settings import Settings
 
@@ -50,20 +50,6 @@ async def get_ticket(request: Request) -> Ticket | None:
 async def get_deadline(request: Request) -> float | None:
     """The request's deadline (``time.monotonic()``) set by the overload middleware, if any."""
     return getattr(request.state, "deadline", None)
-
-
-async def unique_form_fields(request: Request) -> None:
-    """Refuse a multipart form that repeats a field: which copy counts would be a guess.
-
-    FastAPI's ``File``/``Form`` parameters silently take the last copy; the form is parsed (and
-    cached by Starlette) before dependencies run, so this costs a pass over its field names.
-    """
-    form = await request.form()
-    seen: set[str] = set()
-    for key, _ in form.multi_items():
-        if key in seen:
-            raise InputError("duplicate_field", f"form field {key!r} is given more than once")
-        seen.add(key)
 
 
 ServedDep = Annotated[Served, Depends(get_served)]

@@ -71,10 +71,12 @@ def test_quick_run_answers_every_path_and_writes_the_results(tmp_path: Path) -> 
         assert row["latency"]["p50_ms"] <= row["latency"]["p99_ms"] <= row["latency"]["max_ms"]
         routes = [k for k in row["server_metrics"] if k.startswith("http_request{")]
         assert len(routes) == 1 and row["server_metrics"][routes[0]]["count"] == cfg["requests"], name
-    for name in ("suggest_mesh_glb", "suggest_mesh_obj", "suggest_mesh_glb_fit", "suggest_contact_off",
-                 "suggest_contact_on"):
+    for name in ("suggest_mesh_glb", "suggest_mesh_obj", "suggest_mesh_glb_body", "suggest_mesh_obj_body",
+                 "suggest_mesh_glb_fit", "suggest_contact_off", "suggest_contact_on"):
         assert r["paths"][name]["answer"]["suggestions"] == 10, name
         assert "inference{graph=g}" in r["paths"][name]["server_metrics"], name
+    for fmt in ("glb", "obj"):  # the file as the body is the same query as the form
+        assert r["paths"][f"suggest_mesh_{fmt}_body"]["answer"] == r["paths"][f"suggest_mesh_{fmt}"]["answer"]
     assert r["paths"]["place_5"]["answer"] == {"placements": 5}
     assert len(r["place_parts"]) == 5
     assert r["paths"]["assemble"]["answer"]["nodes"] >= 2

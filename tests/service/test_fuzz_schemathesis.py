@@ -26,8 +26,12 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from service.api.app import create_app
+from service.api.mesh_upload import RAW_MEDIA_FORMATS
 
 MAX_EXAMPLES = 20
+# The mesh routes also take the file itself as the body, in these media types: bytes, sent as
+# schemathesis sends application/octet-stream.
+schemathesis.serializer.alias(list(RAW_MEDIA_FORMATS), "application/octet-stream")
 # Batches answer 200 with an error entry per malformed item, by design (one bad item fails alone).
 PER_ITEM_ERRORS = {"POST /suggest/batch"}
 

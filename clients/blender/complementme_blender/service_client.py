@@ -14,10 +14,11 @@ import socket
 import urllib.error
 import urllib.parse
 import urllib.request
-import uuid
 from typing import Any
 
 MAX_ERROR_BODY = 64 * 1024  # bytes of an error answer read to find its message
+# The selection goes to the mesh routes as the request body, in this media type.
+GLB_MEDIA_TYPE = "model/gltf-binary"
 
 
 class ServiceError(Exception):
@@ -46,11 +47,11 @@ class Client:
 
     def suggest_mesh(self, glb: bytes, options: dict[str, Any]) -> dict[str, Any]:
         """``POST /suggest/mesh`` with a GLB and the options of ``/suggest``; the parsed answer."""
-        return self._json("POST", "/suggest/mesh", *_multipart(glb, "selection.glb", options))
+        return self._json("POST", _with_options("/suggest/mesh", options), glb, GLB_MEDIA_TYPE)
 
     def assemble_mesh(self, glb: bytes, options: dict[str, Any]) -> dict[str, Any]:
         """``POST /assemble/mesh`` with a GLB start and the options of ``/assemble``."""
-        return self._json("POST", "/assemble/mesh", *_multipart(glb, "selection.glb", options))
+        return self._json("POST", _with_options("/assemble/mesh", options), glb, GLB_MEDIA_TYPE)
 
     def part_mesh_obj(self, part_id: str) -> str:
         """``GET /parts/{id}/mesh?format=obj``: the part's centred mesh, canonical units, as OBJ text."""
@@ -119,12 +120,6 @@ def _network_reason(reason: object, timeout: float) -> str:
     return f"cannot reach the server ({reason})"
 
 
-def _multipart(glb: bytes, filename: str, options: dict[str, Any]) -> tuple[bytes, str]:
-    """A ``multipart/form-data`` body with ``file`` and ``options`` (JSON): (body, content type)."""
-    boundary = "complementme-" + uuid.uuid4().hex
-    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"options\"\r\n"
-            f"Content-Type: application/json\r\n\r\n{json.dumps(options)}\r\n"
-            f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{filename}\"\r\n"
-            f"Content-Type: model/gltf-binary\r\n\r\n").encode()
-    tail = f"\r\n--{boundary}--\r\n".encode("ascii")
-    return head + glb + tail, f"multipart/form-data; boundary={boundary}"
+def _with_options(path: str, options: dict[str, Any]) -> str:
+    """A mesh route's path with its options (JSON) in the query string: the GLB is the body."""
+    return path + "?" + urllib.parse.urlencode({"options": json.dumps(options)})

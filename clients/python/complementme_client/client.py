@@ -119,11 +119,12 @@ class ComplementMeClient:
         return self.request("POST", "/suggest", json=body).json()
 
     def suggest_mesh(self, path: Path, **options: Any) -> dict[str, Any]:
-        """``POST /suggest/mesh`` with a mesh file."""
+        """``POST /suggest/mesh`` with a mesh file, sent as the request body (its format from its
+        extension; the options in the query string): no multipart form to build or parse."""
         path = Path(path)
-        files = {"file": (path.name, path.read_bytes(), "application/octet-stream")}
-        data = {"options": json.dumps(_drop_none(options))}
-        return self.request("POST", "/suggest/mesh", files=files, data=data).json()
+        params = {"options": json.dumps(_drop_none(options)), "format": path.suffix.lstrip(".").lower()}
+        return self.request("POST", "/suggest/mesh", content=path.read_bytes(), params=params,
+                            headers={"Content-Type": "application/octet-stream"}).json()
 
     def suggest_batch(self, queries: list[np.ndarray], **options: Any) -> dict[str, Any]:
         """``POST /suggest/batch``: one result (or error) per query, same options for all."""

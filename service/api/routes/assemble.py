@@ -7,16 +7,15 @@ Handlers are plain ``def`` (threadpool), like the suggestion routes; the work is
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, UploadFile
-from fastapi.exceptions import RequestValidationError
-from pydantic import ValidationError
+from fastapi import APIRouter, Depends
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
-from service.api.deps import DeadlineDep, ServedDep, SettingsDep, UploadsDep, unique_form_fields
+from service.api.deps import DeadlineDep, ServedDep, SettingsDep, UploadsDep
+from service.api.mesh_upload import MeshUpload, mesh_upload_dependency, with_raw_bodies
 from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
@@ -25,7 +24,6 @@ from service.api.served import Served
 from service.artifacts.catalog import Catalog
 from service.errors import InputError
 from service.geometry.frames import Frame
-from service.geometry.inputs import mesh_format
 from service.modeling.assembly import AssembleOptions, Start
 from service.modeling.export_mesh import MEDIA_TYPES, export_assembly
 from service.suggest.engine import SuggestionEngine, SuggestOptions
@@ -44,13 +42,15 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
 }
 
 
-_MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-data": {"examples": {
+# The form's examples; the raw-body media types are added (service.api.mesh_upload).
+_MESH_EXAMPLE: dict[str, Any] = with_raw_bodies({"requestBody": {"content": {
+    "multipart/form-data": {"examples": {
     "obj": {"summary": "A chair seat as OBJ, six parts added",
             "value": {"file": "(seat.obj)", "options": '{"max_parts": 6, "category": "chair"}'}},
     "z-up": {"summary": "A z-up scan in millimetres, answered in its own frame",
              "value": {"file": "(scan.ply)", "options": '{"frame": {"center": [0, 0, 450], '
                        '"radius": 600, "up_axis": "z"}}'}},
-}}}}}
+}}}}})
 
 
 def start_of(body: AssembleRequest, engine: SuggestionEngine, catalog: Catalog, max_points: int,
@@ -94,35 +94,30 @@ def post_assemble(body: AssembleRequest, served: ServedDep, settings: SettingsDe
     return OrjsonResponse(answer)
 
 
+_assemble_upload = mesh_upload_dependency(
+    "The start mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF",
+    "Assembly options as JSON (the options of /assemble).", '{"max_parts": 6, "category": "chair"}')
+
+
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
-    "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE,
-    dependencies=[Depends(unique_form_fields)], responses={
+    "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE, responses={
     413: {"model": ErrorResponse, "description": "Upload or mesh over the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
     422: {"model": ErrorResponse, "description": (
-        "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
+        "Corrupt, empty or zero-area mesh; bad options; a repeated form field or query parameter "
+        "(duplicate_field); options in the query string of a form upload (conflicting_fields).")},
 })
 async def post_assemble_mesh(
     served: ServedDep, settings: SettingsDep, uploads: UploadsDep, deadline: DeadlineDep,
-    file: UploadFile = File(..., description=(
-        "The start mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF.")),
-    options: str | None = Form(None, description="Assembly options as JSON (the options of /assemble).",
-                               examples=['{"max_parts": 6, "category": "chair"}']),
-    format: str | None = Form(None, description="Mesh format, when the file name has no extension.",
-                              examples=["obj"]),
+    upload: Annotated[MeshUpload, Depends(_assemble_upload)],
 ) -> OrjsonResponse:
-    """The mesh's surface is sampled area-weighted (seeded); its area weighs it in the queries."""
-    fmt = mesh_format(file.filename, format)
-    try:
-        opts = AssembleOptionsIn.model_validate_json(options) if options else AssembleOptionsIn()
-    except ValidationError as exc:
-        raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
-                                      for e in exc.errors()]) from None
-    data = await file.read()
+    """The mesh comes as a multipart form, or as the request body (``service.api.mesh_upload``);
+    its surface is sampled area-weighted (seeded), and its area weighs it in the queries."""
+    opts = upload.parse_options(AssembleOptionsIn)
     n = max(served.engine.artifacts.n_points, settings.contact_part_samples)
-    points, area = await run_in_threadpool(uploads.sample, data, fmt, n=n, name=file.filename or "upload",
+    points, area = await run_in_threadpool(uploads.sample, upload.data, upload.format, n=n, name=upload.name,
                                            deadline=deadline)
-    del data
+    del upload
     snapshot = served.snapshot  # one catalog for the assembly and the answer
     assemble_options = opts.to_options()
     fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)

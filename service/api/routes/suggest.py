@@ -10,11 +10,10 @@ engine together with other requests' queries, and render the answer. ``/place`` 
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, UploadFile
-from fastapi.exceptions import RequestValidationError
+from fastapi import APIRouter, Depends
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
@@ -27,9 +26,9 @@ from service.api.deps import (
     SettingsDep,
     TicketDep,
     UploadsDep,
-    unique_form_fields,
 )
 from service.api.errors import service_error_body, validation_error
+from service.api.mesh_upload import MeshUpload, mesh_upload_dependency, with_raw_bodies
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
 from service.api.schemas import (
@@ -44,7 +43,6 @@ from service.api.schemas import (
 )
 from service.api.served import Served
 from service.errors import InputError, ServiceError
-from service.geometry.inputs import mesh_format
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import choose_frame, fit_queries, fit_requested, up_axes_for
 from service.suggest.region import Region
@@ -65,13 +63,15 @@ _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
         "(invalid_region).")},
 }
 
-_MESH_EXAMPLE: dict[str, Any] = {"requestBody": {"content": {"multipart/form-data": {"examples": {
+# The form's examples; the raw-body media types are added (service.api.mesh_upload).
+_MESH_EXAMPLE: dict[str, Any] = with_raw_bodies({"requestBody": {"content": {
+    "multipart/form-data": {"examples": {
     "obj": {"summary": "An OBJ file, five suggestions for chairs",
             "value": {"file": "(chair_without_legs.obj)", "options": '{"k": 5, "category": "chair"}'}},
     "z-up": {"summary": "A z-up mesh in millimetres, answered in its own frame",
              "value": {"file": "(scan.ply)", "options": '{"frame": {"center": [0, 0, 450], '
                        '"radius": 600, "up_axis": "z"}}'}},
-}}}}}
+}}}}})
 
 
 @batched.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
@@ -100,37 +100,34 @@ async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, fr
     return replace(options, frame=choose_frame(frames, answers, served.settings.fit_frame_radius_prior).frame)
 
 
+_suggest_upload = mesh_upload_dependency(
+    "The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF",
+    "Suggestion options as JSON (the options of /suggest).", '{"k": 5, "category": "chair"}')
+
+
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
     "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
-    dependencies=[Depends(unique_form_fields)], responses={
+    responses={
     413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
           "with more vertices, faces, nodes or nesting than the limits."},
     415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
     422: {"model": ErrorResponse, "description": (
-        "Corrupt, empty or zero-area mesh; bad options; a repeated form field (duplicate_field).")},
+        "Corrupt, empty or zero-area mesh; bad options; a repeated form field or query parameter "
+        "(duplicate_field); options in the query string of a form upload (conflicting_fields).")},
 })
 async def post_suggest_mesh(
     served: ServedDep, uploads: UploadsDep, settings: SettingsDep, ticket: TicketDep, deadline: DeadlineDep,
-    file: UploadFile = File(..., description="The mesh: OBJ, PLY, STL, OFF, GLB or self-contained glTF."),
-    options: str | None = Form(None, description="Suggestion options as JSON (the options of /suggest).",
-                               examples=['{"k": 5, "category": "chair"}']),
-    format: str | None = Form(None, description="Mesh format, when the file name has no extension.",
-                              examples=["obj"]),
+    upload: Annotated[MeshUpload, Depends(_suggest_upload)],
 ) -> OrjsonResponse:
-    """The mesh's surface is sampled area-weighted (seeded) to the model's point count."""
-    fmt = mesh_format(file.filename, format)
-    try:
-        opts = SuggestOptionsIn.model_validate_json(options) if options else SuggestOptionsIn()
-    except ValidationError as exc:
-        raise RequestValidationError([{**e, "loc": ("body", "options", *e["loc"])}
-                                      for e in exc.errors()]) from None
+    """The mesh comes as a multipart form, or as the request body (``service.api.mesh_upload``);
+    its surface is sampled area-weighted (seeded) to the model's point count."""
+    opts = upload.parse_options(SuggestOptionsIn)
     options_out = opts.to_options()
     n_points = served.engine.artifacts.n_points
     served.check(n_points, options_out)
-    data = await file.read()
-    points, _ = await run_in_threadpool(uploads.sample, data, fmt, n=n_points,
-                                        name=file.filename or "upload", deadline=deadline)
-    del data  # the upload's bytes are not needed while the query waits for its batch
+    points, _ = await run_in_threadpool(uploads.sample, upload.data, upload.format, n=n_points,
+                                        name=upload.name, deadline=deadline)
+    del upload  # the upload's bytes are not needed while the query waits for its batch
     fit = fit_requested(opts.fit_frame, opts.frame is not None, True, settings)
     if fit:
         options_out = await fitted(served, points, options_out, opts.frame is not None, ticket, deadline)
