@@ -156,7 +156,7 @@ class Settings(BaseSettings):
     suggest_order: Literal["share", "likelihood"] = Field(default="share", description=(
         "Order of suggestions. `share` (the default): the first `share_order_head` slots in "
         "mixture-likelihood order, the rest dealt to g's modes in proportion to their weights "
-        "(largest quotient first), each mode giving its own best parts: the paper's sampling "
+        "(Sainte-Lague's highest averages), each mode giving its own best parts: the paper's sampling "
         "from the mixture, made deterministic, so after its surest parts a seat alone also gets "
         "legs and arms in the shares g gives them. `likelihood`: by mixture likelihood alone, "
         "where the mode whose parts lie closest to its mean takes every slot. Measured on the "

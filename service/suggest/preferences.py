@@ -107,10 +107,16 @@ def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float, head:
     """Slots dealt to modes in proportion to their weights: positions into ``modes``.
 
     The paper suggests parts sampled from g's mixture: a mode of weight phi_k gives a share
-    phi_k of the suggestions. This is that draw made deterministic (D'Hondt's largest quotient):
-    each next slot goes to the mode with the largest ``phi_k / (slots_k + 1)`` that still has
-    candidates, and takes that mode's best remaining part. Modes below ``min_weight`` get slots
-    only after every other mode ran out, in likelihood order.
+    phi_k of the suggestions. This is that draw made deterministic (Sainte-Lague's highest
+    averages): each next slot goes to the mode with the largest ``phi_k / (2 slots_k + 1)`` that
+    still has candidates, and takes that mode's best remaining part. Modes below ``min_weight``
+    get slots only after every other mode ran out, in likelihood order.
+
+    Why Sainte-Lague rather than D'Hondt's ``phi_k / (slots_k + 1)``: both give slots in
+    proportion to the weights, but D'Hondt rounds in favour of the heaviest mode, and ten slots
+    after a head of five are few. On the shipped model's benchmark (one part present, 4.9 modes
+    of weight >= 0.05) the top 10 held 2.69 distinct labels and 78% of the missing labels
+    against 2.45 and 72% with D'Hondt; the head, and so functional mAP@5, is the same.
 
     Args:
         modes: (C,) each candidate's mode, candidates sorted by likelihood (best first).
@@ -129,7 +135,7 @@ def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float, head:
     heavy = w[modes[first:]] >= min_weight
     dealt, light = rest[heavy], rest[~heavy]
     m = modes[dealt]
-    # The j-th remaining part of mode k gets the quotient phi_k / (taken_k + j + 1); each mode's
+    # The j-th remaining part of mode k gets the quotient phi_k / (2 (taken_k + j) + 1); each mode's
     # quotients fall with j, so picking the largest quotient slot after slot (ties: the lower
     # mode) is one sort of all of them (quotient down, then mode, then j). A loop over the slots
     # cost 0.75 ms of a 3.2 ms request at C = 339 candidates.
@@ -138,6 +144,6 @@ def share_order(modes: np.ndarray, weights: np.ndarray, min_weight: float, head:
     sorted_m = m[by_mode]
     j = np.empty(len(m), dtype=np.int64)
     j[by_mode] = np.arange(len(m)) - np.searchsorted(sorted_m, sorted_m, side="left")
-    quotient = w[m] / (taken[m] + j + 1)
+    quotient = w[m] / (2 * (taken[m] + j) + 1)
     dealt = dealt[np.lexsort((j, m, -quotient))]
     return np.concatenate([np.arange(first, dtype=np.int64), dealt, light]).astype(np.int64)
