@@ -360,6 +360,13 @@ class Settings(BaseSettings):
         "larger than this is let in when no other is being received. Without it only the proxy's "
         "connection limit bounded the memory (or, past `upload_memory_bytes`, disk) held by "
         "bodies in reception."))
+    max_receiving_bytes_per_client: int = Field(default=64 * 1024 * 1024, ge=1024, description=(
+        "Share of `max_receiving_bytes` one client (address; behind a proxy, `X-Forwarded-For` "
+        "from a trusted one) may hold with bodies still arriving; past it the client's next "
+        "request with a body is refused 429 `too_many_bodies` with Retry-After before a byte is "
+        "read, and other clients are not touched. So a client with many slow uploads cannot take "
+        "the whole reception budget. A single body larger than this is let in when the client has "
+        "none on its way."))
     max_concurrent_uploads: int = Field(default=2, ge=1, description=(
         "Mesh uploads (`/suggest/mesh`, `/assemble/mesh`) parsed at once per server process; more "
         "wait for a turn (within the request deadline). Parsing an 18 MB OBJ peaks at about 0.4 GB, "

@@ -171,6 +171,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        max_inflight_suggest=settings.max_inflight_suggest,
                        refusal_delay=settings.overload_refusal_delay,
                        max_receiving_bytes=settings.max_receiving_bytes,
+                       max_receiving_bytes_per_client=settings.max_receiving_bytes_per_client,
                        body_bound=partial(body_bound, max_body_bytes=settings.max_body_bytes,
                                           max_upload_bytes=settings.max_upload_bytes),
                        metrics=app.state.metrics)

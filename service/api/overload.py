@@ -23,6 +23,13 @@ how many bodies were held in memory (a JSON body whole, an upload's file part up
 8 MB. A body larger than the whole budget is let in when no other is being received, so every
 body within the limits can be sent.
 
+One client (its address, as for the error budget below) may hold at most
+``max_receiving_bytes_per_client`` of it: a client that opens many slow uploads (each chunked one
+reserves its whole limit, 32 MB) would otherwise hold the whole budget, and every other client's
+bodies would be refused until its deadlines cut them. Past its share a client's new body is
+refused 429 ``too_many_bodies`` (not charged to its error budget), before a byte is read; a
+single body larger than the share is let in when the client has none on its way.
+
 Catalog writes (``POST /parts``, ``DELETE /parts/...``) have a gate of their own
 (``max_inflight_writes``): they wait for each other on the database, and must not take the slots
 of suggestion queries while they do. ``POST /suggest`` has one too (``max_inflight_suggest``,
@@ -81,6 +88,13 @@ PROBE_PATHS = frozenset({"/healthz", "/readyz", "/metrics"})
 MAX_TRACKED_CLIENTS = 10_000
 # The status of a refusal for too many errors: not itself an error the client is charged for.
 TOO_MANY_ERRORS = 429
+
+
+def client_key(scope: Scope) -> str:
+    """The client a request is counted against: its address as uvicorn puts it in the scope (the
+    peer's, or ``X-Forwarded-For``'s from a trusted proxy)."""
+    client = scope.get("client")
+    return client[0] if client else "unknown"
 
 
 class InferenceGate:
@@ -142,27 +156,50 @@ class InferenceGate:
 
 
 class ReceptionBudget:
-    """Bytes of request bodies being received at once, at most ``max_bytes`` (asyncio, one loop)."""
+    """Bytes of request bodies being received at once: at most ``max_bytes`` in all, and at most
+    ``per_client`` for one client key (asyncio, one loop: no locking).
 
-    def __init__(self, max_bytes: int):
+    A body larger than a bound is let in when nothing else holds that bound (the whole budget, or
+    the client's share), so every body within the request limits can be sent.
+    """
+
+    def __init__(self, max_bytes: int, per_client: int | None = None):
         assert max_bytes > 0, f"max_bytes must be positive, found {max_bytes}"
         self.max_bytes = max_bytes
+        self.per_client = per_client  # None: no share per client
         self.held = 0
         self.bodies = 0
+        self._by_client: dict[str, int] = {}  # clients holding bytes now (the entry goes at 0)
 
-    def take(self, nbytes: int) -> bool:
-        """Reserve ``nbytes`` for a body about to be received; False when that would pass the
-        budget (a body larger than the whole budget is let in alone)."""
+    def held_by(self, key: str) -> int:
+        return self._by_client.get(key, 0)
+
+    def refusal(self, nbytes: int, key: str) -> str | None:
+        """Why ``nbytes`` more for ``key`` would pass a bound: ``"client"``, ``"all"``, or None."""
+        mine = self._by_client.get(key, 0)
+        if self.per_client is not None and mine and mine + nbytes > self.per_client:
+            return "client"
         if self.bodies and self.held + nbytes > self.max_bytes:
+            return "all"
+        return None
+
+    def take(self, nbytes: int, key: str = "") -> bool:
+        """Reserve ``nbytes`` for ``key``'s body about to be received; False when that would pass
+        a bound (``refusal`` says which)."""
+        if self.refusal(nbytes, key) is not None:
             return False
         self.held += nbytes
         self.bodies += 1
+        self._by_client[key] = self._by_client.get(key, 0) + nbytes
         return True
 
-    def give(self, nbytes: int) -> None:
+    def give(self, nbytes: int, key: str = "") -> None:
         """A body reserved with ``take`` is in (or its request ended)."""
         self.held -= nbytes
         self.bodies -= 1
+        left = self._by_client.pop(key, 0) - nbytes
+        if left > 0:
+            self._by_client[key] = left
 
 
 class ClientErrorBudget:
@@ -225,8 +262,7 @@ class ErrorBudgetMiddleware:
         if scope["type"] != "http" or scope["path"] in PROBE_PATHS:
             await self.app(scope, receive, send)
             return
-        client = scope.get("client")
-        key = client[0] if client else "unknown"
+        key = client_key(scope)
         wait = self.budget.wait(key)
         if wait > 0:  # refused before a byte of the body is read
             self.metrics.rejections.labels("too_many_errors").inc()
@@ -261,11 +297,12 @@ class OverloadMiddleware:
     def __init__(self, app: ASGIApp, max_inflight: int, max_queue: int, timeout: float,
                  max_inflight_writes: int = 2, metrics: Metrics | None = None,
                  max_inflight_suggest: int | None = None, refusal_delay: float = 0.0,
-                 max_receiving_bytes: int | None = None,
+                 max_receiving_bytes: int | None = None, max_receiving_bytes_per_client: int | None = None,
                  body_bound: Callable[[Scope], int] | None = None):
         self.app = app
         # None: bodies being received are not bounded here (tests of the gate alone).
-        self.reception = ReceptionBudget(max_receiving_bytes) if max_receiving_bytes else None
+        self.reception = (ReceptionBudget(max_receiving_bytes, max_receiving_bytes_per_client)
+                          if max_receiving_bytes else None)
         self.body_bound = body_bound or (lambda scope: 0)
         self.refusal_delay = refusal_delay
         self.gate = InferenceGate(max_inflight, max_queue)
@@ -392,10 +429,22 @@ class OverloadMiddleware:
         reception = self.reception
         if reception is None:
             return True
-        nbytes = self.body_bound(scope)
-        if reception.take(nbytes):
-            admission.receiving(reception, nbytes)
+        nbytes, key = self.body_bound(scope), client_key(scope)
+        why = reception.refusal(nbytes, key)
+        if why is None:
+            reception.take(nbytes, key)
+            admission.receiving(reception, nbytes, key)
             return True
+        if why == "client":  # this client's own bodies hold its share: the others are not refused
+            self.rejected.labels("receiving_client_full").inc()
+            await asyncio.sleep(self.refusal_delay)  # as an overload refusal, and for the same reason
+            await _send_error(send, TOO_MANY_ERRORS, "too_many_bodies", (
+                f"this client ({key}) is still sending request bodies of {reception.held_by(key)} bytes, "
+                f"and this one may bring {nbytes} more: one client may have at most "
+                f"{reception.per_client} bytes of bodies on their way at once "
+                "(COMPLEMENTME_MAX_RECEIVING_BYTES_PER_CLIENT); retry when they are in"),
+                [(b"retry-after", b"1")])
+            return False
         self.rejected.labels("receiving_full").inc()
         await self._overloaded(admission.gate, send, (
             f"{reception.bodies} request bodies of {reception.held} bytes are being received, and "
@@ -468,15 +517,16 @@ class _Admission:
         self.entered: float | None = None
         self._reception: ReceptionBudget | None = None
         self._reserved = 0
+        self._client = ""
 
-    def receiving(self, reception: ReceptionBudget, nbytes: int) -> None:
-        """The body's bytes are reserved in ``reception`` until ``body_in``."""
-        self._reception, self._reserved = reception, nbytes
+    def receiving(self, reception: ReceptionBudget, nbytes: int, client: str) -> None:
+        """The body's bytes are reserved in ``reception`` for ``client`` until ``body_in``."""
+        self._reception, self._reserved, self._client = reception, nbytes, client
 
     def body_in(self, _: object = None) -> None:
         """The body is in, or the request ended without it: give its reservation back (once)."""
         if self._reception is not None:
-            self._reception.give(self._reserved)
+            self._reception.give(self._reserved, self._client)
             self._reception = None
 
     def running(self) -> None:

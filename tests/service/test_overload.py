@@ -208,6 +208,19 @@ def test_reception_budget_lets_a_body_larger_than_itself_in_alone() -> None:
     assert not budget.take(1)
 
 
+def test_reception_budget_gives_each_client_a_share() -> None:
+    budget = ReceptionBudget(1000, per_client=600)
+    assert budget.take(500, "a") and budget.refusal(200, "a") == "client"
+    assert budget.take(400, "b"), "another client is not touched by a's share"
+    assert budget.refusal(200, "c") == "all" and budget.held_by("a") == 500
+    budget.give(500, "a")
+    assert budget.held_by("a") == 0 and budget.take(600, "a")
+    budget.give(600, "a")
+    budget.give(400, "b")
+    assert (budget.held, budget.bodies, budget.held_by("b")) == (0, 0, 0)
+    assert budget.take(900, "a"), "alone, a body over the client's share may still be sent"
+
+
 def _reading_app(reads: list[str]) -> Any:
     """An app that reads its whole body, then answers 200."""
     async def app(scope: Scope, receive: Receive, send: Send) -> None:
@@ -263,6 +276,47 @@ def test_bodies_being_received_are_bounded_by_their_bytes() -> None:
     asyncio.run(main())
     assert "/big" not in reads and "/chunked" not in reads, "refused bodies are never read"
     assert mw.metrics.rejections.labels("receiving_full")._value.get() == 2
+
+
+def test_a_client_with_slow_bodies_cannot_take_the_others_reception() -> None:
+    """Past its share, a client's next body is refused 429 before it is read; another client's
+    body still goes in."""
+    reads: list[str] = []
+    mw = OverloadMiddleware(_reading_app(reads), max_inflight=8, max_queue=8, timeout=10,
+                            max_receiving_bytes=1000, max_receiving_bytes_per_client=700,
+                            body_bound=partial(body_bound, max_body_bytes=600, max_upload_bytes=600))
+    reception = mw.reception
+    assert reception is not None
+
+    async def main() -> None:
+        hostile = httpx.AsyncClient(transport=httpx.ASGITransport(app=mw, client=("10.0.0.1", 1)),
+                                    base_url="http://test")
+        other = httpx.AsyncClient(transport=httpx.ASGITransport(app=mw, client=("10.0.0.2", 1)),
+                                  base_url="http://test")
+        async with hostile, other:
+            release = asyncio.Event()
+
+            async def slow_body() -> Any:
+                yield b"x"
+                await release.wait()
+                yield b"x"
+
+            slow = [asyncio.ensure_future(hostile.post(f"/slow{i}", content=slow_body(),
+                                                       headers={"content-length": "2"})) for i in range(2)]
+            chunked = asyncio.ensure_future(hostile.post("/chunked", content=slow_body()))
+            await asyncio.sleep(0.05)
+            assert reception.held_by("10.0.0.1") == 604, "two of 2 bytes, and a chunked one: its limit"
+            refused = await hostile.post("/more", content=b"x" * 100)
+            assert refused.status_code == 429 and refused.json()["error"]["code"] == "too_many_bodies"
+            assert "retry-after" in refused.headers and "10.0.0.1" in refused.json()["error"]["message"]
+            assert (await other.post("/other", content=b"x" * 300)).status_code == 200
+            release.set()
+            assert [(await r).status_code for r in (*slow, chunked)] == [200, 200, 200]
+            assert (reception.held, reception.bodies) == (0, 0)
+
+    asyncio.run(main())
+    assert "/more" not in reads and "/other" in reads
+    assert mw.metrics.rejections.labels("receiving_client_full")._value.get() == 1
 
 
 def test_a_body_cut_at_its_deadline_gives_its_reservation_back() -> None:
