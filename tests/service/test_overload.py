@@ -148,22 +148,26 @@ def test_real_app_deadline_and_gate(artifacts: Path, query: AssemblyQuery) -> No
         assert "complementme_inflight_requests 0.0" in c.get("/metrics").text
 
 
-def test_a_full_gate_refuses_before_reading_and_slow_bodies_hold_no_slot() -> None:
-    """A request whose body is still arriving holds no slot; one arriving at a full gate is
-    refused without a byte of its body read."""
-    reads: list[str] = []
-
+def _reading_app(reads: list[str], seconds: float = 0.0) -> Any:
+    """An app that reads its whole body (recording its path per chunk), works ``seconds``
+    (asleep), then answers 200."""
     async def app(scope: Scope, receive: Receive, send: Send) -> None:
         while True:
             message = await receive()
             reads.append(scope["path"])
             if not message.get("more_body", False):
                 break
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(seconds)
         await send({"type": "http.response.start", "status": 200, "headers": []})
         await send({"type": "http.response.body", "body": b"done"})
+    return app
 
-    mw = OverloadMiddleware(app, max_inflight=1, max_queue=0, timeout=10)
+
+def test_a_full_gate_refuses_before_reading_and_slow_bodies_hold_no_slot() -> None:
+    """A request whose body is still arriving holds no slot; one arriving at a full gate is
+    refused without a byte of its body read."""
+    reads: list[str] = []
+    mw = OverloadMiddleware(_reading_app(reads, 0.3), max_inflight=1, max_queue=0, timeout=10)
 
     async def main() -> list[int]:
         transport = httpx.ASGITransport(app=mw)
@@ -219,19 +223,6 @@ def test_reception_budget_gives_each_client_a_share() -> None:
     budget.give(400, "b")
     assert (budget.held, budget.bodies, budget.held_by("b")) == (0, 0, 0)
     assert budget.take(900, "a"), "alone, a body over the client's share may still be sent"
-
-
-def _reading_app(reads: list[str]) -> Any:
-    """An app that reads its whole body, then answers 200."""
-    async def app(scope: Scope, receive: Receive, send: Send) -> None:
-        while True:
-            message = await receive()
-            reads.append(scope["path"])
-            if not message.get("more_body", False):
-                break
-        await send({"type": "http.response.start", "status": 200, "headers": []})
-        await send({"type": "http.response.body", "body": b"done"})
-    return app
 
 
 def test_bodies_being_received_are_bounded_by_their_bytes() -> None:
