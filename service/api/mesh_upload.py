@@ -106,6 +106,12 @@ def mesh_upload_dependency(file_description: str, options_description: str,
         repeated = [key for key in _QUERY_FIELDS if len(request.query_params.getlist(key)) > 1]
         if repeated:
             raise InputError("duplicate_field", f"query parameter {repeated[0]!r} is given more than once")
+        if media == "application/x-www-form-urlencoded":
+            # Such a form has no file parts; it is what `curl --data-binary` sends unless told.
+            raise UnsupportedMediaError("unsupported_media_type", (
+                "an application/x-www-form-urlencoded body cannot carry a mesh: send a "
+                "multipart/form-data form with a file part, or the file itself with its media type "
+                "(Content-Type: model/obj, model/gltf-binary, ...)"))
         if media in _NOT_A_MESH:
             if media in _FORM_MEDIA:
                 await _unique_form_fields(request)

@@ -201,5 +201,7 @@ def test_mesh_upload_option_errors(client: TestClient) -> None:
     assert_error(_upload(client, "box.obj", _BOX_OBJ, options="k=3"), 400, "invalid_json")
     err = assert_error(_upload(client, "box.obj", _BOX_OBJ, options='{"kk": 3}'), 422, "validation_error")
     assert err["details"][0]["loc"] == ["body", "options", "kk"]
-    assert_error(client.post("/suggest/mesh", data={"options": "{}"}), 422, "validation_error")
+    # A multipart form without its file part; an urlencoded form cannot carry one at all.
+    assert_error(client.post("/suggest/mesh", files={"options": (None, "{}")}), 422, "validation_error")
+    assert_error(client.post("/suggest/mesh", data={"options": "{}"}), 415, "unsupported_media_type")
     assert_error(client.post("/suggest/mesh", json={"points": [[0, 0, 0]] * 20}), 422, "validation_error")

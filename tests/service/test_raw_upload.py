@@ -56,6 +56,8 @@ _OBJ = {"content-type": "model/obj"}
     ({"headers": _OBJ, "params": {"options": '{"k": "x"}'}}, 422, "validation_error", "query.options.k"),
     ({"headers": _OBJ, "params": [("format", "obj"), ("format", "ply")]}, 422, "duplicate_field", "'format'"),
     ({"headers": {"content-type": "model/gltf-binary"}}, 422, "corrupt_mesh", "glTF"),
+    ({"headers": {"content-type": "application/x-www-form-urlencoded"}}, 415, "unsupported_media_type",
+     "Content-Type: model/obj"),
 ])
 def test_a_bad_body_upload_is_refused_clearly(client: TestClient, request_args: dict[str, Any], status: int,
                                               code: str, says: str) -> None:
