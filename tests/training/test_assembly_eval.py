@@ -18,6 +18,7 @@ from training.evaluate.assembly_eval import (
     data_stacked,
     measure_run,
     report_markers,
+    start_parts,
     summarize,
     write_report,
 )
@@ -102,6 +103,34 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
         assert text.count(start) == 1 and text.count(end) == 1
     assert "before" in text and text.count("| chair | 2 | 50% |") == 2
     assert "Data: stacked" in text and "| 100% | 50% | complete 1, unlikely 1 |" in text
+
+
+class _Shapes:
+    """The parts of ShapeIndex that start_parts reads: two categories, shapes in both splits."""
+
+    def __init__(self) -> None:
+        names = [f"{c}-{s}{i}" for c in ("chair", "lamp") for s in ("train", "test") for i in range(4)]
+        self.rows = {sid: [3 * k + j for j in range(3)] for k, sid in enumerate(names)}  # rows unique
+        self.category = {sid: sid.split("-")[0] for sid in self.rows}
+        self.split = {sid: "train" if "train" in sid else "test" for sid in self.rows}
+
+    def shapes(self, category: str, split: str) -> list[str]:
+        return sorted(s for s in self.rows if self.category[s] == category and self.split[s] == split)
+
+    def categories(self) -> list[str]:
+        return ["chair", "lamp"]
+
+
+def test_start_parts_come_from_the_split_asked_for() -> None:
+    """The reported split is test; train starts are for choosing settings without looking at it."""
+    index = _Shapes()
+    for split in ("test", "train"):
+        starts = start_parts(index, 6, seed=0, split=split)  # type: ignore[arg-type]
+        assert [c for c, _ in starts] == ["chair"] * 6 + ["lamp"] * 6
+        assert all(any(row in index.rows[sid] for sid in index.shapes(c, split)) for c, row in starts)
+    assert start_parts(index, 6, seed=0) == start_parts(index, 6, seed=0, split="test")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="split must be train or test"):
+        AssemblyEvalSettings(split="val").validate()
 
 
 @pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="no trained artifacts in exported/ yet")

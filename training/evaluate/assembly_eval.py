@@ -67,6 +67,9 @@ class AssemblyEvalSettings:
     report: Path | None = Path("docs/modeling.md")  # Markdown summary between the markers
     seed: int = 0
     starts_per_category: int = 20
+    # The split start parts come from: "test" (held out, what is reported) or "train" (for
+    # choosing the assembly's settings without looking at the reported split).
+    split: str = "test"
     strategies: tuple[str, ...] = ("greedy",)
     temperature: float = 1.0                     # of the sampled runs
     max_parts: int | None = None                 # None: the service's assemble_max_parts
@@ -80,6 +83,8 @@ class AssemblyEvalSettings:
     def validate(self) -> None:
         if self.starts_per_category <= 0:
             raise ValueError(f"starts_per_category must be positive, got {self.starts_per_category}")
+        if self.split not in ("train", "test"):
+            raise ValueError(f"split must be train or test, got {self.split!r}")
         bad = [s for s in self.strategies if s not in ("greedy", "sample")]
         if bad or not self.strategies:
             raise ValueError(f"unknown strategies {bad}; choose among greedy, sample")
@@ -97,12 +102,12 @@ def essential_labels(index: ShapeIndex) -> dict[str, set[str]]:
     return out
 
 
-def start_parts(index: ShapeIndex, n: int, seed: int) -> list[tuple[str, int]]:
-    """``n`` start parts per category: one random component of each of ``n`` held-out shapes
+def start_parts(index: ShapeIndex, n: int, seed: int, split: str = "test") -> list[tuple[str, int]]:
+    """``n`` start parts per category: one random component of each of ``n`` shapes of ``split``
     (fewer shapes than ``n``: shapes are reused with other components), seeded per category."""
     out: list[tuple[str, int]] = []
     for c in index.categories():
-        shapes = index.shapes(c, "test")
+        shapes = index.shapes(c, split)
         if not shapes:
             continue
         rng = setting_rng(seed, c, "assembly")
@@ -241,7 +246,7 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
     engine = SuggestionEngine(artifacts, settings)
     index = ShapeIndex(artifacts.catalog, dense_points=s.contact_samples, seed=s.seed)
     essentials = essential_labels(index)
-    starts = start_parts(index, s.starts_per_category, s.seed)
+    starts = start_parts(index, s.starts_per_category, s.seed, s.split)
     assembler = Assembler(engine, settings)
     cat = artifacts.catalog
     runs: list[dict[str, Any]] = []

@@ -116,6 +116,9 @@ def evaluate_assembly_command(
     no_report: bool = typer.Option(False, "--no-report", help="Write results.json only."),
     seed: int = typer.Option(0, "--seed", help="Seed of the start parts and the sampler."),
     starts: int = typer.Option(20, "--starts", help="Held-out start parts per category."),
+    split: str = typer.Option("test", "--split", help=(
+        "Shapes the start parts come from: test (held out, reported) or train (for tuning the "
+        "assembly's settings; the start's own shape is still excluded).")),
     strategies: str = typer.Option("greedy", "--strategies", help="Comma-separated: greedy, sample."),
     temperature: float = typer.Option(1.0, "--temperature", help="Temperature of the sampled runs."),
     max_parts: Optional[int] = typer.Option(None, "--max-parts",  # noqa: UP045
@@ -132,7 +135,8 @@ def evaluate_assembly_command(
 
     settings = AssemblyEvalSettings(
         artifacts=artifacts, out=out, report=None if no_report else report, seed=seed,
-        starts_per_category=starts, strategies=tuple(x.strip() for x in strategies.split(",") if x.strip()),
+        starts_per_category=starts, split=split,
+        strategies=tuple(x.strip() for x in strategies.split(",") if x.strip()),
         temperature=temperature, max_parts=max_parts, contact=contact, contact_tolerance=contact_tolerance,
         progress=progress, command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]))
     try:
