@@ -11,12 +11,13 @@ One request (or a batch of them) goes through these steps, each one batched:
    FAISS): the nearest catalog parts of every mean, all K means (of all queries sharing the same
    filter) in one search;
 4. the union of candidates re-scored by the exact mixture log-likelihood, ranked, near-identical
-   parts collapsed (catalog ``duplicate_of``), the top ones kept (k, or ``complement_candidates``
-   when the complement check runs);
+   parts collapsed (catalog ``duplicate_of``), dealt to g's modes (the share order; after its head
+   a near-copy of a part dealt before it waits: ``preferences.spread_order``), the top ones kept
+   (k, or ``complement_candidates`` when the complement check runs);
 5. h_head over every kept candidate of the batch in one run, with the parts' precomputed
    features from catalog.npz; then the complement check (``service.suggest.complement``): parts that h
    places mostly onto the query's own surface, i.e. parts the query already has, move behind
-   the others, and the top k stay;
+   the others (each group dealt again), and the top k stay;
 6. contact refinement (``service.suggest.contact``; for suggestions only when asked, or when the setting
    ``suggest_refine_contact`` turns it on by default: it costs about ten times the rest of the
    request): each placed part nudged by at most ``contact_max_offset`` so it touches the
@@ -58,7 +59,7 @@ from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
-from service.suggest.preferences import Preferences, diverse_order, share_order
+from service.suggest.preferences import Preferences, diverse_order, share_order, spread_order
 from service.suggest.region import Region
 from service.suggest.snapshot import CatalogSnapshot
 
@@ -227,6 +228,7 @@ class Ranked:
     modes: np.ndarray     # the mode that explains each part best
     scored: int           # distinct candidates scored before ranking
     weights: np.ndarray | None = None   # (K,) the mode weights the order was dealt by (None: none)
+    sigmas: np.ndarray | None = None    # (K, D) the mixture's standard deviations (the spread order)
 
     @classmethod
     def empty(cls) -> Ranked:
@@ -670,7 +672,7 @@ class SuggestionEngine:
         placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit)
         if q.region is not None:
             placed = placed.take(self._in_region(q, placed, snap))
-        return placed.take(self._complement_order(q, placed, ranked.weights, snap))
+        return placed.take(self._complement_order(q, placed, ranked, snap)[:q.k])
 
     def refine(self, q: Query, placed: Placed, deadline: float | None, snap: CatalogSnapshot) -> np.ndarray:
         """Contact refinement offsets (canonical) of a query's placed parts, zeros when it is off.
@@ -838,17 +840,19 @@ class SuggestionEngine:
             keep = np.sort(first)
         else:
             keep = np.arange(len(cand))
-        keep = keep[self._mode_order(q, mode[keep], w)]
+        keep = keep[self._mode_order(q, mode[keep], w, cat.embeddings[cand[keep]], sigmas)]
         keep = keep[:self._shortlist(q)]
-        return Ranked(cand[keep], ll[keep], mode[keep], n_scored, w)
+        return Ranked(cand[keep], ll[keep], mode[keep], n_scored, w, sigmas)
 
-    def _mode_order(self, q: Query, modes: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def _mode_order(self, q: Query, modes: np.ndarray, w: np.ndarray, emb: np.ndarray,
+                    sigmas: np.ndarray | None) -> np.ndarray:
         """Positions into ``modes`` (candidates in likelihood order) in the order the query's
         suggestions are dealt: the diversity round-robin, the share order (not for a region
-        query), or unchanged.
+        query) with its near-copies moved back (``spread_order``), or unchanged.
 
         Shapes:
-            modes: (C,) int64; w: (K,) the (reweighted) mode weights -> (C,) int64.
+            modes: (C,) int64; w: (K,) the (reweighted) mode weights; emb: (C, D) the candidates'
+            embeddings; sigmas: (K, D) g's standard deviations (None: no spread) -> (C,) int64.
         """
         c = self.config
         if q.options.preferences.diversity:
@@ -856,8 +860,19 @@ class SuggestionEngine:
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
         if c.suggest_order == "share" and q.region is None:
-            return share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
+            order = share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
+            if sigmas is None or not self._spreads(q):
+                return order
+            return order[spread_order(emb[order], modes[order], sigmas, c.share_order_head, q.k,
+                                      c.share_spread_sigmas)]
         return np.arange(len(modes))
+
+    def _spreads(self, q: Query) -> bool:
+        """Whether near-copies wait (``preferences.spread_order``): in the share order only (a
+        region's parts and the diversity round-robin keep their own orders)."""
+        c = self.config
+        return (c.suggest_order == "share" and c.share_spread_sigmas > 0 and q.region is None
+                and not q.options.preferences.diversity)
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
@@ -887,9 +902,9 @@ class SuggestionEngine:
         q.region_report = RegionReport(placed=len(gap), inside=int(inside.sum()), nearest_gap=nearest)
         return inside
 
-    def _complement_order(self, q: Query, placed: Placed, weights: np.ndarray | None,
+    def _complement_order(self, q: Query, placed: Placed, ranked: Ranked,
                           snap: CatalogSnapshot) -> np.ndarray:
-        """The top k of a query's ranked, placed candidates (indices), covered parts demoted.
+        """A query's ranked, placed candidates in answer order (indices), covered parts demoted.
 
         When the suggestions are dealt to modes (diversity, share order), each group (uncovered,
         then covered) is dealt again: demoting a mode's first part must not leave that mode out
@@ -897,13 +912,15 @@ class SuggestionEngine:
         """
         idx = placed.rows
         if not self._checks_complement(q.options) or len(idx) == 0:
-            return np.arange(min(len(idx), q.k))
+            return np.arange(len(idx))
         c = self.config
         samples = snap.catalog.part_samples(idx, c.complement_part_samples)
         share = covered_share(q.points, samples, placed.translations.astype(np.float32),
                               c.complement_cover_distance)
-        deal = None if weights is None else (lambda g: self._mode_order(q, placed.modes[g], weights))
-        return complement_order(share, c.complement_cover_share, placed.scores, deal)[:q.k]
+        weights, emb = ranked.weights, snap.catalog.embeddings
+        deal = None if weights is None else (
+            lambda g: self._mode_order(q, placed.modes[g], weights, emb[placed.rows[g]], ranked.sigmas))
+        return complement_order(share, c.complement_cover_share, placed.scores, deal)
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.

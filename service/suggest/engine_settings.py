@@ -41,6 +41,7 @@ class EngineSettings(BaseModel):
     suggest_order: Literal["share", "likelihood"]
     share_min_mode_weight: float
     share_order_head: int
+    share_spread_sigmas: float
     diversity_min_mode_weight: float
     # placement, the complement check and regions
     fit_scale: bool

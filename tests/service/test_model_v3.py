@@ -17,7 +17,7 @@ from service_testkit import assembly_query
 from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.preferences import share_order
+from service.suggest.preferences import share_order, spread_order
 
 
 def _held_out_shapes(catalog: Catalog, per_category: int) -> list[str]:
@@ -61,13 +61,62 @@ def test_the_share_order_keeps_its_head_in_likelihood_order_and_counts_it() -> N
     assert share_order(modes, np.array([0.5, 0.3, 0.2]), 0.05, head=99).tolist() == list(range(12))
 
 
+def test_spread_order_moves_near_copies_behind_the_other_parts() -> None:
+    sigmas = np.full((2, 4), 0.1)
+    emb = np.array([[0, 0, 0, 0],        # head
+                    [1, 0, 0, 0],        # head (a near-copy in the head stays)
+                    [0.05, 0, 0, 0],     # 0.25 sigma from the first: waits
+                    [0, 1, 0, 0],
+                    [0, 1.02, 0, 0],     # a near-copy of the one before: waits
+                    [0, 0, 1, 0],
+                    [0, 0, 0, 1]], dtype=np.float64)
+    modes = np.array([0, 1, 0, 1, 0, 1, 0])
+    order = spread_order(emb, modes, sigmas, head=2, k=5, min_sigmas=1.0)
+    assert order.tolist() == [0, 1, 3, 5, 6, 2, 4]
+    assert spread_order(emb, modes, sigmas, head=2, k=5, min_sigmas=0).tolist() == list(range(7))
+    # Once k parts are shown the rest keeps its order; a head past the list changes nothing.
+    assert spread_order(emb, modes, sigmas, head=2, k=3, min_sigmas=1.0).tolist() == [0, 1, 3, 2, 4, 5, 6]
+    assert spread_order(emb, modes, sigmas, head=9, k=5, min_sigmas=1.0).tolist() == list(range(7))
+    # Distances are in the candidate's own mode's sigmas: a wide mode takes more as a copy.
+    wide = np.array([[0.1] * 4, [10.0] * 4])
+    assert spread_order(emb, modes, wide, head=2, k=5, min_sigmas=1.0).tolist() == [0, 1, 4, 6, 2, 3, 5]
+
+
+def test_the_spread_keeps_the_head_and_shows_no_near_copy_after_it(artifacts: object,
+                                                                  catalog: Catalog) -> None:
+    """A seat alone, through the engine: with the spread on, the head is as before and no part
+    after it lies within one of its mode's sigmas of a part shown before it."""
+    from service_testkit import make_settings
+
+    from service.artifacts.loading import load_served_artifacts
+
+    row = catalog.lookup("chair-0000/1")
+    points = (catalog.part_points(row) + catalog.translations[row]).astype(np.float32)
+    options = SuggestOptions(k=10, categories=("chair",), refine_contact=False)
+    answers = {}
+    for spread in (0.0, 1.0):
+        settings = make_settings(artifacts, share_spread_sigmas=spread)  # type: ignore[arg-type]
+        engine = SuggestionEngine(load_served_artifacts(settings), settings)
+        answers[spread] = engine.suggest(points, options)
+    off, on = answers[0.0], answers[1.0]
+    head = make_settings(artifacts).share_order_head  # type: ignore[arg-type]
+    assert [s.part_id for s in on.suggestions[:head]] == [s.part_id for s in off.suggestions[:head]]
+    emb = catalog.embeddings[[s.part_index for s in on.suggestions]].astype(np.float64)
+    sigmas = on.mode_sigmas.astype(np.float64)
+    for i in range(head, len(emb)):
+        z = (emb[:i] - emb[i]) / sigmas[on.suggestions[i].mode]
+        assert np.sqrt(np.mean(z * z, axis=1)).min() >= 1.0, i
+    assert len({s.label for s in on.suggestions}) > len({s.label for s in off.suggestions})
+
+
 def test_the_share_order_gives_each_live_mode_its_share(artifacts: object, query: object) -> None:
     from service_testkit import make_settings
 
     from service.artifacts.loading import load_served_artifacts
 
     # Every slot dealt (no head in likelihood order): the apportionment itself.
-    settings = make_settings(artifacts, suggest_order="share", share_order_head=0)  # type: ignore[arg-type]
+    settings = make_settings(artifacts, suggest_order="share", share_order_head=0,  # type: ignore[arg-type]
+                             share_spread_sigmas=0)
     engine = SuggestionEngine(load_served_artifacts(settings), settings)
     k = 20
     result = engine.suggest(query.points, SuggestOptions(k=k, refine_contact=False,  # type: ignore[attr-defined]
