@@ -185,12 +185,14 @@ def points_from_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: st
 
 
 def _sample_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str, max_vertices: int,
-                 max_faces: int, **limits: int) -> tuple[np.ndarray, float]:
-    """``n`` surface samples (as ``points_from_mesh``) and the mesh's total area."""
+                 max_faces: int, **limits: int) -> tuple[np.ndarray, float, bool]:
+    """``n`` surface samples (as ``points_from_mesh``), the mesh's total area, and whether trimesh
+    built a scene on the way (``MeshSurface.via_scene``)."""
     try:
         mesh = load_mesh_surface(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
                                  ignore_obj_materials=True, **limits)
-        return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=mesh.areas), float(mesh.areas.sum())
+        points = sample_surface(mesh.vertices, mesh.faces, n, seed, areas=mesh.areas)
+        return points, float(mesh.areas.sum()), mesh.via_scene
     except MeshError as exc:
         raise upload_error(exc) from None
 
@@ -203,7 +205,9 @@ class MeshUploads:
     worker to 2.77 GB. trimesh's scenes hold reference cycles that the raised collector threshold
     (``gc_threshold``) rarely reaches: every 18 MB OBJ left about 60 MB behind, 16 of them 1.1 GB.
     A full collection after each upload over ``COLLECT_BYTES`` returns it (measured: RSS flat
-    over 12 such uploads; the collection took 5-50 ms against 3-5 s for the parse itself).
+    over 12 such uploads; the collection took 5-50 ms against 3-5 s for the parse itself). The
+    plain OBJ readers (``service.geometry.obj``) build no scene and skip it: their arrays go with
+    their last reference, and the collection cost a 100k-triangle OBJ 0.4-1.3 ms of a 25 ms request.
     """
 
     COLLECT_BYTES = 1 << 20
@@ -228,11 +232,13 @@ class MeshUploads:
         if not self._turns.acquire(timeout=wait):
             raise DeadlineError("deadline_exceeded", f"no turn to parse the upload came before the request's "
                                 f"deadline ({s.max_concurrent_uploads} uploads are parsed at once)")
+        via_scene = True                      # a failed parse may have left a scene behind
         try:
-            return _sample_mesh(data, file_type, n=n, seed=s.seed, name=name,
-                                max_vertices=s.max_mesh_vertices, max_faces=s.max_mesh_faces,
-                                max_nodes=s.max_mesh_nodes, max_nesting=s.max_mesh_nesting)
+            points, area, via_scene = _sample_mesh(
+                data, file_type, n=n, seed=s.seed, name=name, max_vertices=s.max_mesh_vertices,
+                max_faces=s.max_mesh_faces, max_nodes=s.max_mesh_nodes, max_nesting=s.max_mesh_nesting)
+            return points, area
         finally:
             self._turns.release()
-            if len(data) > self.COLLECT_BYTES:
+            if via_scene and len(data) > self.COLLECT_BYTES:
                 gc.collect()

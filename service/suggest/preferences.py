@@ -168,17 +168,43 @@ def spread_order(embeddings: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, 
     if min_sigmas <= 0 or n <= first:
         return np.arange(n, dtype=np.int64)
     emb = np.asarray(embeddings, dtype=np.float64)
-    sd = np.asarray(sigmas, dtype=np.float64)
+    scale = 1.0 / np.asarray(sigmas, dtype=np.float64)[np.asarray(modes, dtype=np.int64)]   # (C, D)
+    limit = min_sigmas * min_sigmas
+    # near[i]: the smallest mean squared z of part i to a part shown before it, known for the
+    # parts before ``known``. It is made a window at a time (all shown parts against the window
+    # in one vector operation) and kept up to date by each part shown, rather than comparing
+    # each part in turn with the shown ones (about 2.5 ms a request under load, against 0.1).
+    near = np.full(n, np.inf)
+    known = first
+
+    def extend(to: int) -> None:
+        nonlocal known
+        z = (emb[known:to, None, :] - emb[shown][None, :, :]) * scale[known:to, None, :]
+        near[known:to] = np.mean(z * z, axis=2).min(axis=1)
+        known = to
+
+    def show(p: int) -> None:
+        z = (emb[p + 1:known] - emb[p]) * scale[p + 1:known]
+        np.minimum(near[p + 1:known], np.mean(z * z, axis=1), out=near[p + 1:known])
+
     shown = list(range(first))
-    waiting: list[int] = []
-    i = first
-    while i < n and len(shown) < k:  # past k slots the order no longer matters to the answer
-        if shown:
-            z = (emb[shown] - emb[i]) / sd[int(modes[i])]
-            if float(np.min(np.mean(z * z, axis=1))) < min_sigmas * min_sigmas:
-                waiting.append(i)
+    i = first                                # parts before i are shown or waiting
+    while i < n and len(shown) < k:          # past k slots the order no longer matters
+        if i >= known:
+            if not shown:                    # no head: the first part is shown as it is
+                shown.append(i)
                 i += 1
                 continue
-        shown.append(i)
-        i += 1
-    return np.concatenate([np.asarray(shown + waiting, dtype=np.int64), np.arange(i, n, dtype=np.int64)])
+            extend(min(n, known + max(2 * k, 16)))
+        apart = np.flatnonzero(near[i:known] >= limit)
+        if not len(apart):
+            i = known
+            continue
+        p = i + int(apart[0])
+        shown.append(p)
+        show(p)
+        i = p + 1
+    is_shown = np.zeros(n, dtype=bool)
+    is_shown[shown] = True
+    waiting = np.flatnonzero(~is_shown[first:i]) + first
+    return np.concatenate([np.asarray(shown, dtype=np.int64), waiting, np.arange(i, n, dtype=np.int64)])

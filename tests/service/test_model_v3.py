@@ -82,6 +82,34 @@ def test_spread_order_moves_near_copies_behind_the_other_parts() -> None:
     assert spread_order(emb, modes, wide, head=2, k=5, min_sigmas=1.0).tolist() == [0, 1, 4, 6, 2, 3, 5]
 
 
+def _spread_one_by_one(emb: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, head: int, k: int,
+                       min_sigmas: float) -> list[int]:
+    """The spread's definition, part after part: what ``spread_order`` computes in vector steps."""
+    shown, waiting = list(range(min(head, len(modes)))), []
+    i = len(shown)
+    while i < len(modes) and len(shown) < k:
+        z = (emb[shown] - emb[i]) / sigmas[modes[i]]
+        if shown and np.sqrt(np.mean(z * z, axis=1)).min() < min_sigmas:
+            waiting.append(i)
+        else:
+            shown.append(i)
+        i += 1
+    return shown + waiting + list(range(i, len(modes)))
+
+
+def test_spread_order_matches_its_definition_on_clustered_parts() -> None:
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        n, d, kk = int(rng.integers(1, 60)), 6, 4
+        centres = rng.normal(0, 1, (5, d))
+        emb = centres[rng.integers(0, 5, n)] + rng.normal(0, 0.05, (n, d))   # near-copies in clusters
+        modes = rng.integers(0, kk, n)
+        sigmas = rng.uniform(0.05, 0.5, (kk, d))
+        head, k, tau = int(rng.integers(0, 6)), int(rng.integers(1, 12)), float(rng.choice([0.5, 1.0, 3.0]))
+        got = spread_order(emb, modes, sigmas, head, k, tau).tolist()
+        assert got == _spread_one_by_one(emb, modes, sigmas, head, k, tau), trial
+
+
 def test_the_spread_keeps_the_head_and_shows_no_near_copy_after_it(artifacts: object,
                                                                   catalog: Catalog) -> None:
     """A seat alone, through the engine: with the spread on, the head is as before and no part
