@@ -73,6 +73,7 @@ def peer_config(settings: Settings, framework: str, workers: int) -> PeerConfig:
         complement_cover_distance=s.complement_cover_distance,
         complement_cover_share=s.complement_cover_share, suggest_order=s.suggest_order,
         share_min_mode_weight=s.share_min_mode_weight, share_order_head=s.share_order_head,
+        share_spread_sigmas=s.share_spread_sigmas,
         infer_category=s.infer_category, category_min_confidence=s.category_min_confidence,
         faiss_blas_threshold=s.faiss_blas_threshold, max_k=s.max_k, default_k=s.default_k,
         min_points=s.min_points, max_points=s.max_points, max_batch_size=s.batch_max_size,

@@ -11,7 +11,7 @@ so that the BentoML service (``bench.framework.bentoml_service``) and the LitSer
   (``service.geometry.mesh``), the mixture log-likelihood (``service.suggest.mixture``) and the
   complement check (``service.suggest.complement``);
 - per batch: g and h_query once on all queries, one FAISS search per filter, the exact mixture
-  score, near-duplicates collapsed, the service's order (``service.suggest.preferences.share_order``
+  score, near-duplicates collapsed, the service's order (``service.suggest.preferences.spread_share_order``
   by default), h_head once on every kept candidate of the batch, covered parts demoted
   (``service.suggest.complement.complement_order``), the top k returned.
 
@@ -42,7 +42,7 @@ from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, GRAPH_FILES, 
 from service.geometry.mesh import resample_points
 from service.suggest.complement import complement_order, covered_share
 from service.suggest.mixture import mixture_log_likelihood
-from service.suggest.preferences import share_order
+from service.suggest.preferences import spread_share_order
 
 CONFIG_ENV = "FRAMEWORK_PEER_CONFIG"  # the JSON of a PeerConfig, set by the bench for the peer process
 
@@ -61,6 +61,7 @@ class PeerConfig:
     suggest_order: str                # "share" (slots after the head dealt to modes) or "likelihood"
     share_min_mode_weight: float      # lighter modes get slots only after the others ran out
     share_order_head: int             # first slots kept in likelihood order
+    share_spread_sigmas: float        # after the head, near-copies within this many sigmas wait
     infer_category: bool              # read the category from g's head (when the graph has one)
     category_min_confidence: float    # and keep suggestions in it from this probability on
     faiss_blas_threshold: int         # FAISS switches exact distances to BLAS past this many queries
@@ -175,7 +176,7 @@ class PeerModel:
             tr = translations[rows == b]
             share = covered_share(points[b], cat.part_samples(idx, cfg.complement_part_samples),
                                   tr.astype(np.float32), cfg.complement_cover_distance)
-            deal = self._deal(modes, weights[b])
+            deal = self._deal(idx, modes, weights[b], sigmas[b], q.k)
             top = complement_order(share, cfg.complement_cover_share, scores, deal)[:q.k]
             answers.append([{"rank": r + 1, "part_id": cat.part_ids[int(idx[j])], "score": float(scores[j]),
                              "translation": tr[j].astype(np.float64).tolist()}
@@ -231,19 +232,23 @@ class PeerModel:
         cand, ll, mode = cand[order], ll[order], mode[order]
         _, first = np.unique(self.catalog.group[cand], return_index=True)
         keep = np.sort(first)
-        deal = self._deal(mode[keep], weights)
+        deal = self._deal(cand[keep], mode[keep], weights, sigmas, k)
         if deal is not None:
             keep = keep[deal(np.arange(len(keep)))]
         keep = keep[:max(k, self.cfg.complement_candidates)]
         return cand[keep], ll[keep], mode[keep]
 
-    def _deal(self, modes: np.ndarray, weights: np.ndarray) -> Callable[[np.ndarray], np.ndarray] | None:
-        """The service's order of suggestions over parts with these modes (None: likelihood order).
+    def _deal(self, rows: np.ndarray, modes: np.ndarray, weights: np.ndarray, sigmas: np.ndarray, k: int
+              ) -> Callable[[np.ndarray], np.ndarray] | None:
+        """The service's order of suggestions over these parts (None: likelihood order).
 
         Shapes:
-            modes: (C,) the mode that explains each part best; weights: (K,).
+            rows: (C,) catalog rows; modes: (C,) the mode that explains each part best;
+            weights: (K,); sigmas: (K, D).
         """
         if self.cfg.suggest_order != "share":
             return None
-        cfg = self.cfg
-        return lambda g: share_order(modes[g], weights, cfg.share_min_mode_weight, cfg.share_order_head)
+        cfg, emb = self.cfg, self.catalog.embeddings
+        return lambda g: spread_share_order(modes[g], weights, emb[rows[g]], sigmas, k,
+                                            cfg.share_min_mode_weight, cfg.share_order_head,
+                                            cfg.share_spread_sigmas)

@@ -59,7 +59,7 @@ from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
-from service.suggest.preferences import Preferences, diverse_order, share_order, spread_order
+from service.suggest.preferences import Preferences, diverse_order, share_order, spread_share_order
 from service.suggest.region import Region
 from service.suggest.snapshot import CatalogSnapshot
 
@@ -860,11 +860,10 @@ class SuggestionEngine:
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
         if c.suggest_order == "share" and q.region is None:
-            order = share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
             if sigmas is None or not self._spreads(q):
-                return order
-            return order[spread_order(emb[order], modes[order], sigmas, c.share_order_head, q.k,
-                                      c.share_spread_sigmas)]
+                return share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
+            return spread_share_order(modes, w, emb, sigmas, q.k, c.share_min_mode_weight, c.share_order_head,
+                                      c.share_spread_sigmas)
         return np.arange(len(modes))
 
     def _spreads(self, q: Query) -> bool:

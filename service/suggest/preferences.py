@@ -208,3 +208,19 @@ def spread_order(embeddings: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, 
     is_shown[shown] = True
     waiting = np.flatnonzero(~is_shown[first:i]) + first
     return np.concatenate([np.asarray(shown, dtype=np.int64), waiting, np.arange(i, n, dtype=np.int64)])
+
+
+def spread_share_order(modes: np.ndarray, weights: np.ndarray, embeddings: np.ndarray, sigmas: np.ndarray,
+                       k: int, min_weight: float, head: int, spread_sigmas: float) -> np.ndarray:
+    """The share order (``share_order``) with its near-copies moved back (``spread_order``): the
+    service's default order of suggestions, in one place for the engine and the bench's peers.
+
+    Shapes:
+        modes: (C,) int64, candidates in likelihood order; weights: (K,); embeddings: (C, D);
+        sigmas: (K, D) -> (C,) int64 positions.
+    """
+    order = share_order(modes, weights, min_weight, head)
+    if spread_sigmas <= 0:
+        return order
+    return order[spread_order(np.asarray(embeddings)[order], np.asarray(modes)[order], sigmas, head, k,
+                              spread_sigmas)]
