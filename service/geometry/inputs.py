@@ -185,14 +185,12 @@ def points_from_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: st
 
 
 def _sample_mesh(data: bytes, file_type: str, *, n: int, seed: int, name: str, max_vertices: int,
-                 max_faces: int, **limits: int) -> tuple[np.ndarray, float, bool]:
-    """``n`` surface samples (as ``points_from_mesh``), the mesh's total area, and whether trimesh
-    built a scene on the way (``MeshSurface.via_scene``)."""
+                 max_faces: int, **limits: int) -> tuple[np.ndarray, float]:
+    """``n`` surface samples (as ``points_from_mesh``) and the mesh's total area."""
     try:
         mesh = load_mesh_surface(data, file_type, name=name, max_vertices=max_vertices, max_faces=max_faces,
                                  ignore_obj_materials=True, **limits)
-        points = sample_surface(mesh.vertices, mesh.faces, n, seed, areas=mesh.areas)
-        return points, float(mesh.areas.sum()), mesh.via_scene
+        return sample_surface(mesh.vertices, mesh.faces, n, seed, areas=mesh.areas), float(mesh.areas.sum())
     except MeshError as exc:
         raise upload_error(exc) from None
 
@@ -205,9 +203,10 @@ class MeshUploads:
     worker to 2.77 GB. trimesh's scenes hold reference cycles that the raised collector threshold
     (``gc_threshold``) rarely reaches: every 18 MB OBJ left about 60 MB behind, 16 of them 1.1 GB.
     A full collection after each upload over ``COLLECT_BYTES`` returns it (measured: RSS flat
-    over 12 such uploads; the collection took 5-50 ms against 3-5 s for the parse itself). The
-    plain OBJ readers (``service.geometry.obj``) build no scene and skip it: their arrays go with
-    their last reference, and the collection cost a 100k-triangle OBJ 0.4-1.3 ms of a 25 ms request.
+    over 12 such uploads; the collection took 5-50 ms against 3-5 s for the parse itself). Not
+    only trimesh's: an upload the plain OBJ readers take (no scene) still left about 21 MB behind
+    per 18 MB file without it (2026-12-04, ``test_large_uploads_leave_memory_behind_no_more_than_150_mb``):
+    the request's own objects hold its body in cycles too, so every large upload is collected.
     """
 
     COLLECT_BYTES = 1 << 20
@@ -232,13 +231,11 @@ class MeshUploads:
         if not self._turns.acquire(timeout=wait):
             raise DeadlineError("deadline_exceeded", f"no turn to parse the upload came before the request's "
                                 f"deadline ({s.max_concurrent_uploads} uploads are parsed at once)")
-        via_scene = True                      # a failed parse may have left a scene behind
         try:
-            points, area, via_scene = _sample_mesh(
-                data, file_type, n=n, seed=s.seed, name=name, max_vertices=s.max_mesh_vertices,
-                max_faces=s.max_mesh_faces, max_nodes=s.max_mesh_nodes, max_nesting=s.max_mesh_nesting)
-            return points, area
+            return _sample_mesh(data, file_type, n=n, seed=s.seed, name=name,
+                                max_vertices=s.max_mesh_vertices, max_faces=s.max_mesh_faces,
+                                max_nodes=s.max_mesh_nodes, max_nesting=s.max_mesh_nesting)
         finally:
             self._turns.release()
-            if via_scene and len(data) > self.COLLECT_BYTES:
+            if len(data) > self.COLLECT_BYTES:
                 gc.collect()

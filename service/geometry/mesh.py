@@ -592,9 +592,6 @@ class MeshSurface(NamedTuple):
     vertices: np.ndarray
     faces: np.ndarray
     areas: np.ndarray
-    # Whether trimesh built a scene on the way (its objects hold reference cycles that only a
-    # collection returns; ``MeshUploads.sample``); the plain OBJ readers build none.
-    via_scene: bool = True
 
 
 def load_mesh_bytes(data: bytes, file_type: str, *, name: str = "upload", max_vertices: int,
@@ -667,7 +664,7 @@ def _plain_obj_surface(data: bytes, name: str, max_vertices: int, max_faces: int
     areas = triangle_areas(vertices, faces)
     if not areas.sum() > 0:
         return None
-    return MeshSurface(vertices, faces, areas, via_scene=False)
+    return MeshSurface(vertices, faces, areas)
 
 
 def _check_obj_counts(name: str, counted: ObjBlocks | ObjLayout, max_vertices: int, max_faces: int,

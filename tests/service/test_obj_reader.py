@@ -329,32 +329,3 @@ def test_relative_references_count_back_from_their_face() -> None:
     assert read is not None
     vertices, faces = read
     assert vertices[faces].tolist() == [[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[5, 5, 5], [6, 5, 5], [5, 6, 5]]]
-
-
-def test_only_uploads_that_built_a_scene_pay_for_a_collection(monkeypatch: pytest.MonkeyPatch) -> None:
-    """trimesh's scenes leave reference cycles behind, so a large upload read through trimesh is
-    followed by a full collection; the plain OBJ readers build none and skip it. The upload is
-    sampled the same either way."""
-    from service.geometry import inputs
-    from service.settings import Settings
-
-    sphere = trimesh.creation.icosphere(subdivisions=6)      # 81,920 triangles: a few MB either way
-    plain = trimesh.exchange.obj.export_obj(sphere).encode()
-    glb = sphere.export(file_type="glb")
-    assert len(plain) > inputs.MeshUploads.COLLECT_BYTES and len(glb) > inputs.MeshUploads.COLLECT_BYTES
-    assert not load_mesh_surface(plain, "obj", max_vertices=MAX, max_faces=MAX).via_scene
-    assert load_mesh_surface(glb, "glb", max_vertices=MAX, max_faces=MAX).via_scene
-    collections: list[int] = []
-    monkeypatch.setattr(inputs.gc, "collect", lambda *a: collections.append(1) or 0)
-    uploads = inputs.MeshUploads(Settings())
-    from_obj, _ = uploads.sample(plain, "obj", n=256, name="q.obj")
-    assert collections == []
-    from_glb, _ = uploads.sample(glb, "glb", n=256, name="q.glb")
-    assert collections == [1]
-    assert np.allclose(from_obj, from_glb, atol=1e-5)
-    from service.errors import ServiceError
-
-    with pytest.raises(ServiceError):                        # no surface: refused, and collected after
-        no_faces = b"v 0 0 0\n" * (inputs.MeshUploads.COLLECT_BYTES // 8 + 1)
-        uploads.sample(no_faces, "obj", n=256, name="bad.obj")
-    assert collections == [1, 1]
