@@ -177,7 +177,7 @@ class PeerModel:
             share = covered_share(points[b], cat.part_samples(idx, cfg.complement_part_samples),
                                   tr.astype(np.float32), cfg.complement_cover_distance)
             deal = self._deal(idx, modes, weights[b], sigmas[b], q.k)
-            top = complement_order(share, cfg.complement_cover_share, scores, deal)[:q.k]
+            top = complement_order(share, cfg.complement_cover_share, scores, deal, q.k)[:q.k]
             answers.append([{"rank": r + 1, "part_id": cat.part_ids[int(idx[j])], "score": float(scores[j]),
                              "translation": tr[j].astype(np.float64).tolist()}
                             for r, j in enumerate(top.tolist())])

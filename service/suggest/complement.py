@@ -52,7 +52,8 @@ def demote_covered(share: np.ndarray, max_share: float) -> np.ndarray:
 
 
 def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
-                     deal: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+                     deal: Callable[[np.ndarray], np.ndarray] | None = None,
+                     k: int | None = None) -> np.ndarray:
     """The answer's order: covered parts last; each group dealt again when the list is dealt to modes.
 
     Demoting a mode's first part must not leave that mode out of the first round while another
@@ -65,6 +66,8 @@ def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
         deal: positions into a group (indices into the parts, in likelihood order) in the order
             its parts are dealt (``preferences.share_order`` or ``diverse_order`` over their
             modes); None keeps the rank order.
+        k: only the first ``k`` of the answer are kept (None: all): a group that starts past
+            them is not dealt (its order reaches no kept slot), only put in likelihood order.
     Returns:
         (P,) int64 indices into the parts.
     """
@@ -73,4 +76,8 @@ def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
         return order
     covered = share[order] >= max_share
     groups = [g[np.argsort(-scores[g], kind="stable")] for g in (order[~covered], order[covered])]
-    return np.concatenate([g[deal(g)] for g in groups]).astype(np.int64)
+    out, start = [], 0
+    for g in groups:
+        out.append(g if k is not None and start >= k else g[deal(g)])
+        start += len(g)
+    return np.concatenate(out).astype(np.int64)

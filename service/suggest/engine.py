@@ -59,7 +59,7 @@ from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
-from service.suggest.preferences import Preferences, diverse_order, share_order, spread_share_order
+from service.suggest.preferences import Preferences, diverse_order, spread_share_order
 from service.suggest.region import Region
 from service.suggest.snapshot import CatalogSnapshot
 
@@ -860,18 +860,10 @@ class SuggestionEngine:
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
         if c.suggest_order == "share" and q.region is None:
-            if sigmas is None or not self._spreads(q):
-                return share_order(modes, w, c.share_min_mode_weight, c.share_order_head)
+            spread = c.share_spread_sigmas if sigmas is not None else 0.0
             return spread_share_order(modes, w, emb, sigmas, q.k, c.share_min_mode_weight, c.share_order_head,
-                                      c.share_spread_sigmas)
+                                      spread)
         return np.arange(len(modes))
-
-    def _spreads(self, q: Query) -> bool:
-        """Whether near-copies wait (``preferences.spread_order``): in the share order only (a
-        region's parts and the diversity round-robin keep their own orders)."""
-        c = self.config
-        return (c.suggest_order == "share" and c.share_spread_sigmas > 0 and q.region is None
-                and not q.options.preferences.diversity)
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
@@ -903,7 +895,8 @@ class SuggestionEngine:
 
     def _complement_order(self, q: Query, placed: Placed, ranked: Ranked,
                           snap: CatalogSnapshot) -> np.ndarray:
-        """A query's ranked, placed candidates in answer order (indices), covered parts demoted.
+        """A query's ranked, placed candidates in answer order (indices), covered parts demoted
+        (the order past the first k is left undealt: only the top k are answered).
 
         When the suggestions are dealt to modes (diversity, share order), each group (uncovered,
         then covered) is dealt again: demoting a mode's first part must not leave that mode out
@@ -919,7 +912,7 @@ class SuggestionEngine:
         weights, emb = ranked.weights, snap.catalog.embeddings
         deal = None if weights is None else (
             lambda g: self._mode_order(q, placed.modes[g], weights, emb[placed.rows[g]], ranked.sigmas))
-        return complement_order(share, c.complement_cover_share, placed.scores, deal)
+        return complement_order(share, c.complement_cover_share, placed.scores, deal, q.k)
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.

@@ -167,8 +167,9 @@ def spread_order(embeddings: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, 
     first = min(max(head, 0), n)
     if min_sigmas <= 0 or n <= first:
         return np.arange(n, dtype=np.int64)
-    emb = np.asarray(embeddings, dtype=np.float64)
-    scale = 1.0 / np.asarray(sigmas, dtype=np.float64)[np.asarray(modes, dtype=np.int64)]   # (C, D)
+    emb = np.asarray(embeddings)
+    inverse = 1.0 / np.asarray(sigmas, dtype=np.float64)                                    # (K, D)
+    modes = np.asarray(modes, dtype=np.int64)
     limit = min_sigmas * min_sigmas
     # near[i]: the smallest mean squared z of part i to a part shown before it, known for the
     # parts before ``known``. It is made a window at a time (all shown parts against the window
@@ -177,14 +178,16 @@ def spread_order(embeddings: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, 
     near = np.full(n, np.inf)
     known = first
 
+    # Only the parts looked at are converted and scaled (a few windows of the list, not all C).
     def extend(to: int) -> None:
         nonlocal known
-        z = (emb[known:to, None, :] - emb[shown][None, :, :]) * scale[known:to, None, :]
+        window, seen = emb[known:to].astype(np.float64), emb[shown].astype(np.float64)
+        z = (window[:, None, :] - seen[None, :, :]) * inverse[modes[known:to], None, :]
         near[known:to] = np.mean(z * z, axis=2).min(axis=1)
         known = to
 
     def show(p: int) -> None:
-        z = (emb[p + 1:known] - emb[p]) * scale[p + 1:known]
+        z = (emb[p + 1:known].astype(np.float64) - emb[p].astype(np.float64)) * inverse[modes[p + 1:known]]
         np.minimum(near[p + 1:known], np.mean(z * z, axis=1), out=near[p + 1:known])
 
     shown = list(range(first))
@@ -210,17 +213,18 @@ def spread_order(embeddings: np.ndarray, modes: np.ndarray, sigmas: np.ndarray, 
     return np.concatenate([np.asarray(shown, dtype=np.int64), waiting, np.arange(i, n, dtype=np.int64)])
 
 
-def spread_share_order(modes: np.ndarray, weights: np.ndarray, embeddings: np.ndarray, sigmas: np.ndarray,
-                       k: int, min_weight: float, head: int, spread_sigmas: float) -> np.ndarray:
+def spread_share_order(modes: np.ndarray, weights: np.ndarray, embeddings: np.ndarray,
+                       sigmas: np.ndarray | None, k: int, min_weight: float, head: int,
+                       spread_sigmas: float) -> np.ndarray:
     """The share order (``share_order``) with its near-copies moved back (``spread_order``): the
     service's default order of suggestions, in one place for the engine and the bench's peers.
 
     Shapes:
         modes: (C,) int64, candidates in likelihood order; weights: (K,); embeddings: (C, D);
-        sigmas: (K, D) -> (C,) int64 positions.
+        sigmas: (K, D), or None with ``spread_sigmas`` 0 -> (C,) int64 positions.
     """
     order = share_order(modes, weights, min_weight, head)
-    if spread_sigmas <= 0:
+    if spread_sigmas <= 0 or sigmas is None:
         return order
     return order[spread_order(np.asarray(embeddings)[order], np.asarray(modes)[order], sigmas, head, k,
                               spread_sigmas)]

@@ -131,3 +131,14 @@ def test_complement_order_deals_each_group_again_from_its_likelihood_order() -> 
     dealt = complement_order(share, 0.5, scores, lambda g: share_order(modes[g], weights, 0.05))
     # Uncovered 0, 2, 3, 5 dealt to modes 0 and 1 in turn, then the covered 1 and 4 the same way.
     assert dealt.tolist() == [0, 3, 2, 5, 1, 4]
+    # With only the first k answered, a group that starts past them is not dealt at all.
+    calls: list[int] = []
+
+    def counted(g: np.ndarray) -> np.ndarray:
+        calls.append(len(g))
+        return share_order(modes[g], weights, 0.05)
+
+    assert complement_order(share, 0.5, scores, counted, k=4)[:4].tolist() == dealt[:4].tolist()
+    assert calls == [4]
+    assert complement_order(share, 0.5, scores, counted, k=5).tolist() == dealt.tolist()
+    assert calls == [4, 4, 2]
