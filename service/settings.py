@@ -153,6 +153,11 @@ class Settings(BaseSettings):
         "Most query points used as the assembly in contact tests (more are subsampled, seeded)."))
     contact_cache_parts: int = Field(default=4096, ge=1, description=(
         "Catalog parts whose contact samples are kept in memory (least recently used dropped)."))
+    contact_threads: int = Field(default=2, ge=1, le=64, description=(
+        "Threads one refinement spreads its parts over (each part's search is independent, so "
+        "the answers do not depend on it). 2, the cores of the machines it was measured on, took "
+        "the benchmark query's k = 10 refinement from 3.2 to 2.0 ms; a server already busy on "
+        "every core gains nothing from more than 1 (docs/performance.md)."))
     suggest_order: Literal["share", "likelihood"] = Field(default="share", description=(
         "Order of suggestions. `share` (the default): the first `share_order_head` slots in "
         "mixture-likelihood order, the rest dealt to g's modes in proportion to their weights "

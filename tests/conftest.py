@@ -32,6 +32,16 @@ def _serve_in_thread(app: Any, start_timeout: float = 120.0, **config: Any) -> I
         thread.join(timeout=30)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _contact_kernel_compiled() -> None:
+    """Contact refinement's compiled search, compiled once before any test (about 25 s the first
+    time on a fresh checkout, then loaded from numba's cache): so that a server a test starts does
+    not spend its start-up bound compiling it."""
+    from service.suggest.contact_kernel import warm
+
+    warm()
+
+
 @pytest.fixture(scope="session")
 def serve_in_thread() -> Callable[..., AbstractContextManager[int]]:
     """``with serve_in_thread(app) as port: ...``"""

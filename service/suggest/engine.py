@@ -324,7 +324,7 @@ class SuggestionEngine:
         self.shipped = self.snapshot(artifacts.catalog, artifacts.index)
         self.contacts = PartContacts(
             ContactParams(max_offset=c.contact_max_offset, tolerance=c.contact_tolerance,
-                          search_points=c.contact_search_points, seed=c.seed),
+                          search_points=c.contact_search_points, seed=c.seed, threads=c.contact_threads),
             part_samples=c.contact_part_samples, assembly_points=c.contact_assembly_points,
             cache_entries=c.contact_cache_parts)
         bank = artifacts.familiarity

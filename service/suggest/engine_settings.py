@@ -62,6 +62,7 @@ class EngineSettings(BaseModel):
     contact_part_samples: int
     contact_assembly_points: int
     contact_cache_parts: int
+    contact_threads: int
     # warnings about unfamiliar queries
     ood_min_extent: float
     ood_max_extent: float

@@ -2,7 +2,8 @@
 
 ``service.suggest.contact.refine_offsets`` must choose the same offsets as this reference: one part at a
 time, a KD-tree per part, every candidate offset measured on all samples. Copied verbatim except
-for the imports; the tests compare the two on synthetic contacts and on real catalog parts.
+for the imports and the assembly's KD-tree, built here (the service's ``Assembly`` no longer
+keeps one); the tests compare the two on synthetic contacts and on real catalog parts.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ class _Search:
         lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
         near_a = np.flatnonzero(np.all((assembly.points >= lo) & (assembly.points <= hi), axis=1))
         # Part samples that can come within reach of the assembly.
-        d, _ = assembly.tree.query(pts, k=1, distance_upper_bound=reach)
+        d, _ = cKDTree(assembly.points).query(pts, k=1, distance_upper_bound=reach)
         near_p = np.flatnonzero(np.isfinite(d))
         self.empty = len(near_a) == 0 or len(near_p) == 0
         if self.empty:

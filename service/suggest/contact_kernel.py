@@ -1,0 +1,523 @@
+"""Contact refinement's line search, compiled (numba): nearest samples found in a uniform grid.
+
+``service.suggest.contact`` owns what is measured and searched (its module docstring); this module
+runs that search part by part without leaving compiled code, because the same search written
+with numpy and scipy's cKDTree cost 12-13 ms for the ten suggestions of the benchmark query,
+most of it in some 15,000 KD-tree queries and the Python rounds around them (issue 20 asks for
+3 ms). The answers are the search's own: every candidate offset in order, the first that
+touches wins (``tests/service/contact_reference.py`` is the oracle the tests compare with).
+
+What makes it fast, without changing an answer:
+
+* nearest samples come from a uniform grid of each side's samples (a few cells around the query,
+  widened ring by ring only while a closer sample can still exist);
+* the samples measured (each side's nearest the other) are chosen from one pass over the pairs
+  of samples within reach of each other, which gives both sides' nearest distances at once;
+* an offset is skipped when the nearest distances measured at earlier offsets prove that no
+  sample can be within the tolerance there (a sample's nearest distance moves at most as far as
+  the part does), or when a sample last seen inside by more than the tolerance is still that
+  deep there (it is measured first): either way the offset cannot touch;
+* a measurement stops at its first sample inside by more than the tolerance.
+
+Everything is in the canonical frame (unit radius), float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# cos(45 deg): a sample counts as inside only if it lies roughly behind its nearest samples.
+BEHIND = math.sqrt(0.5)
+# Cells along a grid's longest side, at most (the grid of 20,000 assembly samples stays 64^3).
+_MAX_CELLS = 64
+# Violating samples remembered per side and part (measured first at the next offsets).
+_WITNESSES = 4
+# Cells along a grid's longest side per cube root of its points: about one cell per point of a
+# surface's samples near the query (finer grids visit more empty cells: measured 2-5x slower).
+_PER_ROOT = 1.0
+# The same for the clusters that prune the choice of measured samples (a few dozen per part).
+_CLUSTER_PER_ROOT = 0.5
+
+# A uniform grid of points (``build_grid``): its corner, cell size, cells per axis, the points'
+# indices cell by cell, each cell's first entry of that order, and the points in that order.
+Grid = tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+# One side of the measurements: its measured samples, +1 if they move with the part (the part's
+# samples) or -1 (the assembly's, which move by -o relative to a part moved by o), and the other
+# side's samples, normals (read only if it has them) and grid.
+Side = tuple[np.ndarray, float, np.ndarray, np.ndarray, bool, Grid]
+
+# Refinement outcomes (``refine_parts``'s ``status``).
+FAR = 0          # nothing of the part or the assembly within reach of the other: left alone
+TOUCHING = 1     # touching already: resolved without a move
+MOVED = 2        # the first touching offset found: resolved
+UNRESOLVED = 3   # no offset within the bound touches: h's translation is kept
+
+
+@njit(cache=True, nogil=True)
+def build_grid(pts: np.ndarray, per_root: float) -> Grid:
+    """A uniform grid of points, about ``per_root`` n^(1/3) cells along its longest side.
+
+    Shapes:
+        pts (n, 3), n >= 1 -> lo (3,) the grid's corner, h the cell size, dims (3,) cells per axis,
+        order (n,) point indices cell by cell, start (cells + 1,) each cell's first entry of order,
+        spts (n, 3) the points in that order (read in sequence by ``nearest``).
+    """
+    n = pts.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = pts[0, a]
+        hi[a] = pts[0, a]
+    for i in range(1, n):
+        for a in range(3):
+            lo[a] = min(lo[a], pts[i, a])
+            hi[a] = max(hi[a], pts[i, a])
+    ext = max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
+    per = min(_MAX_CELLS - 1, max(1, round(per_root * n ** (1.0 / 3.0))))
+    h = ext / per if ext > 0 else 1.0
+    dims = np.empty(3, np.int64)
+    for a in range(3):
+        dims[a] = min(_MAX_CELLS, int((hi[a] - lo[a]) / h) + 1)
+    cell = np.empty(n, np.int64)
+    counts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for i in range(n):
+        c0 = min(int((pts[i, 0] - lo[0]) / h), dims[0] - 1)
+        c1 = min(int((pts[i, 1] - lo[1]) / h), dims[1] - 1)
+        c2 = min(int((pts[i, 2] - lo[2]) / h), dims[2] - 1)
+        cell[i] = (c0 * dims[1] + c1) * dims[2] + c2
+        counts[cell[i] + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    return lo, h, dims, order, start, np.ascontiguousarray(pts[order])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_of(x: float, lo: float, h: float) -> int:
+    c = math.floor((x - lo) / h)
+    return int(min(max(c, -(2.0 ** 40)), 2.0 ** 40))  # a query far off the grid stays an integer
+
+
+@njit(cache=True, nogil=True)
+def nearest(x0: float, x1: float, x2: float, grid: Grid, k: int, ub: float, out_d: np.ndarray,
+            out_i: np.ndarray) -> None:
+    """The ``k`` nearest points to x strictly within ``ub`` (as cKDTree's ``distance_upper_bound``),
+    nearest first; missing ones get distance inf and index -1.
+
+    Shapes:
+        grid: of n points (``build_grid``); out_d (>= k,) float64, out_i (>= k,) int64.
+    """
+    lo, h, dims, order, start, spts = grid
+    for j in range(k):
+        out_d[j] = np.inf
+        out_i[j] = -1
+    ub2 = ub * ub
+    c0, c1, c2 = _cell_of(x0, lo[0], h), _cell_of(x1, lo[1], h), _cell_of(x2, lo[2], h)
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    # Rings of cells at Chebyshev distance r around x's cell; none of the grid lies closer than r0.
+    r = max(0, -c0, c0 - (n0 - 1), -c1, c1 - (n1 - 1), -c2, c2 - (n2 - 1))
+    while True:
+        a0, b0 = max(c0 - r, 0), min(c0 + r, n0 - 1)
+        a1, b1 = max(c1 - r, 0), min(c1 + r, n1 - 1)
+        a2, b2 = max(c2 - r, 0), min(c2 + r, n2 - 1)
+        worst = out_d[k - 1] if out_i[k - 1] >= 0 else ub2
+        for i0 in range(a0, b0 + 1):
+            e0 = i0 == c0 - r or i0 == c0 + r
+            g0 = max(lo[0] + i0 * h - x0, 0.0, x0 - (lo[0] + (i0 + 1) * h))
+            if g0 * g0 >= worst:  # the whole slab is too far
+                continue
+            for i1 in range(a1, b1 + 1):
+                e1 = e0 or i1 == c1 - r or i1 == c1 + r
+                g1 = max(lo[1] + i1 * h - x1, 0.0, x1 - (lo[1] + (i1 + 1) * h))
+                if g0 * g0 + g1 * g1 >= worst:
+                    continue
+                step = 1 if e1 else 2 * r
+                i2 = c2 - r if not e1 else a2
+                while i2 <= b2:
+                    if i2 >= a2:
+                        g2 = max(lo[2] + i2 * h - x2, 0.0, x2 - (lo[2] + (i2 + 1) * h))
+                        if g0 * g0 + g1 * g1 + g2 * g2 < worst:  # the cell can hold a nearer point
+                            cell = (i0 * n1 + i1) * n2 + i2
+                            for e in range(start[cell], start[cell + 1]):
+                                d0, d1, d2 = spts[e, 0] - x0, spts[e, 1] - x1, spts[e, 2] - x2
+                                dd = d0 * d0 + d1 * d1 + d2 * d2
+                                if dd < worst:  # insert, keeping the first found first on ties
+                                    j = k - 1
+                                    while j > 0 and (out_i[j - 1] < 0 or out_d[j - 1] > dd):
+                                        out_d[j], out_i[j] = out_d[j - 1], out_i[j - 1]
+                                        j -= 1
+                                    out_d[j] = dd
+                                    out_i[j] = order[e]
+                                    worst = out_d[k - 1] if out_i[k - 1] >= 0 else ub2
+                    i2 += step
+        # Points of cells not visited yet lie farther than the visited cube's nearest face.
+        bound = min(x0 - (lo[0] + (c0 - r) * h), lo[0] + (c0 + r + 1) * h - x0,
+                    x1 - (lo[1] + (c1 - r) * h), lo[1] + (c1 + r + 1) * h - x1,
+                    x2 - (lo[2] + (c2 - r) * h), lo[2] + (c2 + r + 1) * h - x2)
+        if bound * bound >= worst or (c0 - r <= 0 and c0 + r >= n0 - 1 and c1 - r <= 0 and c1 + r >= n1 - 1
+                                      and c2 - r <= 0 and c2 + r >= n2 - 1):
+            break
+        r += 1
+    for j in range(k):  # squared distances while searching
+        out_d[j] = math.sqrt(out_d[j]) if out_i[j] >= 0 else np.inf
+
+
+@njit(cache=True, nogil=True)
+def _inside(x0: float, x1: float, x2: float, d: np.ndarray, idx: np.ndarray, k: int,
+            pts: np.ndarray, nrm: np.ndarray) -> bool:
+    """Whether x lies behind every one of its ``k`` nearest samples (all present) of an oriented surface."""
+    for j in range(k):
+        p = idx[j]
+        if p < 0:
+            return False
+        s = (x0 - pts[p, 0]) * nrm[p, 0] + (x1 - pts[p, 1]) * nrm[p, 1] + (x2 - pts[p, 2]) * nrm[p, 2]
+        if not (math.isfinite(s) and s < -BEHIND * d[j]):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _classify(x0: float, x1: float, x2: float, pts: np.ndarray, nrm: np.ndarray, has_nrm: bool, grid: Grid,
+              nk: int, ub: float, bd: np.ndarray, bi: np.ndarray) -> bool:
+    """Whether x, whose nearest sample is in bd[0], bi[0], is inside the other side's surface: its
+    nearest sample first (cheap), then all ``nk`` nearest for the few that pass (bd, bi reused)."""
+    if not has_nrm or bi[0] < 0 or not _inside(x0, x1, x2, bd, bi, 1, pts, nrm):
+        return False
+    if nk <= 1:
+        return True
+    d, i = bd[0], bi[0]
+    nearest(x0, x1, x2, grid, nk, ub, bd, bi)
+    inside = _inside(x0, x1, x2, bd, bi, nk, pts, nrm)
+    bd[0], bi[0] = d, i
+    return inside
+
+
+@njit(cache=True, nogil=True)
+def _measure(side: Side, o: np.ndarray, nk: int, ub: float, s: int, bd: np.ndarray, bi: np.ndarray
+             ) -> tuple[float, bool]:
+    """Sample ``s`` of one side (moved with the part by o) against the other side: its nearest
+    distance (within ``ub``) and whether it is inside; the nearest sample in bd[0], bi[0]."""
+    q, sign, pts, nrm, has_nrm, grid = side
+    x0, x1, x2 = q[s, 0] + sign * o[0], q[s, 1] + sign * o[1], q[s, 2] + sign * o[2]
+    nearest(x0, x1, x2, grid, 1, ub, bd, bi)
+    return bd[0], _classify(x0, x1, x2, pts, nrm, has_nrm, grid, nk, ub, bd, bi)
+
+
+@njit(cache=True, nogil=True)
+def _ball(pts: np.ndarray, rows: np.ndarray) -> tuple[float, float, float, float]:
+    """A ball holding ``pts[rows]``: the centre of their box and the farthest of them from it,
+    a little larger so that rounding never leaves one outside."""
+    mn = np.full(3, np.inf)
+    mx = np.full(3, -np.inf)
+    for p in rows:
+        for a in range(3):
+            mn[a] = min(mn[a], pts[p, a])
+            mx[a] = max(mx[a], pts[p, a])
+    c0, c1, c2 = 0.5 * (mn[0] + mx[0]), 0.5 * (mn[1] + mx[1]), 0.5 * (mn[2] + mx[2])
+    rad = 0.0
+    for p in rows:
+        rad = max(rad, math.sqrt((pts[p, 0] - c0) ** 2 + (pts[p, 1] - c1) ** 2 + (pts[p, 2] - c2) ** 2))
+    return c0, c1, c2, rad * (1.0 + 1e-12) + 1e-15
+
+
+@njit(cache=True, nogil=True)
+def _pairs(src: np.ndarray, grid: Grid, bound: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of a ``src`` and a ``dst`` sample strictly within ``bound`` of each other, folded
+    into both sides' nearest: exact for every sample whose nearest is within the bound.
+
+    A cluster of ``src`` (a coarse grid) whose centre is farther than the bound plus its radius
+    from ``dst`` has no such pair and is skipped.
+
+    Shapes:
+        src (n, 3); grid: of the t samples of the other side, dst (``build_grid``) ->
+        d_src (n,), i_src (n,) each src sample's nearest distance and dst row (inf, -1 where none is
+        within the bound); d_dst (t,), i_dst (t,) the same for dst (rows of its original order).
+    """
+    lo, h, dims, order, start, dst = grid
+    n, t = len(src), len(dst)
+    d_src = np.full(n, np.inf)
+    i_src = np.full(n, -1, np.int64)
+    d_dst = np.full(t, np.inf)
+    i_dst = np.full(t, -1, np.int64)
+    bd = np.empty(1)
+    bi = np.empty(1, np.int64)
+    b2 = bound * bound
+    _, _, _, corder, cstart, _ = build_grid(src, _CLUSTER_PER_ROOT)
+    for c in range(len(cstart) - 1):
+        if cstart[c] == cstart[c + 1]:
+            continue
+        cx0, cx1, cx2, rad = _ball(src, corder[cstart[c]:cstart[c + 1]])
+        nearest(cx0, cx1, cx2, grid, 1, bound + rad, bd, bi)
+        if bi[0] < 0:
+            continue
+        for e in range(cstart[c], cstart[c + 1]):
+            p = corder[e]
+            x0, x1, x2 = src[p, 0], src[p, 1], src[p, 2]
+            a0 = max(0, _cell_of(x0 - bound, lo[0], h))
+            z0 = min(dims[0] - 1, _cell_of(x0 + bound, lo[0], h))
+            a1 = max(0, _cell_of(x1 - bound, lo[1], h))
+            z1 = min(dims[1] - 1, _cell_of(x1 + bound, lo[1], h))
+            a2 = max(0, _cell_of(x2 - bound, lo[2], h))
+            z2 = min(dims[2] - 1, _cell_of(x2 + bound, lo[2], h))
+            best = b2
+            for i0 in range(a0, z0 + 1):
+                g0 = max(lo[0] + i0 * h - x0, 0.0, x0 - (lo[0] + (i0 + 1) * h))
+                for i1 in range(a1, z1 + 1):
+                    g1 = max(lo[1] + i1 * h - x1, 0.0, x1 - (lo[1] + (i1 + 1) * h))
+                    if g0 * g0 + g1 * g1 >= b2:
+                        continue
+                    for i2 in range(a2, z2 + 1):
+                        g2 = max(lo[2] + i2 * h - x2, 0.0, x2 - (lo[2] + (i2 + 1) * h))
+                        if g0 * g0 + g1 * g1 + g2 * g2 >= b2:
+                            continue
+                        cell = (i0 * dims[1] + i1) * dims[2] + i2
+                        for f in range(start[cell], start[cell + 1]):
+                            e0, e1, e2 = dst[f, 0] - x0, dst[f, 1] - x1, dst[f, 2] - x2
+                            dd = e0 * e0 + e1 * e1 + e2 * e2
+                            if dd < b2:
+                                if dd < best:
+                                    best = dd
+                                    i_src[p] = order[f]
+                                if dd < d_dst[order[f]]:
+                                    d_dst[order[f]] = dd
+                                    i_dst[order[f]] = p
+            if i_src[p] >= 0:
+                d_src[p] = best
+    for p in range(n):  # squared while searching
+        d_src[p] = math.sqrt(d_src[p])
+    for f in range(t):
+        d_dst[f] = math.sqrt(d_dst[f])
+    return d_src, i_src, d_dst, i_dst
+
+
+@njit(cache=True, nogil=True)
+def _closest(idx: np.ndarray, dist: np.ndarray, m: int) -> np.ndarray:
+    """The ``m`` entries of ``idx`` with the smallest ``dist`` (ties: lower index first), in index order."""
+    if len(idx) <= m:
+        return idx
+    return np.sort(idx[np.argsort(dist, kind="mergesort")[:m]])
+
+
+@njit(cache=True, nogil=True)
+def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarray, anrm: np.ndarray,
+                has_an: bool, max_offset: float, tol: float, m: int, nk: int, reach: float,
+                steps: np.ndarray, axes: np.ndarray, corners: np.ndarray,
+                out_off: np.ndarray, out_state: np.ndarray) -> int:
+    """One part's search (``refine_parts``): its outcome; its offset and states written out."""
+    ub = reach + max_offset
+    bd = np.empty(max(nk, 1))
+    bi = np.empty(max(nk, 1), np.int64)
+    # Assembly samples that can come within reach of the part: inside its box, grown by reach.
+    plo = np.empty(3)
+    phi = np.empty(3)
+    for a in range(3):
+        plo[a] = part[:, a].min() - reach
+        phi[a] = part[:, a].max() + reach
+    keep = np.zeros(len(apts), np.bool_)
+    for i in range(len(apts)):
+        keep[i] = (plo[0] <= apts[i, 0] <= phi[0] and plo[1] <= apts[i, 1] <= phi[1]
+                   and plo[2] <= apts[i, 2] <= phi[2])
+    near_a = np.flatnonzero(keep)
+    if len(near_a) == 0:
+        return FAR
+    a_pts = np.ascontiguousarray(apts[near_a])
+    a_nrm = np.ascontiguousarray(anrm[near_a]) if has_an else anrm[:1]
+    agrid = build_grid(a_pts, _PER_ROOT)
+    pgrid = build_grid(part, _PER_ROOT)
+    # The samples measured are those nearest the other side: gap and penetration live there. Part
+    # samples only if within reach of the assembly; the assembly's nearest the part, at any distance.
+    # One pass over the pairs within reach gives the part samples' nearest, and the assembly
+    # samples' for all that have a part sample within reach: when m do, they are the m nearest.
+    d1, i1, d2, i2 = _pairs(part, agrid, reach)
+    near_p = np.flatnonzero(i1 >= 0)
+    if len(near_p) == 0:
+        return FAR
+    r1 = _closest(near_p, d1[near_p], m)
+    known = np.flatnonzero(i2 >= 0)
+    if len(known) < m:
+        # Fewer: the rest measured one by one, within ub (all measurements stop there); if still
+        # fewer than m (and there are more), at any distance.
+        for bound in (ub, np.inf):
+            for s in range(len(a_pts)):
+                if i2[s] < 0:
+                    nearest(a_pts[s, 0], a_pts[s, 1], a_pts[s, 2], pgrid, 1, bound, bd, bi)
+                    d2[s], i2[s] = bd[0], bi[0]
+            known = np.flatnonzero(i2 >= 0)
+            if len(known) >= m or len(a_pts) <= m:
+                break
+        if len(a_pts) <= m:
+            known = np.arange(len(a_pts))  # all of them, however far
+    r2 = _closest(known, d2[known], m)
+    q1 = np.ascontiguousarray(part[r1])
+    q2 = np.ascontiguousarray(a_pts[r2])
+    sides = ((q1, 1.0, a_pts, a_nrm, has_an, agrid), (q2, -1.0, part, pnrm, has_pn, pgrid))
+
+    # h's placement, measured in full: the state before, and the directions the search tries first.
+    # The nearest samples are those the choice measured (within reach < ub; or exact, cut at ub).
+    zero = np.zeros(3)
+    dmin1, dmin2 = np.inf, np.inf
+    depth = 0.0
+    a1, a2 = 0, 0
+    j1, j2 = 0, 0
+    push = np.zeros(3)
+    for s in range(len(q1)):
+        bd[0], bi[0] = d1[r1[s]], i1[r1[s]]
+        dd = bd[0]
+        inside = _classify(q1[s, 0], q1[s, 1], q1[s, 2], a_pts, a_nrm, has_an, agrid,
+                           nk, ub, bd, bi)
+        if dd < dmin1:
+            dmin1, a1, j1 = dd, s, max(bi[0], 0)
+        if inside:
+            depth = max(depth, dd)
+            for a in range(3):
+                v = a_nrm[bi[0], a]
+                push[a] += (v if math.isfinite(v) else 0.0) * dd
+    for s in range(len(q2)):
+        dd, ii = d2[r2[s]], i2[r2[s]]
+        if not dd < ub:
+            dd, ii = np.inf, -1
+        bd[0], bi[0] = dd, ii
+        inside = _classify(q2[s, 0], q2[s, 1], q2[s, 2], part, pnrm, has_pn, pgrid,
+                           nk, ub, bd, bi)
+        if dd < dmin2:
+            dmin2, a2, j2 = dd, s, max(bi[0], 0)
+        if inside:
+            depth = max(depth, dd)
+            for a in range(3):
+                push[a] -= pnrm[bi[0], a] * dd
+    near0 = min(dmin1, dmin2)
+    gap0 = 0.0 if depth > 0 else near0
+    out_state[0], out_state[1] = gap0, depth
+    out_state[2], out_state[3] = gap0, depth
+    if gap0 <= tol and depth <= tol:
+        return TOUCHING
+    if max_offset <= 0:
+        return UNRESOLVED
+    # Pull: from the closest sample to its nearest sample of the other side.
+    pull = np.empty(3)
+    for a in range(3):
+        pull[a] = a_pts[j1, a] - q1[a1, a] if dmin1 <= dmin2 else q2[a2, a] - part[j2, a]
+    dirs = np.empty((2 + len(axes), 3))
+    nd = 0
+    for v in (pull, push):
+        nv = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        if nv > 1e-12 and math.isfinite(nv):
+            for a in range(3):
+                dirs[nd, a] = v[a] / nv
+            nd += 1
+    for j in range(len(axes)):
+        dirs[nd] = axes[j]
+        nd += 1
+
+    # Full measurements so far (offset, nearest distance): bounds for the offsets to come.
+    hist_o = np.empty((len(steps) * (nd + len(corners)) + 1, 3))
+    hist_g = np.empty(len(hist_o))
+    hist_o[0] = zero
+    hist_g[0] = min(near0, ub)
+    nh = 1
+    wit_side = np.full(2 * _WITNESSES, -1, np.int64)   # newest first
+    wit_row = np.zeros(2 * _WITNESSES, np.int64)
+    slack = 1e-9 * tol
+    o = np.empty(3)
+    for pas in range(2):
+        directions = dirs[:nd] if pas == 0 else corners
+        for t in steps:
+            for u in range(len(directions)):
+                for a in range(3):
+                    o[a] = directions[u, a] * t
+                lb = -np.inf
+                for e in range(nh):
+                    dx, dy, dz = o[0] - hist_o[e, 0], o[1] - hist_o[e, 1], o[2] - hist_o[e, 2]
+                    lb = max(lb, hist_g[e] - math.sqrt(dx * dx + dy * dy + dz * dz))
+                if lb > tol + slack:
+                    continue  # no sample can be within the tolerance here
+                ruled_out = False
+                for w in range(2 * _WITNESSES):
+                    if wit_side[w] < 0:
+                        break
+                    dd, inside = _measure(sides[wit_side[w]], o, nk, ub, wit_row[w], bd, bi)
+                    if inside and dd > tol:
+                        ruled_out = True
+                        break
+                if ruled_out:
+                    continue
+                # In full, stopping at the first sample inside by more than the tolerance.
+                near, depth = np.inf, 0.0
+                for side in range(2):
+                    for s in range(len(sides[side][0])):
+                        dd, inside = _measure(sides[side], o, nk, ub, s, bd, bi)
+                        near = min(near, dd)
+                        if inside:
+                            depth = max(depth, dd)
+                            if dd > tol:
+                                wit_side[1:] = wit_side[:-1].copy()
+                                wit_row[1:] = wit_row[:-1].copy()
+                                wit_side[0], wit_row[0] = side, s
+                                ruled_out = True
+                                break
+                    if ruled_out:
+                        break
+                if ruled_out:
+                    continue
+                hist_o[nh] = o
+                hist_g[nh] = min(near, ub)
+                nh += 1
+                gap = 0.0 if depth > 0 else near
+                if gap <= tol and depth <= tol:
+                    out_off[:] = o
+                    out_state[2], out_state[3] = gap, depth
+                    return MOVED
+    return UNRESOLVED
+
+
+@njit(cache=True, nogil=True)
+def refine_parts(ppts: np.ndarray, pnrm: np.ndarray, has_pn: np.ndarray, pstart: np.ndarray,
+                 pcount: np.ndarray, apts: np.ndarray, anrm: np.ndarray, has_an: bool, max_offset: float,
+                 tol: float, m: int, nk: int, reach: float, steps: np.ndarray, axes: np.ndarray,
+                 corners: np.ndarray, out_off: np.ndarray, out_state: np.ndarray, status: np.ndarray) -> None:
+    """The line search of each part against one assembly (``service.suggest.contact.refine_offsets``).
+
+    Shapes:
+        ppts, pnrm (P, 3): the parts' samples and normals, part j at rows pstart[j]:pstart[j] + pcount[j];
+        has_pn (n,) bool; apts, anrm (A, 3) the assembly's (anrm unread unless has_an); steps (t,)
+        the line search's step lengths; axes (6, 3), corners (8, 3) unit directions ->
+        out_off (n, 3) offsets (zero unless MOVED), out_state (n, 4) gap and depth before, then
+        after, status (n,) one of FAR, TOUCHING, MOVED, UNRESOLVED.
+    """
+    for j in range(len(pstart)):
+        out_off[j] = 0.0
+        out_state[j] = 0.0
+        if pcount[j] == 0:
+            status[j] = FAR
+            continue
+        rows = slice(pstart[j], pstart[j] + pcount[j])
+        status[j] = _refine_one(ppts[rows], pnrm[rows], has_pn[j], apts, anrm, has_an, max_offset, tol, m, nk,
+                                reach, steps, axes, corners, out_off[j], out_state[j])
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) every function above with the argument types
+    ``service.suggest.contact`` passes: the first compile takes about 25 s on these machines,
+    a cached load under 1 s. The Docker image runs it at build time (``python -m
+    service.suggest.contact_kernel``) so that a container starts from the cache."""
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(64, 3))
+    nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    corners = np.ones((8, 3)) / math.sqrt(3.0)
+    out_off, out_state, status = np.zeros((1, 3)), np.zeros((1, 4)), np.zeros(1, np.int64)
+    refine_parts(pts, nrm, np.ones(1, np.bool_), np.zeros(1, np.int64), np.full(1, 64, np.int64),
+                 pts + 0.05, nrm, True, 0.1, 0.01, 16, 4, 0.12, np.arange(1, 11) * 0.01, axes, corners,
+                 out_off, out_state, status)
+
+
+if __name__ == "__main__":
+    warm()
