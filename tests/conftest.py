@@ -33,13 +33,15 @@ def _serve_in_thread(app: Any, start_timeout: float = 120.0, **config: Any) -> I
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _contact_kernel_compiled() -> None:
-    """Contact refinement's compiled search, compiled once before any test (about 25 s the first
-    time on a fresh checkout, then loaded from numba's cache): so that a server a test starts does
-    not spend its start-up bound compiling it."""
-    from service.suggest.contact_kernel import warm
+def _kernels_compiled() -> None:
+    """The compiled kernels (contact refinement's search, the OBJ reader), compiled once before any
+    test (about 30 s the first time on a fresh checkout, then loaded from numba's cache): so that a
+    server a test starts does not spend its start-up bound compiling them."""
+    from service.geometry import obj_kernel
+    from service.suggest import contact_kernel
 
-    warm()
+    contact_kernel.warm()
+    obj_kernel.warm()
 
 
 @pytest.fixture(scope="session")

@@ -25,10 +25,11 @@ Two readers, tried in this order (``service.geometry.mesh`` asks for both):
 * ``obj_blocks`` / ``read_obj_blocks``: the file as most exporters write one object (trimesh,
   Blender), all ``v`` lines in one run, then all ``f`` lines in one run, every face of the same
   corner count and corner form (``i``, ``i/t``, ``i//n`` or ``i/t/n``). Each run is read by
-  Arrow's CSV reader (``pyarrow.csv``: C++, one pass, numbers parsed correctly rounded): the
-  100k-triangle bench file's surface in 20 ms against 47 with the reader below. Any byte it
-  cannot take (a tab, two blanks, a corner of another form, a number it cannot read, a row of
-  another length) makes it give None and the next reader runs.
+  ``service.geometry.obj_kernel`` (compiled, one pass) when it is in that reader's spelling
+  (single blanks, plain decimals of at most 15 significant digits), else by Arrow's CSV reader
+  (``pyarrow.csv``: C++, one pass, numbers parsed correctly rounded); both read the numbers
+  ``float()`` reads. Any byte Arrow cannot take (a tab, two blanks, a corner of another form, a
+  number it cannot read, a row of another length) makes it give None and the next reader runs.
 * ``obj_layout`` / ``read_plain_obj``: any plain file, in numpy.
 
 Shapes: vertices (V, 3) float64, faces (F, 3) int64.
@@ -44,6 +45,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pa_csv
 
+from service.geometry import obj_kernel
 from service.geometry.arrays import concat_ranges
 
 # Keywords whose lines the surface does not need; the material ones only when the caller drops them.
@@ -491,12 +493,49 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     """The vertices some face uses and the triangles of a file ``obj_blocks`` laid out, or None
     (the numpy reader then runs). The same surface as ``read_plain_obj`` reads.
 
-    Corners with texture or normal references (``i/t``, ``i//n``, ``i/t/n``) are read with every
-    '/' made a blank (``i//n`` then has an empty middle field): each corner is ``slashes + 1``
-    fields, the first its vertex reference, the others not read (as the numpy reader does not).
+    The runs are parsed by ``service.geometry.obj_kernel`` when they are in its spelling (most
+    files), else by Arrow's reader: there corners with texture or normal references (``i/t``,
+    ``i//n``, ``i/t/n``) are read with every '/' made a blank (``i//n`` then has an empty middle
+    field): each corner is ``slashes + 1`` fields, the first its vertex reference, the others not
+    read (as the numpy reader does not). Both read the same numbers.
 
     Shapes:
         returns vertices (V, 3) float64, faces (F, 3) int64 indexing them.
+    """
+    parsed = _compiled_runs(blocks) or _arrow_runs(blocks)
+    if parsed is None:
+        return None
+    vertices, refs = parsed
+    # Every vertex line precedes every face: a relative reference counts back from the last.
+    corners = _vertex_indices(refs, len(vertices), len(vertices))
+    if corners is None:
+        return None
+    counts = np.full(len(corners), blocks.corners, dtype=np.int64)
+    return _used_surface(np.ascontiguousarray(vertices, dtype=np.float64), _fans(corners.ravel(), counts))
+
+
+def _compiled_runs(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertex and face runs read by ``service.geometry.obj_kernel`` (the most common spelling,
+    4x faster than Arrow's reader), or None for anything it does not take.
+
+    Shapes:
+        -> vertices (V, 3) float64, references (F, corners) int64.
+    """
+    a = np.frombuffer(blocks.data, dtype=np.uint8)
+    vertices = np.empty((blocks.vertices, 3))
+    refs = np.empty((blocks.faces, blocks.corners), dtype=np.int64)
+    if not obj_kernel.read_vertices(a, blocks.v_start, blocks.v_end, vertices):
+        return None
+    if not obj_kernel.read_faces(a, blocks.f_start, blocks.f_end, blocks.slashes, refs):
+        return None
+    return vertices, refs
+
+
+def _arrow_runs(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertex and face runs read by Arrow's CSV reader, or None.
+
+    Shapes:
+        -> vertices (V, 3) float64, references (F, corners) int64.
     """
     data = blocks.data
     vertices = _read_run(memoryview(data)[blocks.v_start:blocks.v_end], blocks.vertices, 3, [1, 2, 3],
@@ -514,9 +553,4 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     refs = _read_run(run, blocks.faces, k * per, [1 + j * per for j in range(k)], pa.int64())
     if refs is None:
         return None
-    # Every vertex line precedes every face: a relative reference counts back from the last.
-    corners = _vertex_indices(refs, len(vertices), len(vertices))
-    if corners is None:
-        return None
-    counts = np.full(len(corners), k, dtype=np.int64)
-    return _used_surface(np.ascontiguousarray(vertices, dtype=np.float64), _fans(corners.ravel(), counts))
+    return vertices, refs

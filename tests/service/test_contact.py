@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 import trimesh
 from fastapi.testclient import TestClient
+from scipy.spatial import cKDTree
 from service_testkit import AssemblyQuery, assembly_query, multi_part_shapes
 
 from service.artifacts.catalog import Catalog
 from service.geometry.frames import Frame
 from service.settings import Settings
+from service.suggest import contact_kernel
 from service.suggest.contact import (
     Assembly,
     ContactParams,
@@ -170,6 +172,37 @@ def test_batched_search_matches_the_reference_on_synthetic_contacts(seat: Assemb
         _same(refine_offsets(parts, assembly, params),
               [contact_reference.refine_offset(p, assembly, params) for p in parts])
     assert refine_offsets([], seat, params) == []
+
+
+def test_threads_give_the_same_answers(seat: Assembly, leg: Surface) -> None:
+    """The parts dealt to 1, 2 or 3 threads (more than parts too): the same refinements, in order."""
+    base = np.array([0.3, -SEAT_TOP - LEG_HALF, 0.3])
+    parts = [leg.moved(base + np.array([0.01 * j, -h, 0.0])) for j, h in enumerate([0.05, -0.03, 0.02, 2.0])]
+    one = refine_offsets(parts, seat, ContactParams(threads=1))
+    for threads in (2, 3, 8):
+        _same(refine_offsets(parts, seat, ContactParams(threads=threads)), one)
+
+
+@pytest.mark.parametrize("k", [1, 4])
+@pytest.mark.parametrize("ub", [0.05, 0.3, np.inf])
+def test_grid_nearest_matches_a_kd_tree(k: int, ub: float) -> None:
+    """The compiled search's nearest samples: the distances scipy's cKDTree gives for the same
+    bound (strict, as its ``distance_upper_bound``), for queries inside, beside and far off the
+    points, including a grid capped at its most cells and one of coincident points."""
+    rng = np.random.default_rng(k)
+    clouds = [rng.normal(size=(500, 3)) * [0.3, 0.1, 0.02], rng.random((30_000, 3)), np.zeros((7, 3))]
+    for pts in clouds:
+        grid = contact_kernel.build_grid(pts, 1.0)
+        queries = np.concatenate([rng.normal(size=(300, 3)) * 0.5, rng.normal(size=(20, 3)) * 10.0])
+        want_d, _ = cKDTree(pts).query(queries, k=k, distance_upper_bound=ub)
+        want_d = want_d.reshape(len(queries), k)
+        d, i = np.empty(k), np.empty(k, dtype=np.int64)
+        for q, wd in zip(queries, want_d, strict=True):
+            contact_kernel.nearest(q[0], q[1], q[2], grid, k, ub, d, i)
+            np.testing.assert_allclose(d, wd, rtol=0, atol=1e-12)
+            found = np.isfinite(d)
+            assert np.all(i[~found] == -1)
+            np.testing.assert_allclose(np.linalg.norm(pts[i[found]] - q, axis=1), d[found], atol=1e-12)
 
 
 def test_batched_search_matches_the_reference_on_catalog_parts(engine: SuggestionEngine,

@@ -18,7 +18,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.geometry.mesh import MeshError, load_mesh_surface, sample_surface
-from service.geometry.obj import _numbers, obj_blocks, obj_layout, read_obj_blocks, read_plain_obj
+from service.geometry.obj import (
+    _arrow_runs,
+    _compiled_runs,
+    _numbers,
+    obj_blocks,
+    obj_layout,
+    read_obj_blocks,
+    read_plain_obj,
+)
 
 MAX = 1_000_000
 
@@ -329,3 +337,57 @@ def test_relative_references_count_back_from_their_face() -> None:
     assert read is not None
     vertices, faces = read
     assert vertices[faces].tolist() == [[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[5, 5, 5], [6, 5, 5], [5, 6, 5]]]
+
+
+# -- the compiled reader of the block layout -------------------------------------------------------
+
+
+Runs = tuple[np.ndarray, np.ndarray] | None
+
+
+def _both_runs(text: bytes) -> tuple[Runs, Runs]:
+    found = obj_blocks(text, True)
+    assert found is not None
+    return _compiled_runs(found), _arrow_runs(found)
+
+
+def test_the_compiled_reader_reads_what_arrow_reads() -> None:
+    """Plain decimals (signs, leading zeros, up to 15 significant digits) and every corner form,
+    LF and CRLF: the same numbers as Arrow's reader, and as ``float()``."""
+    rng = np.random.default_rng(1)
+    for form in ("{}", "{}/7", "{}//7", "{}/7/7", "{}/"):
+        for end in ("\n", "\r\n"):
+            words = []
+            for _ in range(300):
+                zeros = "0" * int(rng.integers(0, 3))
+                whole = zeros + str(int(rng.integers(0, 10 ** int(rng.integers(1, 8)))))
+                frac = "".join(map(str, rng.integers(0, 10, size=int(rng.integers(1, 8)))))
+                sign = str(rng.choice(["", "-", "+"]))
+                words.append(f"{sign}{whole}.{frac}" if rng.random() < 0.8 else f"{sign}{whole}")
+            rows = [" ".join(words[i:i + 3]) for i in range(0, len(words), 3)]
+            faces = [" ".join(form.format(int(c)) for c in rng.integers(1, len(rows) + 1, size=3))
+                     for _ in range(50)]
+            text = end.join([f"v {r}" for r in rows] + [f"f {f}" for f in faces]).encode() + end.encode()
+            compiled, arrow = _both_runs(text)
+            assert compiled is not None and arrow is not None, (form, end)
+            assert np.array_equal(compiled[0], arrow[0]) and np.array_equal(compiled[1], arrow[1])
+            assert np.array_equal(compiled[0].ravel(), [float(w) for r in rows for w in r.split()])
+
+
+@pytest.mark.parametrize("vertex", [b"v 1e-3 0 0", b"v 0.1234567890123456 0 0", b"v 1. 0 0", b"v .5 0 0",
+                                    b"v 0\t0 0", b"v 0  0 0", b"v 0 0 0 ", b"v 0 0", b"v 0 0 0 1",
+                                    b"v nan 0 0"])
+def test_the_compiled_reader_leaves_other_spellings_to_arrow(vertex: bytes) -> None:
+    text = vertex + b"\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    found = obj_blocks(text, True)
+    if found is not None:
+        assert _compiled_runs(found) is None
+    # Whatever reads it, the surface is the one the readers behind agree on.
+    same_or_left(text)
+
+
+@pytest.mark.parametrize("face", [b"f 1 2 3 ", b"f 1 2 3/1", b"f 1  2 3", b"f 1 2", b"f 1 2 x", b"f +1 2 3"])
+def test_the_compiled_reader_leaves_other_faces_to_arrow(face: bytes) -> None:
+    found = obj_blocks(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + face + b"\n", True)
+    if found is not None:
+        assert _compiled_runs(found) is None

@@ -1,0 +1,148 @@
+"""The runs of a plain OBJ file's ``v`` and ``f`` lines, parsed compiled (numba) in one pass.
+
+``service.geometry.obj.read_obj_blocks`` reads a file laid out as one run of vertex lines and one
+run of face lines; Arrow's CSV reader took about 6 of its 16 ms for the bench's 100k-triangle file
+(the rest is finding the runs and making the surface). This reader takes only the most common
+spelling of those runs and says so by returning False for anything else, so the Arrow reader
+(and behind it the numpy one, then trimesh) still decides every other file:
+
+* a vertex line is ``v``, then three numbers, one blank before each, then ``\\n`` or ``\\r\\n``
+  (the run's last line may end without one); a number is an optional sign, digits, and an optional
+  ``.`` with digits, at most 15 significant digits and no exponent. Such a number is an integer
+  below 2^53 over a power of ten, both exact in float64, so one division gives the correctly
+  rounded value: the one ``float()`` (and Arrow) reads;
+* a face line is ``f``, then ``corners`` words, one blank before each, each a vertex reference
+  (optional ``-``, digits) followed by exactly ``slashes`` slashes, each followed by optional
+  digits (``i``, ``i/t``, ``i//n``, ``i/t/n``); only the vertex reference is kept.
+
+Shapes: vertices (V, 3) float64; references (F, corners) int64, as written (1-based or negative).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Significant digits read exactly (an integer below 10^15 < 2^53), and powers of ten exact in float64.
+_MAX_MANTISSA = 10 ** 15
+_POW10 = np.array([10.0 ** k for k in range(23)])
+_NL, _CR, _BLANK, _SLASH, _DOT, _MINUS, _PLUS = 10, 13, 32, 47, 46, 45, 43
+
+
+@njit(cache=True, nogil=True)
+def _line_end(a: np.ndarray, i: int, end: int) -> int:
+    """Past the end of the line at ``i`` (``\\n``, ``\\r\\n`` or the run's end); -1 for anything else."""
+    if i == end:
+        return i
+    if a[i] == _NL:
+        return i + 1
+    if a[i] == _CR and i + 1 < end and a[i + 1] == _NL:
+        return i + 2
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
+    """Parse ``len(out)`` vertex lines from ``a[start:end]`` into ``out``; False if the run is not
+    exactly that (see the module docstring).
+
+    Shapes:
+        a (n,) uint8; out (V, 3) float64.
+    """
+    i = start
+    for r in range(out.shape[0]):
+        if i + 1 >= end or a[i] != 118 or a[i + 1] != _BLANK:   # 'v '
+            return False
+        i += 1
+        for c in range(3):
+            if i >= end or a[i] != _BLANK:
+                return False
+            i += 1
+            neg = False
+            if i < end and (a[i] == _MINUS or a[i] == _PLUS):
+                neg = a[i] == _MINUS
+                i += 1
+            mant = 0
+            digits = 0
+            frac = 0
+            while i < end and 48 <= a[i] <= 57:
+                mant = mant * 10 + (a[i] - 48)
+                digits += 1
+                i += 1
+                if mant >= _MAX_MANTISSA:
+                    return False
+            if digits == 0:
+                return False
+            if i < end and a[i] == _DOT:
+                i += 1
+                while i < end and 48 <= a[i] <= 57:
+                    mant = mant * 10 + (a[i] - 48)
+                    frac += 1
+                    i += 1
+                    if mant >= _MAX_MANTISSA or frac >= len(_POW10):
+                        return False
+                if frac == 0:
+                    return False
+            value = mant / _POW10[frac]
+            out[r, c] = -value if neg else value
+        i = _line_end(a, i, end)
+        if i < 0:
+            return False
+    return i == end
+
+
+@njit(cache=True, nogil=True)
+def read_faces(a: np.ndarray, start: int, end: int, slashes: int, out: np.ndarray) -> bool:
+    """Parse ``len(out)`` face lines of ``out.shape[1]`` corners from ``a[start:end]`` into ``out``
+    (each corner's vertex reference); False if the run is not exactly that.
+
+    Shapes:
+        a (n,) uint8; out (F, corners) int64.
+    """
+    i = start
+    for r in range(out.shape[0]):
+        if i + 1 >= end or a[i] != 102 or a[i + 1] != _BLANK:   # 'f '
+            return False
+        i += 1
+        for c in range(out.shape[1]):
+            if i >= end or a[i] != _BLANK:
+                return False
+            i += 1
+            neg = False
+            if i < end and a[i] == _MINUS:
+                neg = True
+                i += 1
+            ref = 0
+            digits = 0
+            while i < end and 48 <= a[i] <= 57:
+                ref = ref * 10 + (a[i] - 48)
+                digits += 1
+                i += 1
+                if digits > 18:
+                    return False
+            if digits == 0:
+                return False
+            for _ in range(slashes):
+                if i >= end or a[i] != _SLASH:
+                    return False
+                i += 1
+                while i < end and 48 <= a[i] <= 57:
+                    i += 1
+            out[r, c] = -ref if neg else ref
+        i = _line_end(a, i, end)
+        if i < 0:
+            return False
+    return i == end
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) both readers with the argument types
+    ``service.geometry.obj`` passes: a few seconds the first time, milliseconds from the cache. The
+    server's warm-up and the Docker build (``python -m service.geometry.obj_kernel``) run it."""
+    a = np.frombuffer(b"v 0 0 0\nf 1 1 1\n", dtype=np.uint8)
+    read_vertices(a, 0, 8, np.empty((1, 3)))
+    read_faces(a, 8, 16, 0, np.empty((1, 3), dtype=np.int64))
+
+
+if __name__ == "__main__":
+    warm()
