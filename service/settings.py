@@ -119,9 +119,10 @@ class Settings(BaseSettings):
         "in the air (`/place`, `/assemble`, refined suggestions). At most `contact_max_offset`: off."))
     suggest_refine_contact: bool = Field(default=False, description=(
         "Contact refinement of suggestions (`/suggest`, `/suggest/mesh`, `/suggest/batch`) when a "
-        "request does not send `refine_contact`. Off by default: for k = 10 it costs about ten "
-        "times the rest of a suggestion (tens of milliseconds against a few); `/place` and "
-        "`/assemble` refine unless told not to."))
+        "request does not send `refine_contact`. Off by default: for k = 10 it adds about 3 ms of "
+        "CPU to a suggestion of about 2.5 (2 ms of wall time on two threads, `contact_threads`), "
+        "which would cost the service about half its throughput and its c = 1 latency target "
+        "(docs/performance.md); `/place` and `/assemble` refine unless told not to."))
     suggest_complement_check: bool = Field(default=True, description=(
         "Complement check of suggestions when a request does not send `complement_check`: the "
         "best-ranked candidates are placed by the placement network and those lying mostly on the "
@@ -339,8 +340,9 @@ class Settings(BaseSettings):
     max_request_cost_ms: float = Field(default=2000.0, gt=0, description=(
         "Budget of one suggestion request (`/suggest`, `/suggest/mesh`, `/suggest/batch`) in "
         "estimated CPU milliseconds, checked before any work starts (413 `over_budget`). Each query "
-        "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 12 ms per suggestion (k) when "
-        "`refine_contact` is on (measured on the shipped artifacts: 1.4 s for k = 100 refined), "
+        "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 0.5 ms per suggestion (k) when "
+        "`refine_contact` is on (measured on the shipped artifacts: 38 ms of CPU for k = 100 "
+        "refined), "
         "plus 5 ms per 256 `region_candidates` when the query gives a `region`. The default "
         "admits one query of any k with refinement, and a batch of 64 without."))
     max_body_bytes: int = Field(default=8 * 1024 * 1024, ge=1024, description=(

@@ -19,8 +19,8 @@ One request (or a batch of them) goes through these steps, each one batched:
    places mostly onto the query's own surface, i.e. parts the query already has, move behind
    the others (each group dealt again), and the top k stay;
 6. contact refinement (``service.suggest.contact``; for suggestions only when asked, or when the setting
-   ``suggest_refine_contact`` turns it on by default: it costs about ten times the rest of the
-   request): each placed part nudged by at most ``contact_max_offset`` so it touches the
+   ``suggest_refine_contact`` turns it on by default: for k = 10 it about doubles the CPU time of
+   a request): each placed part nudged by at most ``contact_max_offset`` so it touches the
    query's points; translations and boxes mapped back to the caller's frame.
 
 Requests may also reweight or exclude g's modes and ask for a mode-balanced gallery
@@ -69,11 +69,12 @@ log = logging.getLogger(__name__)
 # The cost model of a suggestion query, in estimated CPU milliseconds (max_request_cost_ms,
 # batch_max_cost_ms). Measured in process on the shipped artifacts (engine.suggest_batch, one
 # core, training running on the other): a query cost 3.7 ms in a batch of 32 and 6-8 ms alone;
-# 100k points against 1.5k added about 5 ms (frame, resampling); contact refinement cost 37-85 ms
-# for k = 10 and 0.93-1.38 s for k = 100, 10-14 ms per refined part.
+# 100k points against 1.5k added about 5 ms (frame, resampling). Contact refinement, compiled
+# (contact_kernel), cost 38 ms of CPU for k = 100 on one thread (22.6 ms of wall time on two),
+# 3.3 ms for k = 10: about 0.4 ms per refined part (12 ms before it was compiled).
 QUERY_COST_MS = 4.0
 POINT_COST_MS = 0.05 / 1000
-REFINED_PART_COST_MS = 12.0
+REFINED_PART_COST_MS = 0.5
 # A region query searches 256 neighbours per mode, and places and checks 256 candidates: it cost
 # about 5 ms more than the same query without a region (13 ms against 7.7 ms, best of 5, a chair
 # seat with a category filter, trainings running on both cores), most of it in the wider search.
@@ -524,7 +525,7 @@ class SuggestionEngine:
                 f"the request's {queries} quer{'y' if queries == 1 else 'ies'} would take about "
                 f"{cost:.0f} ms of CPU, over the budget of {budget:g} ms per request "
                 "(COMPLEMENTME_MAX_REQUEST_COST_MS); ask for fewer items, a smaller k or no "
-                "refine_contact (12 ms per refined suggestion), or split the request"))
+                f"refine_contact ({REFINED_PART_COST_MS:g} ms per refined suggestion), or split the request"))
 
     # ---------------------------------------------------------------- public API
     def suggest(self, points: np.ndarray, options: SuggestOptions | None = None,
