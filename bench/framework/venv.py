@@ -31,9 +31,9 @@ CONSTRAINTS = REPO / "docker" / "constraints.txt"
 # flight on it (bentoml/BentoML#5540, open): with 1.4.40, 15 of 96 requests at c = 32 failed with
 # "Server disconnected" in a smoke run, which would measure that bug, not BentoML's batching.
 FRAMEWORKS = {"bentoml": "bentoml==1.4.30", "litserve": "litserve==0.2.19"}
-# What bench.framework.pipeline imports, at the project's locked versions (pyarrow: through
-# service.geometry.mesh, whose OBJ reader uses it).
-NUMERIC = ("numpy", "onnxruntime", "faiss-cpu", "scipy", "trimesh", "pyarrow")
+# What bench.framework.pipeline imports, at the project's locked versions (pyarrow and numba:
+# through service.geometry.mesh, whose OBJ readers use them; llvmlite is numba's compiler).
+NUMERIC = ("numpy", "onnxruntime", "faiss-cpu", "scipy", "trimesh", "pyarrow", "numba", "llvmlite")
 STAMP = "complementme-peer.json"  # what the venv was built from; a different one rebuilds it
 
 
