@@ -66,7 +66,7 @@ COPY --from=wheel /build/dist/ dist/
 RUN pip install --no-cache-dir --no-deps dist/*.whl \
     && rm -rf dist \
     && python -m service.suggest.contact_kernel \
-    && python -m service.geometry.obj_kernel
+    && python -m service.geometry.mesh_kernel
 USER 10001:10001
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \

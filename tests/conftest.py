@@ -37,11 +37,11 @@ def _kernels_compiled() -> None:
     """The compiled kernels (contact refinement's search, the OBJ reader), compiled once before any
     test (about 30 s the first time on a fresh checkout, then loaded from numba's cache): so that a
     server a test starts does not spend its start-up bound compiling them."""
-    from service.geometry import obj_kernel
+    from service.geometry import mesh_kernel
     from service.suggest import contact_kernel
 
     contact_kernel.warm()
-    obj_kernel.warm()
+    mesh_kernel.warm()
 
 
 @pytest.fixture(scope="session")

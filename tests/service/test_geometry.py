@@ -20,6 +20,7 @@ from service.geometry.mesh import (
     points_to_mesh_distance,
     resample_points,
     sample_surface,
+    triangle_areas,
 )
 
 LIMITS = {"max_vertices": 10_000, "max_faces": 20_000}
@@ -320,3 +321,17 @@ def test_box_iou_of_one_box_with_many() -> None:
     assert np.allclose(iou, [1.0, 1 / 3, 0.0, 0.5])
     flat = box_iou(np.zeros(3), np.array([1.0, 1.0, 0.0]), np.zeros((1, 3)), np.array([[1.0, 1.0, 0.0]]))
     assert np.isnan(flat[0]) and not flat[0] > 0.25   # no volume: nothing to measure, never "stacked"
+
+
+def test_triangle_areas_compiled_are_numpys_to_the_bit() -> None:
+    """The compiled areas (every index in range) against the same sums in numpy (np.cross and
+    np.linalg.norm), to the last bit; indices out of range keep numpy's error."""
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(500, 3)) * rng.uniform(1e-3, 1e3)
+    faces = rng.integers(0, 500, size=(2000, 3))
+    want = 0.5 * np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                          vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    assert np.array_equal(triangle_areas(vertices, faces), want)
+    assert triangle_areas(vertices, np.zeros((0, 3), dtype=np.int64)).shape == (0,)
+    with pytest.raises(IndexError):
+        triangle_areas(vertices, np.array([[0, 1, 500]]))
