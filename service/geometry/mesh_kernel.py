@@ -30,6 +30,7 @@ from numba import njit
 
 # Significant digits read exactly (an integer below 10^15 < 2^53), and powers of ten exact in float64.
 _MAX_MANTISSA = 10 ** 15
+_MAX_REFERENCE = 10 ** 18   # an index reference's digits: at most 18 (int64)
 _POW10 = np.array([10.0 ** k for k in range(23)])
 _NL, _CR, _BLANK, _SLASH, _DOT, _MINUS, _PLUS = 10, 13, 32, 47, 46, 45, 43
 
@@ -47,6 +48,32 @@ def _line_end(a: np.ndarray, i: int, end: int) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _digits(a: np.ndarray, i: int, end: int, value: int, limit: int) -> tuple[int, int, int]:
+    """The decimal digits from ``i`` appended to ``value``: the new value, how many digits, and
+    past them; -1 digits once the value reaches ``limit``."""
+    digits = 0
+    while i < end and 48 <= a[i] <= 57:
+        value = value * 10 + (a[i] - 48)
+        digits += 1
+        i += 1
+        if value >= limit:
+            return value, -1, i
+    return value, digits, i
+
+
+@njit(cache=True, nogil=True)
+def _word_start(a: np.ndarray, i: int, end: int, signs: bool) -> tuple[int, bool]:
+    """Past the blank before a word and its sign (``-``; also ``+`` if ``signs``), and whether it was
+    ``-``; -1 if there is no blank."""
+    if i >= end or a[i] != _BLANK:
+        return -1, False
+    i += 1
+    if i < end and (a[i] == _MINUS or (signs and a[i] == _PLUS)):
+        return i + 1, a[i] == _MINUS
+    return i, False
+
+
+@njit(cache=True, nogil=True)
 def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
     """Parse ``len(out)`` vertex lines from ``a[start:end]`` into ``out``; False if the run is not
     exactly that (see the module docstring).
@@ -56,37 +83,20 @@ def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
     """
     i = start
     for r in range(out.shape[0]):
-        if i + 1 >= end or a[i] != 118 or a[i + 1] != _BLANK:   # 'v '
+        if i + 1 >= end or a[i] != 118:   # 'v', then the first word's blank
             return False
         i += 1
         for c in range(3):
-            if i >= end or a[i] != _BLANK:
+            i, neg = _word_start(a, i, end, True)
+            if i < 0:
                 return False
-            i += 1
-            neg = False
-            if i < end and (a[i] == _MINUS or a[i] == _PLUS):
-                neg = a[i] == _MINUS
-                i += 1
-            mant = 0
-            digits = 0
+            mant, digits, i = _digits(a, i, end, 0, _MAX_MANTISSA)
+            if digits <= 0:
+                return False
             frac = 0
-            while i < end and 48 <= a[i] <= 57:
-                mant = mant * 10 + (a[i] - 48)
-                digits += 1
-                i += 1
-                if mant >= _MAX_MANTISSA:
-                    return False
-            if digits == 0:
-                return False
             if i < end and a[i] == _DOT:
-                i += 1
-                while i < end and 48 <= a[i] <= 57:
-                    mant = mant * 10 + (a[i] - 48)
-                    frac += 1
-                    i += 1
-                    if mant >= _MAX_MANTISSA or frac >= len(_POW10):
-                        return False
-                if frac == 0:
+                mant, frac, i = _digits(a, i + 1, end, mant, _MAX_MANTISSA)
+                if frac <= 0 or frac >= len(_POW10):
                     return False
             value = mant / _POW10[frac]
             out[r, c] = -value if neg else value
@@ -106,33 +116,20 @@ def read_faces(a: np.ndarray, start: int, end: int, slashes: int, out: np.ndarra
     """
     i = start
     for r in range(out.shape[0]):
-        if i + 1 >= end or a[i] != 102 or a[i + 1] != _BLANK:   # 'f '
+        if i + 1 >= end or a[i] != 102:   # 'f', then the first word's blank
             return False
         i += 1
         for c in range(out.shape[1]):
-            if i >= end or a[i] != _BLANK:
+            i, neg = _word_start(a, i, end, False)
+            if i < 0:
                 return False
-            i += 1
-            neg = False
-            if i < end and a[i] == _MINUS:
-                neg = True
-                i += 1
-            ref = 0
-            digits = 0
-            while i < end and 48 <= a[i] <= 57:
-                ref = ref * 10 + (a[i] - 48)
-                digits += 1
-                i += 1
-                if digits > 18:
-                    return False
-            if digits == 0:
+            ref, digits, i = _digits(a, i, end, 0, _MAX_REFERENCE)
+            if digits <= 0:
                 return False
-            for _ in range(slashes):
+            for _ in range(slashes):   # texture and normal references: skipped
                 if i >= end or a[i] != _SLASH:
                     return False
-                i += 1
-                while i < end and 48 <= a[i] <= 57:
-                    i += 1
+                _, _, i = _digits(a, i + 1, end, 0, _MAX_REFERENCE)
             out[r, c] = -ref if neg else ref
         i = _line_end(a, i, end)
         if i < 0:

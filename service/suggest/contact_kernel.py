@@ -363,36 +363,29 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     # h's placement, measured in full: the state before, and the directions the search tries first.
     # The nearest samples are those the choice measured (within reach < ub; or exact, cut at ub).
     zero = np.zeros(3)
-    dmin1, dmin2 = np.inf, np.inf
+    dmin = np.full(2, np.inf)
+    closest = np.zeros(2, np.int64)    # per side: the measured sample nearest the other side
+    nearest_of = np.zeros(2, np.int64)  # and its nearest sample there (0 where none)
     depth = 0.0
-    a1, a2 = 0, 0
-    j1, j2 = 0, 0
     push = np.zeros(3)
-    for s in range(len(q1)):
-        bd[0], bi[0] = d1[r1[s]], i1[r1[s]]
-        dd = bd[0]
-        inside = _classify(q1[s, 0], q1[s, 1], q1[s, 2], a_pts, a_nrm, has_an, agrid,
-                           nk, ub, bd, bi)
-        if dd < dmin1:
-            dmin1, a1, j1 = dd, s, max(bi[0], 0)
-        if inside:
-            depth = max(depth, dd)
-            for a in range(3):
-                v = a_nrm[bi[0], a]
-                push[a] += (v if math.isfinite(v) else 0.0) * dd
-    for s in range(len(q2)):
-        dd, ii = d2[r2[s]], i2[r2[s]]
-        if not dd < ub:
-            dd, ii = np.inf, -1
-        bd[0], bi[0] = dd, ii
-        inside = _classify(q2[s, 0], q2[s, 1], q2[s, 2], part, pnrm, has_pn, pgrid,
-                           nk, ub, bd, bi)
-        if dd < dmin2:
-            dmin2, a2, j2 = dd, s, max(bi[0], 0)
-        if inside:
-            depth = max(depth, dd)
-            for a in range(3):
-                push[a] -= pnrm[bi[0], a] * dd
+    for side in range(2):
+        q, sign, pts, nrm, has_nrm, grid = sides[side]
+        chosen, dist, found = (r1, d1, i1) if side == 0 else (r2, d2, i2)
+        for s in range(len(q)):
+            dd, ii = dist[chosen[s]], found[chosen[s]]
+            if not dd < ub:
+                dd, ii = np.inf, -1
+            bd[0], bi[0] = dd, ii
+            inside = _classify(q[s, 0], q[s, 1], q[s, 2], pts, nrm, has_nrm, grid, nk, ub, bd, bi)
+            if dd < dmin[side]:
+                dmin[side], closest[side], nearest_of[side] = dd, s, max(bi[0], 0)
+            if inside:  # out along the other side's normal there, deeper samples pushing harder
+                depth = max(depth, dd)
+                for a in range(3):
+                    v = nrm[bi[0], a]
+                    push[a] += sign * (v if math.isfinite(v) else 0.0) * dd
+    dmin1, dmin2 = dmin[0], dmin[1]
+    a1, a2, j1, j2 = closest[0], closest[1], nearest_of[0], nearest_of[1]
     near0 = min(dmin1, dmin2)
     gap0 = 0.0 if depth > 0 else near0
     out_state[0], out_state[1] = gap0, depth
