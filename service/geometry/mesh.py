@@ -725,22 +725,16 @@ def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
-    if not len(f) or (f.min() >= 0 and f.max() < len(v)):
-        return mesh_kernel.triangle_areas(v, f)   # compiled, bit-identical: 0.4 against 7.7 ms
-    # Indices out of range (or counted from the end): numpy's own gathers and errors, below.
-    # Coordinate by coordinate from contiguous columns (np.take of one (V,) row per corner): the
-    # row gathers of (F, 3) blocks and the strided column reads cost 2-3x as much on 100k
-    # triangles. The cross product and its norm are written out: the same sums in the same order
-    # as np.cross and np.linalg.norm (bit-identical), without their temporaries.
-    vt = np.ascontiguousarray(v.T)   # (3, V)
-    ft = np.ascontiguousarray(f.T)   # (3, F)
-    ax, ay, az = (np.take(vt[k], ft[0]) for k in range(3))
-    bx, by, bz = (np.take(vt[k], ft[1]) - a for k, a in zip(range(3), (ax, ay, az), strict=True))
-    cx, cy, cz = (np.take(vt[k], ft[2]) - a for k, a in zip(range(3), (ax, ay, az), strict=True))
-    x = by * cz - bz * cy
-    y = bz * cx - bx * cz
-    z = bx * cy - by * cx
-    return 0.5 * np.sqrt(x * x + y * y + z * z)
+    if len(f):
+        lo, hi = int(f.min()), int(f.max())
+        if lo < -len(v) or hi >= len(v):   # as numpy's indexing refuses them
+            bad = lo if lo < -len(v) else hi
+            raise IndexError(f"face index {bad} is out of bounds for {len(v)} vertices")
+        if lo < 0:                          # counted from the end, as numpy's indexing reads them
+            f = np.where(f < 0, f + len(v), f)
+    # Compiled (numba): the same sums in the same order as np.cross and np.linalg.norm
+    # (bit-identical), 0.4 against 7.7 ms for 100k triangles with numpy's gathers.
+    return mesh_kernel.triangle_areas(v, f)
 
 
 def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:

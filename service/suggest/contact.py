@@ -47,11 +47,6 @@ from service.artifacts.catalog import Catalog
 from service.geometry.mesh import sample_surface_faces
 from service.suggest import contact_kernel as kernel
 
-# Directions tried besides the measured ones: the 6 axes first, then the 8 diagonals.
-_AXES = np.concatenate([np.eye(3), -np.eye(3)])
-_CORNERS = np.array([(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
-_CORNERS /= np.sqrt(3.0)
-
 
 @dataclass(frozen=True)
 class Surface:
@@ -282,7 +277,7 @@ def _search_parts(parts: list[Surface], assembly: Assembly, params: ContactParam
     kernel.refine_parts(points, normals, has_normals, starts, counts, assembly.points, assembly.normals,
                         assembly.surface.normals is not None, float(params.max_offset), float(tol),
                         int(params.search_points), int(params.inside_neighbours), float(reach), steps,
-                        _AXES, _CORNERS, offsets, states, status)
+                        offsets, states, status)
     far = ContactState(gap=float(reach), depth=0.0)
     out = []
     for off, (g0, d0, g1, d1), st in zip(offsets, states.tolist(), status.tolist(), strict=True):

@@ -50,6 +50,11 @@ Grid = tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 # side's samples, normals (read only if it has them) and grid.
 Side = tuple[np.ndarray, float, np.ndarray, np.ndarray, bool, Grid]
 
+# Directions tried besides the measured ones: the 6 axes first, then the 8 diagonals (unit).
+AXES = np.concatenate([np.eye(3), -np.eye(3)])
+CORNERS = np.array([(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
+                   dtype=np.float64) / math.sqrt(3.0)
+
 # Refinement outcomes (``refine_parts``'s ``status``).
 FAR = 0          # nothing of the part or the assembly within reach of the other: left alone
 TOUCHING = 1     # touching already: resolved without a move
@@ -309,8 +314,7 @@ def _closest(idx: np.ndarray, dist: np.ndarray, m: int) -> np.ndarray:
 @njit(cache=True, nogil=True)
 def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarray, anrm: np.ndarray,
                 has_an: bool, max_offset: float, tol: float, m: int, nk: int, reach: float,
-                steps: np.ndarray, axes: np.ndarray, corners: np.ndarray,
-                out_off: np.ndarray, out_state: np.ndarray) -> int:
+                steps: np.ndarray, out_off: np.ndarray, out_state: np.ndarray) -> int:
     """One part's search (``refine_parts``): its outcome; its offset and states written out."""
     ub = reach + max_offset
     bd = np.empty(max(nk, 1))
@@ -398,7 +402,7 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     pull = np.empty(3)
     for a in range(3):
         pull[a] = a_pts[j1, a] - q1[a1, a] if dmin1 <= dmin2 else q2[a2, a] - part[j2, a]
-    dirs = np.empty((2 + len(axes), 3))
+    dirs = np.empty((2 + len(AXES), 3))
     nd = 0
     for v in (pull, push):
         nv = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
@@ -406,12 +410,12 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
             for a in range(3):
                 dirs[nd, a] = v[a] / nv
             nd += 1
-    for j in range(len(axes)):
-        dirs[nd] = axes[j]
+    for j in range(len(AXES)):
+        dirs[nd] = AXES[j]
         nd += 1
 
     # Full measurements so far (offset, nearest distance): bounds for the offsets to come.
-    hist_o = np.empty((len(steps) * (nd + len(corners)) + 1, 3))
+    hist_o = np.empty((len(steps) * (nd + len(CORNERS)) + 1, 3))
     hist_g = np.empty(len(hist_o))
     hist_o[0] = zero
     hist_g[0] = min(near0, ub)
@@ -421,7 +425,7 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     slack = 1e-9 * tol
     o = np.empty(3)
     for pas in range(2):
-        directions = dirs[:nd] if pas == 0 else corners
+        directions = dirs[:nd] if pas == 0 else CORNERS
         for t in steps:
             for u in range(len(directions)):
                 for a in range(3):
@@ -474,14 +478,14 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
 @njit(cache=True, nogil=True)
 def refine_parts(ppts: np.ndarray, pnrm: np.ndarray, has_pn: np.ndarray, pstart: np.ndarray,
                  pcount: np.ndarray, apts: np.ndarray, anrm: np.ndarray, has_an: bool, max_offset: float,
-                 tol: float, m: int, nk: int, reach: float, steps: np.ndarray, axes: np.ndarray,
-                 corners: np.ndarray, out_off: np.ndarray, out_state: np.ndarray, status: np.ndarray) -> None:
+                 tol: float, m: int, nk: int, reach: float, steps: np.ndarray, out_off: np.ndarray,
+                 out_state: np.ndarray, status: np.ndarray) -> None:
     """The line search of each part against one assembly (``service.suggest.contact.refine_offsets``).
 
     Shapes:
         ppts, pnrm (P, 3): the parts' samples and normals, part j at rows pstart[j]:pstart[j] + pcount[j];
         has_pn (n,) bool; apts, anrm (A, 3) the assembly's (anrm unread unless has_an); steps (t,)
-        the line search's step lengths; axes (6, 3), corners (8, 3) unit directions ->
+        the line search's step lengths ->
         out_off (n, 3) offsets (zero unless MOVED), out_state (n, 4) gap and depth before, then
         after, status (n,) one of FAR, TOUCHING, MOVED, UNRESOLVED.
     """
@@ -493,7 +497,7 @@ def refine_parts(ppts: np.ndarray, pnrm: np.ndarray, has_pn: np.ndarray, pstart:
             continue
         rows = slice(pstart[j], pstart[j] + pcount[j])
         status[j] = _refine_one(ppts[rows], pnrm[rows], has_pn[j], apts, anrm, has_an, max_offset, tol, m, nk,
-                                reach, steps, axes, corners, out_off[j], out_state[j])
+                                reach, steps, out_off[j], out_state[j])
 
 
 def warm() -> None:
@@ -504,11 +508,9 @@ def warm() -> None:
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(64, 3))
     nrm = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-    axes = np.concatenate([np.eye(3), -np.eye(3)])
-    corners = np.ones((8, 3)) / math.sqrt(3.0)
     out_off, out_state, status = np.zeros((1, 3)), np.zeros((1, 4)), np.zeros(1, np.int64)
     refine_parts(pts, nrm, np.ones(1, np.bool_), np.zeros(1, np.int64), np.full(1, 64, np.int64),
-                 pts + 0.05, nrm, True, 0.1, 0.01, 16, 4, 0.12, np.arange(1, 11) * 0.01, axes, corners,
+                 pts + 0.05, nrm, True, 0.1, 0.01, 16, 4, 0.12, np.arange(1, 11) * 0.01,
                  out_off, out_state, status)
 
 

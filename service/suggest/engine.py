@@ -861,9 +861,8 @@ class SuggestionEngine:
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
         if c.suggest_order == "share" and q.region is None:
-            spread = c.share_spread_sigmas if sigmas is not None else 0.0
             return spread_share_order(modes, w, emb, sigmas, q.k, c.share_min_mode_weight, c.share_order_head,
-                                      spread)
+                                      c.share_spread_sigmas)
         return np.arange(len(modes))
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
