@@ -22,7 +22,14 @@ from training.models import PlacementNet, RetrievalPair, build_models
 
 CHECKPOINT_FILE = "checkpoint.pt"
 CONFIG_FILE = "config.json"
+SUMMARY_FILE = "summary.json"
 CHECKPOINT_FORMAT = 1
+
+
+def summary_of(run_dir: Path) -> dict[str, Any]:
+    """The ``summary.json`` of a finished run (empty when the run never finished)."""
+    path = Path(run_dir) / SUMMARY_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def checkpoint_path(run_dir: Path) -> Path:

@@ -197,6 +197,12 @@ class TrainConfig:
     # benchmark); styles are never read by the training itself.
     split: str = field(default="random", metadata=_help("Test split: random | styles (one style held out)."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
+    # Fine-tuning: the run starts from an exported model's networks (read back from its graphs by
+    # training.from_onnx) instead of random weights. Batch norm is frozen (eval mode) throughout:
+    # the export folded the per-point batch norms into their convolutions, so batch statistics
+    # would change the function the run starts from.
+    init_from: str = field(default="", metadata=_help(
+        "Artifact folder whose f, g and h start the run (fine-tuning, batch norm frozen); '' = random."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
     val_every: int = field(default=500, metadata=_help("Steps between validations (0 = only at the end)."))

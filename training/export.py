@@ -49,12 +49,11 @@ from service.artifacts.layout import (
 from service.artifacts.loading import build_session
 from service.suggest.familiarity import Projection, calibrate_threshold, mixture_descriptor
 from training.catalog import concat_meshes, find_duplicates, part_records, sample_parts
-from training.checkpoint import Trained, load_trained, load_trained_config
+from training.checkpoint import Trained, load_trained, load_trained_config, summary_of
 from training.config import config_to_dict
 from training.data.processed import ProcessedDataset, save_npz_deterministic
 from training.models import PlacementNet, RetrievalPair
 from training.split import load_split
-from training.train import summary_of
 
 log = logging.getLogger(__name__)
 

@@ -32,11 +32,19 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from service.artifacts.layout import write_json_atomic
+from service.artifacts.layout import MANIFEST, write_json_atomic
 from training.batches import batch_stream
-from training.checkpoint import CONFIG_FILE, checkpoint_path, load_checkpoint, make_state, save_checkpoint
+from training.checkpoint import (
+    CONFIG_FILE,
+    SUMMARY_FILE,
+    checkpoint_path,
+    load_checkpoint,
+    make_state,
+    save_checkpoint,
+)
 from training.config import TrainConfig, apply_overrides, config_from_dict, config_to_dict
 from training.data.processed import ProcessedDataset
+from training.from_onnx import load_exported_networks
 from training.losses import (
     component_log_density,
     matched_modes,
@@ -61,7 +69,6 @@ from training.validation import ValidationSet, build_validation_set, validate
 
 log = logging.getLogger(__name__)
 
-SUMMARY_FILE = "summary.json"
 LOSS_FIELDS = ["step", "elapsed_s", "lr", "triplet_loss", "e_pos", "e_neg", "batch_triplet_accuracy",
                "placement_loss", "category_loss", "scale_loss", "placement_lr", "seconds_per_step"]
 # Settings a resumed run may change; anything else must match the checkpoint.
@@ -297,8 +304,9 @@ class _Run:
         self.step, self.elapsed_before = 0, 0.0
         self.last_validation: dict[str, float] = {}
         self.validated_at = -1
-        self.pair.train()
-        self.placement.train()
+        if cfg.init_from:
+            self.start_from(Path(cfg.init_from))
+        self.train_mode()
         self.pair_run: nn.Module = DistributedDataParallel(self.pair) if env.world > 1 else self.pair
         self.place_run: nn.Module = (DistributedDataParallel(self.placement) if env.world > 1
                                      else self.placement)
@@ -311,6 +319,25 @@ class _Run:
         self.t_start = time.monotonic()
         self.t_window = self.t_start
         self.steps_in_window = 0
+
+    def start_from(self, artifacts: Path) -> None:
+        """Copy the networks of an exported model into this run's (``init_from``)."""
+        pair, placement, model_cfg = load_exported_networks(artifacts)
+        if model_cfg != self.cfg.model:
+            raise ValueError(f"{artifacts / MANIFEST}: its model config {model_cfg} is not this run's "
+                             f"{self.cfg.model}; give the preset it was trained with")
+        self.pair.load_state_dict(pair.state_dict())
+        self.placement.load_state_dict(placement.state_dict())
+        log.info("starting from the networks of %s (batch norm frozen)", artifacts)
+
+    def train_mode(self) -> None:
+        """Training mode for f, g and h; batch norm stays in eval mode when fine-tuning."""
+        for net in (self.pair, self.placement):
+            net.train()
+            if self.cfg.init_from:
+                for m in net.modules():
+                    if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                        m.eval()
 
     def restore(self) -> None:
         """Continue from the checkpoint: weights, optimisers, step, time, last validation."""
@@ -454,6 +481,7 @@ class _Run:
                          "validation (test split)")
             log.info("step %d validation: %s", self.step,
                      ", ".join(f"{k}={v:.4g}" for k, v in self.last_validation.items()))
+            self.train_mode()  # validate() restores plain training mode, batch norm included
         if self.env.world > 1:
             dist.barrier()
 
@@ -498,12 +526,3 @@ def _validation_keys(cfg: TrainConfig) -> list[str]:
     if cfg.train_placement:
         keys += ["placement_mean_error", "placement_median_error"]
     return keys
-
-
-def summary_of(run_dir: Path) -> dict[str, Any]:
-    """The ``summary.json`` of a finished run (empty when the run never finished)."""
-    import json
-
-    path = Path(run_dir) / SUMMARY_FILE
-    return json.loads(path.read_text()) if path.is_file() else {}
-

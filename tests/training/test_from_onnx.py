@@ -83,3 +83,39 @@ def test_an_exported_model_recatalogued_over_a_run_split_serves_the_same_functio
 def test_recatalogue_names_a_missing_artifact_folder(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"manifest\.json"):
         trained_from_artifacts(tmp_path / "nowhere")
+
+
+def test_a_run_started_from_an_export_starts_from_its_function_with_batch_norm_frozen(
+        exported: Path, tiny_run: Path, toy_dataset_dir: Path, tmp_path: Path) -> None:
+    from training.config import resolve_config
+    from training.train import train
+
+    trained = load_trained(tiny_run)
+    cfg = resolve_config("tiny", overrides={
+        "data": str(toy_dataset_dir), "run": str(tmp_path / "ft"), "steps": 3, "log_every": 1,
+        "val_triplets": 16, "init_from": str(exported), "lr": 1e-12, "placement_lr": 1e-12})
+    train(cfg, show_progress=False)
+    tuned = load_trained(tmp_path / "ft")
+    # Running statistics are frozen: batch norm in training mode would have moved them.
+    for name, value in tuned.pair.state_dict().items():
+        if name.endswith("running_mean") or name.endswith("running_var"):
+            want = load_exported_networks(exported)[0].state_dict()[name]
+            assert torch.equal(value, want), name
+    gen = torch.Generator().manual_seed(2)
+    query, part = torch.rand(4, 300, 3, generator=gen) - 0.5, torch.rand(4, 200, 3, generator=gen) - 0.5
+    with torch.no_grad():
+        torch.testing.assert_close(tuned.pair.f(part), trained.pair.f(part), atol=1e-4, rtol=1e-3)
+        for got, want in zip(tuned.pair.g(query), trained.pair.g(query), strict=True):
+            torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-3)
+
+
+def test_a_run_started_from_an_export_of_another_model_is_refused(
+        exported: Path, toy_dataset_dir: Path, tmp_path: Path) -> None:
+    from training.config import resolve_config
+    from training.train import train
+
+    cfg = resolve_config("tiny", overrides={
+        "data": str(toy_dataset_dir), "run": str(tmp_path / "ft"), "steps": 2, "init_from": str(exported),
+        "embedding_dim": 7})
+    with pytest.raises(ValueError, match=r"manifest\.json: its model config"):
+        train(cfg, show_progress=False)
