@@ -384,6 +384,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
             "n_points": cfg.n_points,
             "batch_size": cfg.batch_size,
             "seed": cfg.seed,
+            # A fine-tuned run (train --init-from) names the model it started from.
+            **({"started_from": state["started_from"]} if state.get("started_from") else {}),
         },
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }

@@ -15,6 +15,7 @@ Run folder contents: ``config.json``, ``split.json``, ``checkpoint.pt``, ``losse
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
 import os
@@ -303,6 +304,7 @@ class _Run:
         self.opt_p = torch.optim.Adam(self.placement.parameters(), lr=cfg.placement_lr)
         self.step, self.elapsed_before = 0, 0.0
         self.last_validation: dict[str, float] = {}
+        self.started_from: str | None = None  # model_version of the export the run started from
         self.validated_at = -1
         if cfg.init_from:
             self.start_from(Path(cfg.init_from))
@@ -326,6 +328,7 @@ class _Run:
         if model_cfg != self.cfg.model:
             raise ValueError(f"{artifacts / MANIFEST}: its model config {model_cfg} is not this run's "
                              f"{self.cfg.model}; give the preset it was trained with")
+        self.started_from = str(json.loads((artifacts / MANIFEST).read_text())["model_version"])
         self.pair.load_state_dict(pair.state_dict())
         self.placement.load_state_dict(placement.state_dict())
         log.info("starting from the networks of %s (batch norm frozen)", artifacts)
@@ -348,6 +351,7 @@ class _Run:
         self.opt_p.load_state_dict(state["optimizers"]["placement"])
         self.step, self.elapsed_before = int(state["step"]), float(state["elapsed_seconds"])
         self.last_validation = dict(state.get("validation", {}))
+        self.started_from = state.get("started_from")
         log.info("resuming %s at step %d (%.1f min trained)", self.run_dir, self.step,
                  self.elapsed_before / 60)
         if self.env.is_main:
@@ -490,7 +494,8 @@ class _Run:
             optimizers: dict[str, torch.optim.Optimizer] = {"retrieval": self.opt_r, "placement": self.opt_p}
             save_checkpoint(self.ckpt, make_state(self.cfg, self.step, self.elapsed(), self.pair,
                                                   self.placement, optimizers,
-                                                  {"validation": self.last_validation}))
+                                                  {"validation": self.last_validation,
+                                                   "started_from": self.started_from}))
 
     def finish(self) -> TrainResult:
         """Validate if the last step was not, checkpoint, plot and write summary.json."""

@@ -107,6 +107,11 @@ def test_a_run_started_from_an_export_starts_from_its_function_with_batch_norm_f
         torch.testing.assert_close(tuned.pair.f(part), trained.pair.f(part), atol=1e-4, rtol=1e-3)
         for got, want in zip(tuned.pair.g(query), trained.pair.g(query), strict=True):
             torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-3)
+    # The fine-tuned model's manifest names the model it started from.
+    source = json.loads((exported / MANIFEST).read_text())["model_version"]
+    export_run(tmp_path / "ft", tmp_path / "ft-exported")
+    manifest = json.loads((tmp_path / "ft-exported" / MANIFEST).read_text())
+    assert manifest["training"]["started_from"] == source
 
 
 def test_a_run_started_from_an_export_of_another_model_is_refused(
