@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import trimesh
 from fastapi.testclient import TestClient
-from service_testkit import make_settings
+from service_testkit import artifacts_folder, make_settings
 
 from service.artifacts.catalog import Catalog
 from service.artifacts.loading import load_artifacts
@@ -33,7 +33,7 @@ from service.modeling.assembly import (
     estimate_area,
     own_cover_shares,
 )
-from service.settings import DEFAULT_ARTIFACTS, Settings
+from service.settings import Settings
 from service.suggest.contact import Assembly as ContactAssembly
 from service.suggest.contact import Surface, measure_contact
 from service.suggest.engine import SuggestionEngine
@@ -377,7 +377,7 @@ def test_api_assemble_errors(client: TestClient, catalog: Catalog, body: dict, s
 
 @pytest.fixture(scope="module")
 def shipped_engine() -> SuggestionEngine:
-    folder = DEFAULT_ARTIFACTS
+    folder = artifacts_folder()  # COMPLEMENTME_TEST_ARTIFACTS, so a candidate is tested on itself
     if not (folder / "manifest.json").is_file():
         pytest.skip(f"no trained model in {folder}: the assembly quality test needs the shipped artifacts")
     return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
@@ -385,7 +385,7 @@ def shipped_engine() -> SuggestionEngine:
 
 @pytest.fixture(scope="module")
 def shipped_settings() -> Settings:
-    return Settings(artifacts=DEFAULT_ARTIFACTS)
+    return Settings(artifacts=artifacts_folder())
 
 
 QualityRuns = tuple[dict[str, float], list[tuple[str, str, Strategy, str]]]
