@@ -96,7 +96,7 @@ def _primitives(rng: np.random.Generator) -> dict[str, np.ndarray]:
 
 def test_shapes_of_no_known_category_are_unfamiliar(engine: SuggestionEngine):
     """The category head is sure of these (a torus is "watercraft 0.95"); the check is not fooled.
-    Of 33 such shapes at three sizes the shipped model flags 55% (the model before it 79%:
+    Of 33 such shapes at three sizes the 24,000-step model flagged 55% (the model before it 79%:
     docs/training.md "Unfamiliar shapes"); of these six, at most one may be missed."""
     shapes = _primitives(np.random.default_rng(0))
     missed = [name for name, pts in shapes.items() if not _unfamiliar(engine, pts)]
