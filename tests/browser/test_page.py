@@ -413,6 +413,10 @@ def test_download_is_confirmed(page: Any) -> None:
     page.locator(CARDS).first.click()
     _wait_parts(page, 2)
     page.select_option("#export-format", "obj")
+    # An earlier notice (a two-part assembly may be judged unfamiliar: about 4% of a start part
+    # with its top suggestion are) is dismissed first, so the one after the download is new.
+    if page.locator("#notice").is_visible():
+        page.click("#notice-close")
     assert page.locator("#notice").is_hidden()
     with page.expect_download() as download:
         page.click("#download-button")
