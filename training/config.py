@@ -304,23 +304,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         "scale_augment": 0.4, "scale_weight": 0.3, "augment": 0.5,
         "model": {"predict_scale": True, "sigma_max": 0.15},
     },
-    # The second stage of the shipped model (docs/training.md, "A warm restart"): the v3 run's
-    # export fine-tuned (train --init-from) for 8,000 more steps, a cosine from 0.3 of v3's
-    # learning rate, the plain winner-takes-all pull (the modes are already spread: a second
-    # evolving pull would pull several modes onto each positive again). Benchmark: functional
-    # mAP@5 0.903 against 0.895 for the v3 run alone, Hausdorff 0.168 against 0.175,
-    # placement 0.033 against 0.040; about 20 minutes on two threads of a 2-core AVX-512 host.
-    "v3-finetune": {
-        "steps": 8000, "max_minutes": 160, "n_points": 256, "val_every": 1000, "ckpt_every": 200,
-        "num_workers": 0,
-        "lr_schedule": "cosine", "lr": 3e-4, "placement_lr": 3e-4, "nll_weight": 0.0,
-        "wta_weight": 0.1, "wta_anneal": 0.0, "wta_weight_ce": 1.0,
-        "query_negative_fraction": 0.25, "lookalike_negative_fraction": 0.5, "removal_query_fraction": 0.3,
-        "positives": 1, "set_nll_weight": 0.0, "match_weight": 0.0, "match_weight_ce": 0.0,
-        "category_weight": 1.0,
-        "scale_augment": 0.4, "scale_weight": 0.3, "augment": 0.5,
-        "model": {"predict_scale": True, "sigma_max": 0.15},
-    },
     # The paper's sizes (about 5x slower per step on CPU).
     "paper": {
         "n_points": 1000,
@@ -329,6 +312,15 @@ PRESETS: dict[str, dict[str, Any]] = {
                   "placement_head_layers": (256, 128)},
     },
 }
+
+# The second stage of the shipped model (docs/training.md, "A warm restart"): the v3 run's export
+# fine-tuned (train --init-from) for 8,000 more steps, a cosine from 0.3 of v3's learning rate,
+# the plain winner-takes-all pull (the modes are already spread: a second evolving pull would
+# pull several modes onto each positive again). Benchmark: functional mAP@5 0.903 against 0.895
+# for the v3 run alone, Hausdorff 0.168 against 0.175, placement 0.033 against 0.040; about 20
+# minutes on two threads of a 2-core AVX-512 host.
+PRESETS["v3-finetune"] = {**PRESETS["v3"], "steps": 8000, "max_minutes": 160, "lr": 3e-4,
+                          "placement_lr": 3e-4, "wta_anneal": 0.0}
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:
