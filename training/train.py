@@ -214,7 +214,9 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     cfg = _with_category_head(cfg, ds)
     run = _Run(cfg, env, run_dir, threads)
     if resume:
-        run.restore()
+        run.restore()  # a fine-tuned run resumes from its checkpoint, not from init_from again
+    elif cfg.init_from:
+        run.start_from(Path(cfg.init_from))
     if env.is_main:
         run.open_logs(ds, split)
     stream = batch_stream(ds.subset(split.train), cfg.n_points, cfg.batch_size, seed=cfg.seed, rank=env.rank,
@@ -306,8 +308,6 @@ class _Run:
         self.last_validation: dict[str, float] = {}
         self.started_from: str | None = None  # model_version of the export the run started from
         self.validated_at = -1
-        if cfg.init_from:
-            self.start_from(Path(cfg.init_from))
         self.train_mode()
         self.pair_run: nn.Module = DistributedDataParallel(self.pair) if env.world > 1 else self.pair
         self.place_run: nn.Module = (DistributedDataParallel(self.placement) if env.world > 1

@@ -124,3 +124,21 @@ def test_a_run_started_from_an_export_of_another_model_is_refused(
         "embedding_dim": 7})
     with pytest.raises(ValueError, match=r"manifest\.json: its model config"):
         train(cfg, show_progress=False)
+
+
+def test_a_fine_tuned_run_resumes_from_its_checkpoint_without_its_start(
+        exported: Path, toy_dataset_dir: Path, tmp_path: Path) -> None:
+    from training.config import resolve_config
+    from training.train import config_for_resume, train
+
+    start = tmp_path / "start"
+    shutil.copytree(exported, start)
+    cfg = resolve_config("tiny", overrides={
+        "data": str(toy_dataset_dir), "run": str(tmp_path / "ft"), "steps": 2, "ckpt_every": 1,
+        "val_triplets": 16, "init_from": str(start)})
+    train(cfg, show_progress=False)
+    shutil.rmtree(start)  # the export it started from is gone (or replaced) by the time it resumes
+    train(config_for_resume(tmp_path / "ft", {"steps": 4}), resume=True, show_progress=False)
+    state = torch.load(tmp_path / "ft" / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 4
+    assert state["started_from"] == json.loads((exported / MANIFEST).read_text())["model_version"]
