@@ -97,10 +97,10 @@ def test_a_run_started_from_an_export_starts_from_its_function_with_batch_norm_f
     train(cfg, show_progress=False)
     tuned = load_trained(tmp_path / "ft")
     # Running statistics are frozen: batch norm in training mode would have moved them.
+    start = load_exported_networks(exported)[0].state_dict()
     for name, value in tuned.pair.state_dict().items():
         if name.endswith("running_mean") or name.endswith("running_var"):
-            want = load_exported_networks(exported)[0].state_dict()[name]
-            assert torch.equal(value, want), name
+            assert torch.equal(value, start[name]), name
     gen = torch.Generator().manual_seed(2)
     query, part = torch.rand(4, 300, 3, generator=gen) - 0.5, torch.rand(4, 200, 3, generator=gen) - 0.5
     with torch.no_grad():
