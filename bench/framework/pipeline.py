@@ -13,7 +13,8 @@ so that the BentoML service (``bench.framework.bentoml_service``) and the LitSer
 - per batch: g and h_query once on all queries, one FAISS search per filter, the exact mixture
   score, near-duplicates collapsed, the service's order (``service.suggest.preferences.spread_share_order``
   by default), h_head once on every kept candidate of the batch, covered parts demoted
-  (``service.suggest.complement.complement_order``), the top k returned.
+  (``service.suggest.complement.complement_order``) in the order of their fit keys
+  (``service.suggest.fit_rank``), the top k returned.
 
 That is the default ``/suggest`` of the service (no contact refinement, the complement check on,
 the category read from g's head when it has one). None of the service's serving code runs here:
@@ -41,6 +42,7 @@ from service.artifacts.catalog import Catalog, load_catalog
 from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, GRAPH_FILES, INDEX_FILE, MANIFEST
 from service.geometry.mesh import resample_points
 from service.suggest.complement import complement_order, covered_share
+from service.suggest.fit_rank import fit_keys
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.preferences import spread_share_order
 
@@ -62,6 +64,10 @@ class PeerConfig:
     share_min_mode_weight: float      # lighter modes get slots only after the others ran out
     share_order_head: int             # first slots kept in likelihood order
     share_spread_sigmas: float        # after the head, near-copies within this many sigmas wait
+    scale_min: float                  # h's fitting scales are clipped to scale_min..scale_max
+    scale_max: float
+    rank_scale_weight: float          # the answer key's penalty on |log scale| (suggest.fit_rank)
+    rank_move_weight: float           # and on the distance from the part's own centre
     infer_category: bool              # read the category from g's head (when the graph has one)
     category_min_confidence: float    # and keep suggestions in it from this probability on
     faiss_blas_threshold: int         # FAISS switches exact distances to BLAS past this many queries
@@ -139,6 +145,7 @@ class PeerModel:
                                         providers=["CPUExecutionProvider"])
 
         self.g, self.h_query, self.h_head = session("g"), session("h_query"), session("h_head")
+        self.h_outputs = {o.name for o in self.h_head.get_outputs()}
         self.g_outputs = [o.name for o in self.g.get_outputs()]
         self.index = faiss.read_index(str(folder / INDEX_FILE))
         faiss.omp_set_num_threads(1)
@@ -168,16 +175,24 @@ class PeerModel:
                   for b, q in enumerate(queries)]
         rows = np.concatenate([np.full(len(r[0]), b) for b, r in enumerate(ranked)]).astype(np.int64)
         parts = np.concatenate([r[0] for r in ranked]).astype(np.int64)
-        translations = self.h_head.run(["translation"], {
-            "query_feature": np.ascontiguousarray(query_features[rows]),
-            "part_feature": np.ascontiguousarray(cat.part_features[parts])})[0]  # (R, 3)
+        feed = {"query_feature": np.ascontiguousarray(query_features[rows]),
+                "part_feature": np.ascontiguousarray(cat.part_features[parts])}
+        if "log_scale" in self.h_outputs:
+            translations, log_scale = self.h_head.run(["translation", "log_scale"], feed)  # (R, 3) x 2
+            scales = np.clip(np.exp(np.clip(log_scale.astype(np.float64), -20.0, 20.0)),
+                             cfg.scale_min, cfg.scale_max)
+        else:
+            translations = self.h_head.run(["translation"], feed)[0]
+            scales = np.ones_like(translations, dtype=np.float64)
         answers = []
         for b, (q, (idx, scores, modes)) in enumerate(zip(queries, ranked, strict=True)):
             tr = translations[rows == b]
             share = covered_share(points[b], cat.part_samples(idx, cfg.complement_part_samples),
                                   tr.astype(np.float32), cfg.complement_cover_distance)
+            keys = fit_keys(scores, scales[rows == b], tr, cat.translations[idx], cfg.rank_scale_weight,
+                            cfg.rank_move_weight)
             deal = self._deal(idx, modes, weights[b], sigmas[b], q.k)
-            top = complement_order(share, cfg.complement_cover_share, scores, deal, q.k)[:q.k]
+            top = complement_order(share, cfg.complement_cover_share, keys, deal, q.k)[:q.k]
             answers.append([{"rank": r + 1, "part_id": cat.part_ids[int(idx[j])], "score": float(scores[j]),
                              "translation": tr[j].astype(np.float64).tolist()}
                             for r, j in enumerate(top.tolist())])

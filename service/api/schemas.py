@@ -273,6 +273,12 @@ class SuggestionOut(BaseModel):
     label: str | None
     score: float = Field(..., description=(
         "Log-likelihood of the part's embedding under the predicted mixture."))
+    rank_score: float = Field(..., description=(
+        "The key the answer is ordered by: `score` less the fit penalties (the part's fitted "
+        "scale away from 1 and its placement away from where it sat in its own shape; settings "
+        "COMPLEMENTME_RANK_SCALE_WEIGHT and COMPLEMENTME_RANK_MOVE_WEIGHT). Higher is better; "
+        "the share order deals slots to modes in this order, and the complement check demotes "
+        "covered parts behind it."))
     mode: int = Field(..., description="The mixture mode that explains the part best.")
     mode_weight: float = Field(..., description="That mode's weight.")
     duplicates: int = Field(..., description="Catalog parts in this part's near-duplicate group.")
@@ -331,7 +337,8 @@ class SuggestResponse(BaseModel):
         "modes": [{"mode": 0, "weight": 0.61}, {"mode": 1, "weight": 0.39}],
         "suggestions": [{
             "rank": 1, "part_id": "chair-0007/2", "shape_id": "chair-0007", "category": "chair",
-            "label": "leg", "score": 41.2, "mode": 0, "mode_weight": 0.61, "duplicates": 4,
+            "label": "leg", "score": 41.2, "rank_score": 38.9, "mode": 0, "mode_weight": 0.61,
+            "duplicates": 4,
             "translation": [0.31, -0.52, 0.28], "contact_offset": [0.0, -0.012, 0.0],
             "bbox_min": [0.27, -0.98, 0.24], "bbox_max": [0.35, -0.06, 0.32],
             "links": {"part": "/parts/chair-0007/2", "mesh": "/parts/chair-0007/2/mesh",

@@ -58,16 +58,17 @@ def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
 
     Demoting a mode's first part must not leave that mode out of the first round while another
     mode shows its second, so when ``deal`` is given each group (uncovered, then covered) is put
-    back in likelihood order (the orders deal from a ranked list: the share order's first slots
+    back in the order of their keys (the orders deal from a ranked list: the share order's first slots
     keep it) and dealt again.
 
     Args:
-        share, scores: (P,) each placed part's covered share and log-likelihood.
-        deal: positions into a group (indices into the parts, in likelihood order) in the order
+        share, scores: (P,) each placed part's covered share and ranking key (the log-likelihood,
+            less the fit penalties of ``service.suggest.fit_rank``).
+        deal: positions into a group (indices into the parts, in key order) in the order
             its parts are dealt (``preferences.share_order`` or ``diverse_order`` over their
             modes); None keeps the rank order.
         k: only the first ``k`` of the answer are kept (None: all): a group that starts past
-            them is not dealt (its order reaches no kept slot), only put in likelihood order.
+            them is not dealt (its order reaches no kept slot), only put in key order.
     Returns:
         (P,) int64 indices into the parts.
     """

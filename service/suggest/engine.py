@@ -57,6 +57,7 @@ from service.suggest.complement import complement_order, covered_share
 from service.suggest.contact import Assembly, ContactParams, PartContacts, refine_offsets
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
+from service.suggest.fit_rank import fit_keys
 from service.suggest.mixture import mixture_log_likelihood
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, spread_share_order
@@ -121,6 +122,7 @@ class Suggestion:
     category: str
     label: str | None
     score: float          # log-likelihood of the part's embedding under the mixture
+    rank_score: float     # the answer order's key: score less the fit penalties (suggest.fit_rank)
     mode: int             # mixture mode that explains the part best
     mode_weight: float    # that mode's weight phi_k
     duplicates: int       # catalog parts in this part's near-duplicate group (1: none)
@@ -242,7 +244,8 @@ class Placed:
     """One query's chosen parts with h's placement, in the order they are answered.
 
     Shapes:
-        rows, scores, modes: (P,); translations: (P, 3) canonical; scales: (P, 3) fitted, canonical axes.
+        rows, scores, modes, keys: (P,); translations: (P, 3) canonical; scales: (P, 3) fitted,
+        canonical axes.
     """
 
     rows: np.ndarray
@@ -250,11 +253,12 @@ class Placed:
     modes: np.ndarray
     translations: np.ndarray
     scales: np.ndarray
+    keys: np.ndarray      # the answer order's key (service.suggest.fit_rank): scores less fit penalties
 
     def take(self, keep: np.ndarray) -> Placed:
         """The parts ``keep`` (a mask or indices, in that order)."""
         return Placed(self.rows[keep], self.scores[keep], self.modes[keep], self.translations[keep],
-                      self.scales[keep])
+                      self.scales[keep], self.keys[keep])
 
 
 class QueryMixture(NamedTuple):
@@ -475,9 +479,13 @@ class SuggestionEngine:
         return _or_default(options.complement_check, self.config.suggest_complement_check)
 
     def _shortlist(self, q: Query) -> int:
-        """Ranked candidates kept for placement: k, or more when the complement check will reorder
-        them, or the region's candidate budget when only parts placed in a region count."""
-        n = max(q.k, self.config.complement_candidates) if self._checks_complement(q.options) else q.k
+        """Ranked candidates kept for placement: k, or more when the complement check or the fit
+        key will reorder them, or the region's candidate budget when only parts placed in a
+        region count. (The same shortlist for every k keeps a shorter answer the head of a
+        longer one.)"""
+        c = self.config
+        reorders = self._checks_complement(q.options) or c.rank_scale_weight or c.rank_move_weight
+        n = max(q.k, c.complement_candidates) if reorders else q.k
         return max(n, self.config.region_candidates) if q.region is not None else n
 
     def _per_mode(self, q: Query) -> int:
@@ -628,7 +636,7 @@ class SuggestionEngine:
         for b, off in offsets.items():
             q = queries[b]
             with _own_error(q, errors):
-                answer = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b].scored, snap,
+                answer = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b], snap,
                                      timer.timings)
                 answer.familiarity = familiar.get(q.item)
                 out[q.item] = answer
@@ -669,11 +677,17 @@ class SuggestionEngine:
         Shapes:
             translations, raw_scales: (k', 3) canonical, h's output for ``ranked.rows``.
         """
+        c = self.config
         fit = self._fitted(raw_scales, q.options.fit_scale)
-        placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit)
+        # The key reads h's scale whether or not the answer fits it: a part that needs rescaling
+        # fits worse either way (served unscaled, it is the wrong size).
+        keys = fit_keys(ranked.scores, np.clip(raw_scales.astype(np.float64), c.scale_min, c.scale_max),
+                        translations, snap.catalog.translations[ranked.rows], c.rank_scale_weight,
+                        c.rank_move_weight)
+        placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit, keys)
         if q.region is not None:
             placed = placed.take(self._in_region(q, placed, snap))
-        return placed.take(self._complement_order(q, placed, ranked, snap)[:q.k])
+        return placed.take(self._answer_order(q, placed, ranked, snap)[:q.k])
 
     def refine(self, q: Query, placed: Placed, deadline: float | None, snap: CatalogSnapshot) -> np.ndarray:
         """Contact refinement offsets (canonical) of a query's placed parts, zeros when it is off.
@@ -690,15 +704,15 @@ class SuggestionEngine:
             return np.zeros((len(placed.rows), 3))
         return self.contact_offsets(q.full, placed.rows, placed.translations, snap.catalog)
 
-    def answer(self, q: Query, placed: Placed, offsets: np.ndarray, mix: QueryMixture, scored: int,
+    def answer(self, q: Query, placed: Placed, offsets: np.ndarray, mix: QueryMixture, ranked: Ranked,
                snap: CatalogSnapshot, timings: dict[str, float]) -> SuggestResult:
         """A query's result: its placed parts in the caller's frame, its mixture and warnings."""
         return SuggestResult(
             suggestions=self._suggestions(placed, offsets, mix.weights, q.options.frame, snap.catalog),
             mode_weights=mix.weights, frame=q.options.frame, n_input_points=q.n_input,
-            candidates=scored, timings=timings, mode_means=mix.means, mode_sigmas=mix.sigmas,
+            candidates=ranked.scored, timings=timings, mode_means=mix.means, mode_sigmas=mix.sigmas,
             inferred_category=q.inferred,
-            warnings=q.warnings + self._mode_distance_warnings(placed, mix.means, mix.sigmas, snap.catalog),
+            warnings=q.warnings + self._mode_distance_warnings(ranked, mix.means, mix.sigmas, snap.catalog),
             region=q.region_report)
 
     def place(self, points: np.ndarray, part_ids: list[str], frame: Frame | None = None,
@@ -893,26 +907,32 @@ class SuggestionEngine:
         q.region_report = RegionReport(placed=len(gap), inside=int(inside.sum()), nearest_gap=nearest)
         return inside
 
-    def _complement_order(self, q: Query, placed: Placed, ranked: Ranked,
-                          snap: CatalogSnapshot) -> np.ndarray:
-        """A query's ranked, placed candidates in answer order (indices), covered parts demoted
-        (the order past the first k is left undealt: only the top k are answered).
+    def _answer_order(self, q: Query, placed: Placed, ranked: Ranked,
+                      snap: CatalogSnapshot) -> np.ndarray:
+        """A query's ranked, placed candidates in answer order (indices): put back in the order
+        of their fit keys (``service.suggest.fit_rank``), covered parts demoted by the complement
+        check, each group dealt again (the order past the first k is left undealt: only the top k
+        are answered).
 
         When the suggestions are dealt to modes (diversity, share order), each group (uncovered,
         then covered) is dealt again: demoting a mode's first part must not leave that mode out
-        of the first round while another mode shows its second.
+        of the first round while another mode shows its second. With the check off and no fit
+        penalty the ranked order stands.
         """
         idx = placed.rows
-        if not self._checks_complement(q.options) or len(idx) == 0:
-            return np.arange(len(idx))
         c = self.config
-        samples = snap.catalog.part_samples(idx, c.complement_part_samples)
-        share = covered_share(q.points, samples, placed.translations.astype(np.float32),
-                              c.complement_cover_distance)
+        checks = self._checks_complement(q.options)
+        if len(idx) == 0 or not (checks or c.rank_scale_weight or c.rank_move_weight):
+            return np.arange(len(idx))
+        share = np.zeros(len(idx))
+        if checks:
+            samples = snap.catalog.part_samples(idx, c.complement_part_samples)
+            share = covered_share(q.points, samples, placed.translations.astype(np.float32),
+                                  c.complement_cover_distance)
         weights, emb = ranked.weights, snap.catalog.embeddings
         deal = None if weights is None else (
             lambda g: self._mode_order(q, placed.modes[g], weights, emb[placed.rows[g]], ranked.sigmas))
-        return complement_order(share, c.complement_cover_share, placed.scores, deal, q.k)
+        return complement_order(share, c.complement_cover_share, placed.keys, deal, q.k)
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
@@ -949,22 +969,26 @@ class SuggestionEngine:
             "on, so the inferred category and the suggestions are guesses; if it is of a known kind, "
             "check the frame (frame.radius, frame.center, frame.up) or name the category"))]
 
-    def _mode_distance_warnings(self, placed: Placed, means: np.ndarray, sigmas: np.ndarray,
+    def _mode_distance_warnings(self, ranked: Ranked, means: np.ndarray, sigmas: np.ndarray,
                               catalog: Catalog) -> list[QueryWarning]:
-        """An ``unfamiliar`` warning when even the best suggestion is far from its mode's mean.
+        """An ``unfamiliar`` warning when even the candidate closest to its mode's mean is far from it.
+
+        Read on the ranked shortlist, not on the answer: the answer's order (share order, fit
+        key, complement check) and its k decide which parts are listed, and that says nothing
+        about the query; what does is that the catalog has nothing near what g expects.
 
         Shapes:
             means, sigmas (K, D).
         """
-        if len(placed.rows) == 0:
+        if len(ranked.rows) == 0:
             return []
-        k = int(placed.modes[0])
-        z = (catalog.embeddings[int(placed.rows[0])] - means[k]) / sigmas[k]
-        distance = float(np.sqrt(np.mean(np.square(z))))
+        k = ranked.modes.astype(np.int64)
+        z = (catalog.embeddings[ranked.rows] - means[k]) / sigmas[k]
+        distance = float(np.sqrt(np.mean(np.square(z), axis=1)).min())
         limit = self.config.ood_max_mode_distance
         if distance <= limit:
             return []
-        return [QueryWarning("unfamiliar", f"the best suggestion lies {distance:.1f} sigmas from what the "
+        return [QueryWarning("unfamiliar", f"the closest candidate lies {distance:.1f} sigmas from what the "
                              f"model expects (in-distribution queries stay within {limit:g}): the "
                              "partial assembly is unlike anything the model was trained on; check the "
                              "frame (frame.radius, frame.center, frame.up) and the category")]
@@ -982,6 +1006,7 @@ class SuggestionEngine:
             out.append(Suggestion(
                 rank=r + 1, part_index=i, part_id=rec["part_id"], shape_id=rec["shape_id"],
                 category=rec["category"], label=rec["label"], score=float(placed.scores[r]),
+                rank_score=float(placed.keys[r]),
                 mode=mode, mode_weight=float(weights[mode]),
                 duplicates=int(catalog.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
                 contact_offset=off_caller[r], scale=scale_caller[r]))

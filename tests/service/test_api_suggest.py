@@ -40,11 +40,13 @@ def test_suggest_answers_ranked_placed_parts(client: TestClient, query: Assembly
     assert answer.model_version == engine.model_version
     assert answer.input_points == len(query.points)
     assert len(answer.suggestions) == 7 and [s.rank for s in answer.suggestions] == list(range(1, 8))
-    # Each mode's own parts come in likelihood order (in the default share order the slots after
-    # the first few are dealt to modes by weight; in the likelihood order all parts are ranked).
+    # Each mode's own parts come in the order of their rank scores (in the default share order the
+    # slots after the first few are dealt to modes by weight; in the likelihood order all parts
+    # are ranked), each at most its log-likelihood (the key subtracts fit penalties).
     for mode in {s.mode for s in answer.suggestions}:
-        scores = [s.score for s in answer.suggestions if s.mode == mode]
-        assert scores == sorted(scores, reverse=True)
+        keys = [s.rank_score for s in answer.suggestions if s.mode == mode]
+        assert keys == sorted(keys, reverse=True)
+    assert all(s.rank_score <= s.score + 1e-9 for s in answer.suggestions)
     assert len(answer.modes) == engine.artifacts.n_modes
     assert abs(sum(m.weight for m in answer.modes) - 1.0) < 1e-4
     for s in answer.suggestions:
@@ -69,9 +71,10 @@ def test_default_k_and_determinism(client: TestClient, query: AssemblyQuery, set
 
 
 def test_duplicates_are_collapsed(artifacts: Path, query: AssemblyQuery, catalog: Catalog) -> None:
-    # Likelihood order (the complement check reorders each shortlist on its own, and the share
-    # order deals each list to the modes on its own).
-    with TestClient(create_app(make_settings(artifacts, suggest_order="likelihood"))) as client:
+    # Likelihood order without fit penalties (the complement check and the fit key reorder each
+    # shortlist on its own, and the share order deals each list to the modes on its own).
+    with TestClient(create_app(make_settings(artifacts, suggest_order="likelihood", rank_scale_weight=0.0,
+                                             rank_move_weight=0.0))) as client:
         collapsed = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"],
                             complement_check=False)
         full = suggest(client, points=query.points.tolist(), k=TEST_LIMITS["max_k"],

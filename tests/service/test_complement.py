@@ -10,6 +10,7 @@ from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.complement import covered_share, demote_covered
 from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.fit_rank import fit_keys
 
 
 def _square(n: int = 40, y: float = 0.0) -> np.ndarray:
@@ -72,12 +73,21 @@ def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, settings: S
     for side in (covered, ~covered):
         ranks = [plain_ids.index(p) for p, c in zip(checked_ids, side, strict=True) if c]
         assert ranks == sorted(ranks)
-    # Scores are likelihoods: without the check they only go down.
-    scores = [x.score for x in plain.suggestions]
-    assert scores == sorted(scores, reverse=True)
+    # Without the check the order is the fit key's (the log-likelihood less the fit penalties).
+    s = plain.suggestions
+    keys = fit_keys(np.array([x.score for x in s]), np.stack([x.scale for x in s]),
+                    np.stack([x.translation - x.contact_offset for x in s]),
+                    engine.catalog.translations[[x.part_index for x in s]],
+                    engine.config.rank_scale_weight, engine.config.rank_move_weight)
+    assert np.all(np.diff(keys) <= 1e-6 * np.maximum(1.0, np.abs(keys[1:])))
 
 
-def test_complement_check_off_is_likelihood_order(engine: SuggestionEngine, query: AssemblyQuery) -> None:
+def test_complement_check_off_is_likelihood_order(engine: SuggestionEngine, settings: Settings,
+                                                  query: AssemblyQuery) -> None:
+    """With the check off and no fit penalties nothing reorders the ranked list: a shorter answer
+    is the head of a longer one."""
+    engine = SuggestionEngine(engine.artifacts, settings.model_copy(
+        update={"rank_scale_weight": 0.0, "rank_move_weight": 0.0}))
     off = engine.suggest(query.points, SuggestOptions(k=10, complement_check=False))
     longer = engine.suggest(query.points, SuggestOptions(k=30, complement_check=False))
     assert [x.part_id for x in off.suggestions] == [x.part_id for x in longer.suggestions][:10]

@@ -18,10 +18,11 @@ from service.suggest.mixture import mixture_log_likelihood
 @pytest.fixture(scope="module")
 def exhaustive(engine: SuggestionEngine, settings: Settings) -> SuggestionEngine:
     """The same artifacts with FAISS asked for every part: candidates = the whole catalog, ranked
-    by likelihood alone (no complement check, no inferred category and no slots dealt to modes,
-    which brute force does not model)."""
+    by likelihood alone (no complement check, no inferred category, no slots dealt to modes and
+    no fit penalties, which brute force does not model)."""
     update = {"neighbours_per_mode": len(engine.catalog), "max_k": len(engine.catalog),
-              "suggest_complement_check": False, "infer_category": False, "suggest_order": "likelihood"}
+              "suggest_complement_check": False, "infer_category": False, "suggest_order": "likelihood",
+              "rank_scale_weight": 0.0, "rank_move_weight": 0.0}
     return SuggestionEngine(engine.artifacts, settings.model_copy(update=update))
 
 

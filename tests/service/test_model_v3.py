@@ -228,9 +228,9 @@ def test_a_query_in_the_wrong_frame_is_answered_with_a_warning(engine: Suggestio
 
 def test_a_far_too_large_query_is_unfamiliar_and_a_held_out_one_is_not(engine: SuggestionEngine,
                                                                         catalog: Catalog) -> None:
-    """The best suggestion's distance from its mode (``ood_max_mode_distance``): held-out shapes
+    """The closest candidate's distance from its mode (``ood_max_mode_distance``): held-out shapes
     without one part stay within it; the same shapes four times too large, sent without a frame,
-    are flagged (the shipped model: at most 0.96 against at least 1.40, docs/settings.md)."""
+    are flagged (the shipped model: at most 1.0 against a median of 4.3, docs/settings.md)."""
     _needs_heads(engine)
     for sid in _held_out_shapes(catalog, 2):
         rows = [i for i, r in enumerate(catalog.records) if r["shape_id"] == sid]

@@ -39,8 +39,8 @@ class _Index:
 def _node(i: int, row: int, at: list[float]) -> Node:
     t = np.array(at, dtype=np.float64)
     sug = Suggestion(rank=1, part_index=row, part_id=f"s/{row}", shape_id="s", category="c", label=None,
-                     score=0.0, mode=0, mode_weight=1.0, duplicates=1, translation=t, bbox_min=t - 0.1,
-                     bbox_max=t + 0.1)
+                     score=0.0, rank_score=0.0, mode=0, mode_weight=1.0, duplicates=1, translation=t,
+                     bbox_min=t - 0.1, bbox_max=t + 0.1)
     return Node(node=i, parent=i - 1 if i else None, depth=i + 1, suggestion=sug, translation=t,
                 contact_offset=np.zeros(3), distance=1.0)
 

@@ -465,6 +465,20 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     args_other = [a if a != str(tiny_artifacts["run"]) else str(other_run) for a in args]
     mismatch = runner.invoke(app, [*args_other, "--out", str(root / "d"), "--report", str(root / "d.md")])
     assert mismatch.exit_code == 2 and "split.json" in mismatch.output
+    # Queries from the training shapes (for choosing service settings) are other queries, and the
+    # report says where they came from; an unknown split is named.
+    train = runner.invoke(app, [*args, "--methods", "random,ours", "--query-split", "train", "--details",
+                                "--out", str(root / "e"), "--report", str(root / "e.md")])
+    assert train.exit_code == 0, train.output
+    e = json.loads((root / "e" / "results.json").read_text())
+    assert e["settings"]["query_split"] == "train"
+    assert "training-split" in (root / "e.md").read_text() and "training-split" not in report
+    test_ids = set(json.loads((tiny_artifacts["run"] / "split.json").read_text())["test_ids"])
+    records = [r for rs in json.loads((root / "e" / "queries.json").read_text())["retrieval"].values()
+               for r in (rs if isinstance(rs, list) else [x for v in rs.values() for x in v])]
+    assert records and not {r["shape_id"] for r in records} & test_ids
+    wrong = runner.invoke(app, [*args, "--query-split", "valid", "--out", str(root / "f")])
+    assert wrong.exit_code == 2 and "valid" in wrong.output
 
 
 SHIPPED = Path(__file__).resolve().parents[2] / "exported"

@@ -33,6 +33,10 @@ def evaluate_command(
                                                       "fixed-embedding training (minutes -> seconds)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the queries, samples and baselines."),
     queries: int = typer.Option(100, "--queries", help="Queries per category and setting (paper: 100)."),
+    query_split: str = typer.Option("test", "--query-split",
+                                    help="Retrieval queries from the held-out shapes ('test') or from "
+                                         "the training shapes ('train': to choose service settings, "
+                                         "given as COMPLEMENTME_* variables, without the held-out ones)."),
     placement_queries: int = typer.Option(100, "--placement-queries",
                                           help="Placement queries per category and split."),
     plausibility_queries: int = typer.Option(50, "--plausibility-queries",
@@ -91,7 +95,8 @@ def evaluate_command(
         return
     settings = BenchmarkSettings(
         artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
-        queries_per_category=queries, placement_queries_per_category=placement_queries,
+        queries_per_category=queries, query_split=query_split,
+        placement_queries_per_category=placement_queries,
         plausibility_queries_per_category=plausibility_queries, dense_points=dense_points,
         methods=tuple(m.strip() for m in methods.split(",") if m.strip()), ck10_shapes=ck10_shapes,
         threads=threads, details=details, progress=progress, notes=notes_text,

@@ -274,7 +274,7 @@ class _Report:
             f"`{str(art.get('dataset_hash'))[:12]}`)",
             f"- Date: {r['date']}",
             f"- Seed {s['seed']}; {s['queries_per_category']} queries per category and setting (fewer when a "
-            "category has fewer held-out (shape, labelled part) pairs); "
+            f"category has fewer {_split_words(s)} (shape, labelled part) pairs); "
             f"{s['placement_queries_per_category']} placement queries per category and split.",
             f"- Run time: {timing.get('total', 0):.0f} s "
             f"({', '.join(f'{k} {v:.0f} s' for k, v in timing.items() if k != 'total')}).",
@@ -425,3 +425,11 @@ class _Report:
                 "Candidate parts per category (whole catalog, before excluding the query's shape): "
                 f"{pool}.", "",
                 f"Raw numbers: `{_rel(self.chart_dir / 'results.json', self.base)}`.", ""]
+
+
+def _split_words(settings: dict[str, Any]) -> str:
+    """Which shapes the retrieval queries came from, as the report says it (older results: test)."""
+    if settings.get("query_split", "test") == "train":
+        return ("training-split (not held-out: a run for choosing service settings, "
+                "`--query-split train`)")
+    return "held-out"

@@ -101,6 +101,8 @@ class BenchmarkSettings:
     report: Path = Path("docs/benchmark.md")
     seed: int = 0
     queries_per_category: int = 100           # per setting (all-but-one, single); paper: 100
+    query_split: str = "test"                 # retrieval queries from these shapes ("train": for
+                                              # choosing service settings without the held-out ones)
     placement_queries_per_category: int = 100  # per split (train, test)
     plausibility_queries_per_category: int = 50   # per category: all-but-one and test placement queries
                                               # whose placements get the (costly) contact test
@@ -119,6 +121,8 @@ class BenchmarkSettings:
     fixed: FixedSettings = field(default_factory=FixedSettings)
 
     def validate(self) -> None:
+        if self.query_split not in ("train", "test"):
+            raise ValueError(f"query split {self.query_split!r}: expected 'train' or 'test'")
         unknown = [m for m in self.methods if m not in METHOD_KEYS]
         if unknown or not self.methods:
             raise ValueError(f"unknown method(s) {unknown}; choose among {', '.join(METHOD_KEYS)}")
@@ -273,7 +277,8 @@ class _Benchmark:
         s, index, n = self.s, self.index, self.n_points
         with self._timed("queries"):
             self.cats = index.categories()
-            self.queries = {setting: make_queries(index, setting, s.queries_per_category, n, s.seed)
+            self.queries = {setting: make_queries(index, setting, s.queries_per_category, n, s.seed,
+                                                      split=s.query_split)
                             for setting in ("all_but_one", "single")}
             self.placement_queries = {
                 split: make_placement_queries(index, split, s.placement_queries_per_category, n, s.seed)
@@ -306,7 +311,8 @@ class _Benchmark:
             return m
         if key == "likelihood":
             return EngineMethod(SuggestionEngine(self.artifacts, self.service_settings.model_copy(
-                update={"suggest_complement_check": False, "suggest_order": "likelihood"})),
+                update={"suggest_complement_check": False, "suggest_order": "likelihood",
+                        "rank_scale_weight": 0.0, "rank_move_weight": 0.0})),
                 name=METHOD_NAMES[key])
         if key == "ranked":
             return EngineMethod(SuggestionEngine(self.artifacts, self.service_settings.model_copy(
