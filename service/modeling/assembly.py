@@ -395,7 +395,7 @@ class Assembler:
         out = [_Candidate(sug, float(d), None, int(m))
                for sug, d, m in zip(result.suggestions, dist, modes, strict=True)
                if d <= self.settings.assemble_max_distance]
-        out.sort(key=lambda c: -c.suggestion.score)  # the list came mode-balanced
+        out.sort(key=lambda c: -c.suggestion.rank_score)  # the list came mode-balanced
         return out
 
     def _eligible(self, result: SuggestResult, likely: list[_Candidate], state: _State
