@@ -427,7 +427,8 @@ class Assembler:
         """Up to ``n`` picks that differ (other modes first, no near-identical siblings).
 
         greedy: the best first (``rank_score``: the likelihood less the fit penalties); sample: a
-        mode drawn by weight ** (1 / temperature), then its best part. Candidates are drawn from ``eligible`` only as far as needed.
+        mode drawn by weight ** (1 / temperature), then its best part. Candidates are drawn from
+        ``eligible`` only as far as needed.
         """
         seen: list[_Candidate] = []
         exhausted = False
