@@ -6,8 +6,9 @@ behind HAProxy. One after the other on loopback (never at the same time: on two 
 share the CPU), under the same wrk load with the JSON body (the peer knows no base64). Reported:
 each side's throughput and latency, and ours as ratios to the peer's (throughput ours / peer;
 latency peer / ours, so larger is better for us in both). Before the load, both answer the
-benchmark query once: the top part should be the same (a sanity check that both serve the same
-model).
+benchmark query once: the peer's top part (it ranks by the mixture likelihood alone) should be
+the most likely part of our answer (whose order also weighs the fit key and the complement
+check): a sanity check that both serve the same model.
 """
 
 from __future__ import annotations
@@ -94,11 +95,13 @@ def run_peer_bench(query: BenchQuery, cfg: PeerBenchConfig, cache: Path) -> dict
         our_levels = load_levels(ours.url + "/suggest", bodies, cfg.concurrency, cfg.load,
                                  metrics_urls=ours.metrics_urls)
     peer_top = [s["part_id"] for s in peer_answer["suggestions"]]
-    our_top = [s["part_id"] for s in our_answer["suggestions"]]
+    ours_sorted = our_answer["suggestions"]
+    our_top = [s["part_id"] for s in ours_sorted]
+    likeliest = max(ours_sorted, key=lambda s: s["score"])["part_id"] if ours_sorted else None
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},
-        "sanity": {"peer_top": peer_top[:3], "our_top": our_top[:3],
-                   "same_top_part": bool(peer_top and our_top and peer_top[0] == our_top[0])},
+        "sanity": {"peer_top": peer_top[:3], "our_top": our_top[:3], "our_most_likely": likeliest,
+                   "same_top_part": bool(peer_top and likeliest == peer_top[0])},
         "peer": peer_levels,
         "ours": our_levels,
         "ratios": ratios(our_levels, peer_levels),

@@ -339,8 +339,11 @@ def _peer(data: dict[str, Any]) -> list[str]:
         "",
         *_ratio_table("Peer", r["ratios"], peer, ours, peer_rps="{:.1f}"),
     ]
+    # Results before 2026-12-04 have no "our_most_likely": ours was then ordered by likelihood.
+    likeliest = s.get("our_most_likely", s["our_top"][0] if s["our_top"] else None)
     lines += ["", f"Sanity: top parts of the benchmark query, peer {', '.join(s['peer_top'])}; ours "
-              f"{', '.join(s['our_top'])}: same top part: **{'yes' if s['same_top_part'] else 'no'}**."]
+              f"{', '.join(s['our_top'])} (most likely: {likeliest}): the peer's top part is our most "
+              f"likely part: **{'yes' if s['same_top_part'] else 'no'}**."]
     return lines
 
 

@@ -117,7 +117,7 @@ def test_rendered_tables_hold_the_numbers() -> None:
     assert "| json | 64 | 3400 | 340 | 90.00 | 90.00 | 250 | 12 (12x 503) |" in text
     assert "| 1,000,000 | IndexIVFFlat nlist=4096, nprobe=24 | 12.5 |" in text
     assert "| 32 | 30.0 | 350 | 11.7x |" in text
-    assert "same top part: **yes**" in text
+    assert "our most likely part: **yes**" in text
     assert "| **end to end, in process** | 3.80 / 7.60 |" in text
     assert "| Stage | json, contact default (off) |" in text
 
