@@ -396,7 +396,8 @@ class Assembler:
                for sug, d, m in zip(result.suggestions, dist, modes, strict=True)
                if d <= self.settings.assemble_max_distance]
         # The list came mode-balanced; walk it by the answer's own key (likelihood less the fit
-        # penalties): on training starts 80.0% good runs against 77.2% by likelihood.
+        # penalties): on training starts 80.0% good runs against 77.2% by likelihood (128 engine
+        # candidates; docs/modeling.md).
         out.sort(key=lambda c: -c.suggestion.rank_score)
         return out
 
