@@ -40,6 +40,7 @@ import onnxruntime as ort
 
 from service.artifacts.catalog import Catalog, load_catalog
 from service.artifacts.layout import CATALOG_ARRAYS, CATALOG_JSON, GRAPH_FILES, INDEX_FILE, MANIFEST
+from service.artifacts.models import scales_of
 from service.geometry.mesh import resample_points
 from service.suggest.complement import complement_order, covered_share
 from service.suggest.fit_rank import fit_keys
@@ -179,8 +180,7 @@ class PeerModel:
                 "part_feature": np.ascontiguousarray(cat.part_features[parts])}
         if "log_scale" in self.h_outputs:
             translations, log_scale = self.h_head.run(["translation", "log_scale"], feed)  # (R, 3) x 2
-            scales = np.clip(np.exp(np.clip(log_scale.astype(np.float64), -20.0, 20.0)),
-                             cfg.scale_min, cfg.scale_max)
+            scales = np.clip(scales_of(log_scale).astype(np.float64), cfg.scale_min, cfg.scale_max)
         else:
             translations = self.h_head.run(["translation"], feed)[0]
             scales = np.ones_like(translations, dtype=np.float64)

@@ -106,9 +106,19 @@ class Networks:
             translation = self.h_head.run(["translation"], feed)[0]
             return translation, np.ones_like(translation)
         translation, log_scale = self.h_head.run(["translation", "log_scale"], feed)
-        # A query far outside the model's frame can drive the head to huge values: the engine
-        # clips scales to its settings' range anyway, so clip here before exp can overflow.
-        return translation, np.exp(np.clip(log_scale, -20.0, 20.0)).astype(np.float32)
+        return translation, scales_of(log_scale)
+
+
+def scales_of(log_scale: np.ndarray) -> np.ndarray:
+    """h_head's ``log_scale`` output as per-axis scales.
+
+    A query far outside the model's frame can drive the head to huge values: the engine clips
+    scales to its settings' range anyway, so clip here before exp can overflow.
+
+    Shapes:
+        (B, 3) -> (B, 3) float32.
+    """
+    return np.exp(np.clip(log_scale, -20.0, 20.0)).astype(np.float32)
 
 
 def _f32(a: np.ndarray) -> np.ndarray:

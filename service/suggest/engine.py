@@ -484,9 +484,14 @@ class SuggestionEngine:
         region count. (The same shortlist for every k keeps a shorter answer the head of a
         longer one.)"""
         c = self.config
-        reorders = self._checks_complement(q.options) or c.rank_scale_weight or c.rank_move_weight
-        n = max(q.k, c.complement_candidates) if reorders else q.k
+        n = max(q.k, c.complement_candidates) if self._reorders(q.options) else q.k
         return max(n, self.config.region_candidates) if q.region is not None else n
+
+    def _reorders(self, options: SuggestOptions) -> bool:
+        """Whether the placed shortlist is reordered before the top k: by the complement check, or
+        by the fit key (either weight non-zero)."""
+        c = self.config
+        return self._checks_complement(options) or bool(c.rank_scale_weight or c.rank_move_weight)
 
     def _per_mode(self, q: Query) -> int:
         """Nearest parts a query needs of each mode's mean: at least k, so that a large k is not
@@ -681,9 +686,8 @@ class SuggestionEngine:
         fit = self._fitted(raw_scales, q.options.fit_scale)
         # The key reads h's scale whether or not the answer fits it: a part that needs rescaling
         # fits worse either way (served unscaled, it is the wrong size).
-        keys = fit_keys(ranked.scores, np.clip(raw_scales.astype(np.float64), c.scale_min, c.scale_max),
-                        translations, snap.catalog.translations[ranked.rows], c.rank_scale_weight,
-                        c.rank_move_weight)
+        keys = fit_keys(ranked.scores, self._clipped(raw_scales), translations,
+                        snap.catalog.translations[ranked.rows], c.rank_scale_weight, c.rank_move_weight)
         placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit, keys)
         if q.region is not None:
             placed = placed.take(self._in_region(q, placed, snap))
@@ -921,9 +925,9 @@ class SuggestionEngine:
         """
         idx = placed.rows
         c = self.config
-        checks = self._checks_complement(q.options)
-        if len(idx) == 0 or not (checks or c.rank_scale_weight or c.rank_move_weight):
+        if len(idx) == 0 or not self._reorders(q.options):
             return np.arange(len(idx))
+        checks = self._checks_complement(q.options)
         share = np.zeros(len(idx))
         if checks:
             samples = snap.catalog.part_samples(idx, c.complement_part_samples)
@@ -940,10 +944,17 @@ class SuggestionEngine:
         Shapes:
             raw (P, 3) -> (P, 3) float64.
         """
-        c = self.config
-        if not _or_default(asked, c.fit_scale):
+        if not _or_default(asked, self.config.fit_scale):
             return np.ones((len(raw), 3))
-        return np.clip(raw.astype(np.float64), c.scale_min, c.scale_max)
+        return self._clipped(raw)
+
+    def _clipped(self, raw: np.ndarray) -> np.ndarray:
+        """h's scales clipped to the settings' range (what fitting serves, and what the fit key reads).
+
+        Shapes:
+            raw (P, 3) -> (P, 3) float64.
+        """
+        return np.clip(raw.astype(np.float64), self.config.scale_min, self.config.scale_max)
 
     def familiarity_distances(self, weights: np.ndarray, means: np.ndarray) -> np.ndarray | None:
         """Distance of g's answer for each query to the nearest answer for a training partial
