@@ -127,14 +127,14 @@ class Settings(BaseSettings):
         "Complement check of suggestions when a request does not send `complement_check`: the "
         "best-ranked candidates are placed by the placement network and those lying mostly on the "
         "query's own surface (parts the query already has) move behind the others."))
-    complement_candidates: int = Field(default=96, ge=1, le=1000, description=(
+    complement_candidates: int = Field(default=128, ge=1, le=1000, description=(
         "Best-ranked candidates (after duplicate collapse) the placement network places before the "
         "answer is ordered (the complement check tests them, the fit key re-sorts them, the share "
-        "order deals them); at least the request's k. 96 rather than 64 since the fit key: on "
-        "the training split it took the coverage of the missing labels from 0.903 to 0.905 (128: "
-        "0.908, 256: 0.922, at lower functional mAP@5 and a larger Hausdorff distance), and the "
-        "engine stays under issue 6's 3 ms (p50 2.42 ms with 96 against 3.0-3.2 ms with 128, "
-        "`python -m bench engine`)."))
+        "order deals them); at least the request's k. 128 rather than 64 since the fit key: on "
+        "the training split it took the coverage of the missing labels from 0.903 to 0.908 (96: "
+        "0.905, 256: 0.922, at lower functional mAP@5 and a larger Hausdorff distance). It was 96 "
+        "until h's head was split between its branches (2026-12-05): 128 then took the engine's "
+        "p50 past issue 6's 3 ms; now 2.34 ms (96: 2.25 ms; `python -m bench engine`)."))
     complement_part_samples: int = Field(default=16, ge=1, le=4096, description=(
         "Catalog point samples per candidate the complement check measures (at most the "
         "catalog's points per part)."))

@@ -121,8 +121,7 @@ def _dynamic_axes(graph: str, outputs: list[str]) -> dict[str, dict[int, str]]:
 
 def graph_modules(pair: RetrievalPair, placement: PlacementNet) -> dict[str, nn.Module]:
     """The torch module behind each exported graph (in the order of ``GRAPH_FILES``)."""
-    return {"f": pair.f, "g": pair.g, "h_query": placement.query, "h_part": placement.part,
-            "h_head": placement.head}
+    return {"f": pair.f, "g": pair.g, **placement.exported_modules()}
 
 
 def example_inputs(graph: str, placement: PlacementNet, batch: int = 2, n: int = 64,

@@ -12,7 +12,8 @@ What the exporter changed, and how it is undone:
 * each per-point ``Conv1d`` + ``BatchNorm1d`` pair became one ``Conv`` with a bias: the torch
   conv takes the folded weight and its batch norm becomes the identity plus that bias
   (weight 1, mean 0, variance ``1 - eps`` so the divisor is exactly 1);
-* a ``Linear`` without a bias became a ``MatMul`` by its transposed weight.
+* a ``Linear`` without a bias became a ``MatMul`` by its transposed weight (h's branches end
+  with their half of the head's first layer, ``models.ProjectedBranch``).
 
 Those two kinds have anonymous initializers; they are matched to the torch layers in order
 (graph order is module order for these feed-forward nets). Every graph is then run in both
@@ -51,7 +52,11 @@ def load_exported_networks(artifacts: Path) -> tuple[RetrievalPair, PlacementNet
     placement.eval()
     for graph, module in graph_modules(pair, placement).items():
         path = artifacts / GRAPH_FILES[graph]
-        load_graph_weights(module, onnx.load(str(path)), str(path))
+        model = onnx.load(str(path))
+        if graph == "h_head" and any(node.op_type == "Concat" for node in model.graph.node):
+            raise ValueError(f"{path}: exported before h's head was split between its branches "
+                             "(training.models.PlacementHead); export the run again to read it here")
+        load_graph_weights(module, model, str(path))
         check_parity(module, graph, path, placement)
     return pair, placement, cfg
 

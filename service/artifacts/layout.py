@@ -11,6 +11,9 @@ Layout of an artifact folder (``exported/`` ships with the repository)::
     h_part.onnx         placement, part branch:   points (B, N, 3)    -> part_feature (B, Fp)
     h_head.onnx         placement head:  query_feature (B, Fq),
                                          part_feature (B, Fp)         -> translation (B, 3)
+                        (exports since 2026-12-05 fold the head's first layer into the branches,
+                        so Fq = Fp = its width and h_head starts with their sum: the service
+                        runs the graphs the same way either way)
     index.faiss         FAISS index over the catalog embeddings (row i = catalog part i)
     catalog.json        one record per catalog part (see ``CatalogPart`` fields below)
     catalog.npz         embeddings (P, D) float32, part_features (P, Fp) float32,

@@ -92,6 +92,47 @@ def test_placement_splits_into_query_part_and_head():
         torch.testing.assert_close(h(X, Y), h.head(h.query(X), h.part(Y)))
 
 
+@pytest.mark.parametrize("hidden,batch_norm,scale",
+                         [((10, 7), True, True), ((10,), False, False), ((), True, False)])
+def test_exported_placement_graphs_compose_to_h(hidden: tuple[int, ...], batch_norm: bool, scale: bool):
+    """h_head on the projected branches (what the service runs) is h, at any head depth."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(TINY, placement_head_layers=hidden, batch_norm=batch_norm, predict_scale=scale)
+    h = PlacementNet(cfg).eval()
+    graphs = h.exported_modules()
+    X, Y = _points(4, 40), _points(4, 20, seed=3)
+    with torch.no_grad():
+        qf, pf = graphs["h_query"](X), graphs["h_part"](Y)
+        assert qf.shape == (4, h.query_dim) and pf.shape == (4, h.part_dim)
+        torch.testing.assert_close(graphs["h_head"](qf, pf), h(X, Y))
+
+
+def test_a_checkpoint_with_the_concatenated_head_loads_as_the_same_function():
+    """Runs trained before the head's first layer was split (one Linear over the concatenation,
+    ``mlp.*``) load into the split head and compute what the old head computed."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(TINY, placement_head_layers=(10, 7), predict_scale=True)
+    h = PlacementNet(cfg)
+    fq, fp = h.query.out_dim, h.part.out_dim
+    nn = torch.nn
+    old = nn.Sequential(nn.Linear(fq + fp, 10, bias=False), nn.BatchNorm1d(10), nn.ReLU(),
+                        nn.Linear(10, 7, bias=False), nn.BatchNorm1d(7), nn.ReLU(), nn.Linear(7, 6))
+    for m in old:
+        if isinstance(m, torch.nn.BatchNorm1d):   # not the identity, so a misplaced buffer shows
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+    state = {k: v for k, v in h.state_dict().items() if not k.startswith("head.")}
+    state.update({f"head.mlp.{k}": v for k, v in old.state_dict().items()})
+    h.load_state_dict(state)
+    h.eval()
+    old.eval()
+    X, Y = _points(4, 40), _points(4, 20, seed=3)
+    with torch.no_grad():
+        want = old(torch.cat([h.query(X), h.part(Y)], dim=1))
+        translation, log_scale = h(X, Y)
+    torch.testing.assert_close(torch.cat([translation, log_scale], dim=1), want)
+
+
 def test_config_presets_resolve_and_validate():
     for name in PRESETS:
         cfg = resolve_config(name)
