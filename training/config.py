@@ -189,6 +189,11 @@ class TrainConfig:
     # log scale that undoes it (a retrieved leg from a taller chair must be shortened).
     scale_augment: float = field(default=0.0, metadata=_help("a of the positive's random log rescale for h."))
     scale_weight: float = field(default=0.0, metadata=_help("Weight of h's log-scale regression."))
+    # Not in the paper: for this share of h's examples the part is a look-alike of the positive
+    # from another shape of the category (data.sampling.TripletSampler.substitute), to be placed
+    # where the positive was and fitted to its size: what the service asks of h.
+    substitute_fraction: float = field(
+        default=0.0, metadata=_help("Share of h's examples whose part is a look-alike of the positive."))
     # Not in the paper: what real collections bring (docs/training.md): anisotropic rescaling of
     # the whole shape, small rotations about the up axis, frames off centre and scale, point
     # noise, missing surface and density changes, in the ranges of data.sampling.Augmentation.
@@ -241,6 +246,9 @@ class TrainConfig:
         if min(shares) < 0 or sum(shares) > 1:
             raise ValueError("train config: query_negative_fraction and lookalike_negative_fraction must be "
                              f">= 0 and sum to at most 1, got {shares}")
+        if not 0.0 <= self.substitute_fraction <= 1.0:
+            raise ValueError("train config: substitute_fraction must be in [0, 1], "
+                             f"got {self.substitute_fraction}")
         if not 0.0 <= self.removal_query_fraction <= 1.0:
             raise ValueError("train config: removal_query_fraction must be in [0, 1], "
                              f"got {self.removal_query_fraction}")

@@ -225,7 +225,8 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
                               "lookalike_negative_fraction": cfg.lookalike_negative_fraction,
                               "removal_query_fraction": cfg.removal_query_fraction,
                               "positives": cfg.positives, "augment": cfg.augment,
-                              "scale_augment": cfg.scale_augment, "categories": ds.categories()})
+                              "scale_augment": cfg.scale_augment,
+                              "substitute_fraction": cfg.substitute_fraction, "categories": ds.categories()})
     run.start_clock()
     bar = tqdm(total=cfg.steps, initial=run.step, disable=not (show_progress and env.is_main),
                desc="train", dynamic_ncols=True)

@@ -139,6 +139,29 @@ def test_lookalike_negatives_come_from_other_shapes_of_the_category(dataset: Pro
         assert any(t.negative in sampler.lookalikes[q] for q in t.query)
 
 
+def test_h_sees_the_positive_undone_by_its_log_scale(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=64, scale_augment=0.3)
+    batch = sampler.batch(16, np.random.default_rng(7))
+    back = batch["Y_h"] * np.exp(batch["Y_log_scale"])[:, None, :]
+    np.testing.assert_allclose(back, batch["Y"], atol=1e-5)
+
+
+def test_substitutes_are_look_alikes_fitted_to_the_positive_s_size(dataset: ProcessedDataset) -> None:
+    """With substitutes h sees another shape's look-alike part, and its target log scale takes that
+    part's box to the positive's (the chairs' legs differ in height from shape to shape)."""
+    sampler = TripletSampler(dataset, n_points=256, substitute_fraction=1.0, lookalike_neighbours=2)
+    batch = sampler.batch(32, np.random.default_rng(8))
+    fitted = batch["Y_h"] * np.exp(batch["Y_log_scale"])[:, None, :]
+    want, got = np.ptp(batch["Y"], axis=1), np.ptp(fitted, axis=1)
+    fat = want > 0.05   # thin axes are left unscaled (MIN_FIT_EXTENT)
+    assert np.abs(np.log(got[fat] / want[fat])).max() < 0.05
+    moved = np.abs(batch["Y_log_scale"]).max(axis=1) > 0.01
+    assert moved.mean() > 0.5, "the look-alikes were the positives themselves"
+    plain = TripletSampler(dataset, n_points=64).batch(8, np.random.default_rng(8))
+    np.testing.assert_array_equal(plain["Y_h"], plain["Y"])
+    assert not plain["Y_log_scale"].any()
+
+
 def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset) -> None:
     with pytest.raises(ValueError, match="at most 1"):
         TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.6)

@@ -91,6 +91,26 @@ def component_descriptors(ds: ProcessedDataset) -> np.ndarray:
     return np.concatenate([ds.translation.astype(np.float32), extents], axis=1)
 
 
+# Boxes thinner than this (unit radius) along an axis give no scale along it: a flat part's
+# thickness is noise in its samples, not a size h should learn to match.
+MIN_FIT_EXTENT = 0.02
+# The largest per-axis rescale h learns to ask for (a factor of 2 either way, the service's clip).
+MAX_FIT_LOG_SCALE = float(np.log(2.0))
+
+
+def substitute_log_scale(target: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """Per-axis log scale that gives ``part``'s sample box the extents of ``target``'s, clipped.
+
+    Shapes:
+        target (N, 3), part (M, 3) centred samples -> (3,) float32.
+    """
+    want = np.ptp(target, axis=0)
+    have = np.ptp(part, axis=0)
+    fit = np.log(np.maximum(want, MIN_FIT_EXTENT) / np.maximum(have, MIN_FIT_EXTENT))
+    thin = (want < MIN_FIT_EXTENT) & (have < MIN_FIT_EXTENT)
+    return np.clip(np.where(thin, 0.0, fit), -MAX_FIT_LOG_SCALE, MAX_FIT_LOG_SCALE).astype(np.float32)
+
+
 def lookalike_components(ds: ProcessedDataset, k: int) -> np.ndarray:
     """For every component, its ``k`` nearest components of other shapes of the same category.
 
@@ -210,10 +230,12 @@ class TripletSampler:
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
-                 scale_augment: float = 0.0, categories: list[str] | None = None):
+                 scale_augment: float = 0.0, substitute_fraction: float = 0.0,
+                 categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
-                            ("removal_query_fraction", removal_query_fraction)):
+                            ("removal_query_fraction", removal_query_fraction),
+                            ("substitute_fraction", substitute_fraction)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         if query_negative_fraction + lookalike_negative_fraction > 1.0:
@@ -225,13 +247,14 @@ class TripletSampler:
         self.lookalike_negative_fraction = lookalike_negative_fraction
         self.removal_query_fraction = removal_query_fraction
         self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
+        self.substitute_fraction = substitute_fraction
         self.ranges = Augmentation()
         # The full collection's list, so that a subset (the train split) keeps the same indices.
         categories = categories if categories is not None else ds.categories()
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
                                           np.int64)
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
-                           if lookalike_negative_fraction > 0 else None)
+                           if lookalike_negative_fraction > 0 or substitute_fraction > 0 else None)
         self.adj = ds.adjacency()
         self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
         assert self.eligible, "no shape has two or more components"
@@ -288,8 +311,10 @@ class TripletSampler:
         A share ``augment`` of the triplets is augmented: the shape gets a random linear map and
         offset (its parts the same linear map: they stay centred), X point noise, a hole and
         even-by-component density, in the ranges of ``Augmentation``.
-        ``Y_h`` is the positive that h sees, rescaled per axis by exp(U(-a, a)) with
-        ``a = scale_augment``; ``Y_log_scale`` is the log scale that undoes it.
+        ``Y_h`` is the part that h sees, rescaled per axis by exp(U(-a, a)) with
+        ``a = scale_augment``; ``Y_log_scale`` is the log scale that undoes it. The part is the
+        positive, or, for a share ``substitute_fraction`` of the triplets, a look-alike of it (see
+        ``substitute``): then ``Y_log_scale`` also takes the look-alike to the positive's size.
 
         Shapes:
             X (B, N, 3), Y (B, N, 3), Z (B, N, 3), Y_h (B, N, 3) float32; Y_translation (B, 3),
@@ -303,6 +328,8 @@ class TripletSampler:
         P = np.zeros((batch_size, npos, n, 3), np.float32)
         mask = np.zeros((batch_size, npos), bool)
         T = np.empty((batch_size, 3), np.float32)
+        S = np.empty_like(X)                               # the part h sees, before its rescale
+        fit = np.zeros((batch_size, 3), np.float32)        # log scale from S to Y's size
         category = np.empty(batch_size, np.int64)
         ranges = self.ranges
         for b in range(batch_size):
@@ -320,18 +347,41 @@ class TripletSampler:
                 P[b, j] = sample_part(self.ds, int(comp), n, rng)
             mask[b, :1 + len(extra)] = True
             category[b] = self.category_of_shape[t.shape]
+            substitute = self.substitute(t.positive, rng)
+            S[b] = Y[b] if substitute is None else sample_part(self.ds, substitute, n, rng)
             if augmented:
                 A, offset = augmentation_transform(rng, 1.0, ranges)
                 X[b] = X[b] @ A.T + offset
-                Y[b], Z[b], P[b] = Y[b] @ A.T, Z[b] @ A.T, P[b] @ A.T
+                Y[b], Z[b], P[b], S[b] = Y[b] @ A.T, Z[b] @ A.T, P[b] @ A.T, S[b] @ A.T
                 T[b] = T[b] @ A.T + offset
                 X[b] += rng.normal(0.0, rng.uniform(0, ranges.noise), X[b].shape)
                 if rng.random() < ranges.hole_probability:
                     X[b] = punch_hole(X[b], rng, ranges.hole_radius)
+            if substitute is not None:
+                fit[b] = substitute_log_scale(Y[b], S[b])
         a = self.scale_augment
         log_scale = rng.uniform(-a, a, (batch_size, 3)).astype(np.float32) if a > 0 \
             else np.zeros((batch_size, 3), np.float32)
-        # The part h sees is Y grown by exp(log_scale); the fitting scale undoes that.
-        Y_h = Y * np.exp(log_scale)[:, None, :]
+        # The part h sees is S grown by exp(log_scale); the fitting scale undoes that (and takes a
+        # look-alike to the positive's size).
+        Y_h = S * np.exp(log_scale)[:, None, :]
         return {"X": X, "Y": Y, "Z": Z, "Y_translation": T, "Y_h": Y_h.astype(np.float32),
-                "Y_log_scale": -log_scale, "P": P, "P_mask": mask, "category": category}
+                "Y_log_scale": fit - log_scale, "P": P, "P_mask": mask, "category": category}
+
+    def substitute(self, positive: int, rng: np.random.Generator) -> int | None:
+        """For a share ``substitute_fraction`` of the triplets, a look-alike of the positive for h.
+
+        Why: the service places (and fits in size) the parts retrieval returns, which are other
+        shapes' parts, while h trained on rescaled true parts only learned to undo a random
+        rescale: for a part of the right size it still predicted its kind's typical size (the
+        placed-box IoU of the true part fell from 0.645 to 0.603 with fitting on, docs/training.md).
+        A look-alike (one of the positive's nearest components of other shapes of the category,
+        by box centre and extents: no labels) is such a part; h learns to put it where the
+        positive was, at the positive's size. None: h sees the positive.
+        """
+        if self.substitute_fraction <= 0 or rng.random() >= self.substitute_fraction:
+            return None
+        assert self.lookalikes is not None
+        candidates = self.lookalikes[positive]
+        candidates = candidates[candidates >= 0]
+        return int(candidates[int(rng.integers(len(candidates)))]) if len(candidates) else None
