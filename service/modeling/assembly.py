@@ -38,7 +38,8 @@ every step or, for a tree of possibilities, several choices per step. Each step 
 4. stops when the object is *complete*: when no eligible candidate is more likely under g's
    mixture than a part already placed, by ``assemble_complete_margin`` (g's most wanted
    complement is one the assembly has: a chair with a seat, a back and legs asks for one more
-   seat or back);
+   seat or back), unless a mode of weight at least ``assemble_open_mode_weight`` has no placed
+   part near its mean (``open_modes``) and an eligible candidate: then that candidate is added;
 5. picks: ``greedy`` takes the most likely eligible part; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely eligible part (seeded);
@@ -615,14 +616,35 @@ class Assembler:
         margin = self.settings.assemble_complete_margin
         placed = self._best_placed(result, weights, state) + margin if can_end else np.inf
         if can_end and likely[0].suggestion.score < placed:
-            return [], "complete"
+            return self._open_mode_picks(result, weights, state, fresh)
         picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
                              options.temperature, rng)
         if not picks:
             return [], "duplicates"
         if can_end and max(c.suggestion.score for c in picks) < placed:
-            return [], "complete"
+            return self._open_mode_picks(result, weights, state, fresh)
         return picks, ""
+
+    def _open_mode_picks(self, result: SuggestResult, weights: np.ndarray, state: _State,
+                         likely: list[_Candidate]) -> tuple[list[_Candidate], str]:
+        """At a step that would end ``complete``: the best eligible candidate of the heaviest mode
+        that no placed part explains (``open_modes``); none: complete.
+
+        Why: "complete" compares likelihoods, and a mixture's heaviest mode can keep offering more
+        of what is placed (legs after legs) while a lighter mode of another kind stays unmet
+        (a rifle's magazine or body). Chosen on training starts (docs/modeling.md).
+        """
+        s = self.settings
+        if s.assemble_open_mode_weight <= 0 or len(state.rows) == 0:
+            return [], "complete"
+        assert result.mode_means is not None and result.mode_sigmas is not None
+        unmet = open_modes(self.catalog.embeddings[state.rows], weights, result.mode_means,
+                           result.mode_sigmas, s.assemble_open_mode_weight, s.assemble_open_mode_distance)
+        for mode in unmet:
+            pick = next(self._eligible(result, [c for c in likely if c.near_mode == mode], state), None)
+            if pick is not None:
+                return [pick], ""
+        return [], "complete"
 
     def part_counts(self, category: str | None) -> tuple[float, float]:
         """How many parts the catalog's shapes of ``category`` have (all shapes without one): the
@@ -724,6 +746,25 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
 _COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float]] = (
     weakref.WeakKeyDictionary())
 _COVER_LOCK = threading.Lock()
+
+
+def open_modes(placed: np.ndarray, weights: np.ndarray, means: np.ndarray, sigmas: np.ndarray,
+               min_weight: float, distance: float) -> list[int]:
+    """The modes of weight at least ``min_weight`` that no placed part explains, heaviest first:
+    no placed embedding lies within ``distance`` of the mode's mean, in root-mean-square standard
+    deviations of that mode.
+
+    Shapes:
+        placed (P, D), weights (K,), means (K, D), sigmas (K, D) -> mode indices.
+    """
+    heavy = [int(m) for m in np.argsort(-weights, kind="stable") if weights[m] >= min_weight]
+    if not heavy:
+        return []
+    if len(placed) == 0:
+        return heavy
+    z = (np.asarray(placed, np.float64)[:, None, :] - means[heavy][None]) / sigmas[heavy][None]  # (P, H, D)
+    nearest = np.sqrt(np.mean(z * z, axis=2)).min(axis=0)                                      # (H,)
+    return [m for m, d in zip(heavy, nearest, strict=True) if d > distance]
 
 
 def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:
