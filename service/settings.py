@@ -324,6 +324,18 @@ class Settings(BaseSettings):
         "chosen on 360 starts of the training split (`evaluate-assembly --split train --starts 40 "
         "--no-contact`: 73% / 75% / 76% / 79% / 75% good at 1.8 / 2.0 / 2.2 / 2.6 / 3.0, stacked "
         "7.5% / 5.0% / 4.2% / 1.4% / 0.8%; docs/modeling.md)."))
+    assemble_strong_overlap_iou: float = Field(default=0.5, ge=0, le=1, description=(
+        "Boxes overlapping with more than this IoU count as the same job at the wider embedding "
+        "distance `assemble_strong_overlap_sigmas` (a second roof over the roof, of another "
+        "style: further apart than `assemble_same_job_sigmas`)."))
+    assemble_strong_overlap_sigmas: float = Field(default=3.9, ge=0, description=(
+        "Embedding distance (RMS standard deviations of the candidate's mode) within which two "
+        "parts whose boxes overlap past `assemble_strong_overlap_iou` do the same job. Chosen with "
+        "it on 360 training starts (`evaluate-assembly --split train --starts 40 --no-contact`, "
+        "the rule off: 81.4% good, 3.3% stacked): IoU 0.5 with 3.9 (1.5 times "
+        "`assemble_same_job_sigmas`) 82.2% / 2.2%; with 3.25 / 5.2: 81.7% / 2.8%, 82.2% / 2.5%; "
+        "IoU 0.6 with 3.9: 81.4% / 3.3%; IoU 0.4 with 5.2: 77.5% (cars 53%: car bodies are "
+        "several overlapping pieces); docs/modeling.md."))
     assemble_complete_margin: float = Field(default=0.0, description=(
         "`/assemble` stops (`complete`) when no eligible candidate's mixture log-likelihood "
         "exceeds the most likely placed part's by more than this: g's most wanted complement is "

@@ -29,8 +29,9 @@ every step or, for a tree of possibilities, several choices per step. Each step 
        ``assemble_overlap_iou`` and the two parts' embeddings lie within
        ``assemble_same_job_sigmas`` of each other, in the standard deviations g predicts for the
        candidate's mode (g would take either part for the other here: a second shade over the
-       shade). Parts of other kinds may overlap (the data's own car bodies and wheels, sofa
-       seats and arms overlap with IoU up to 0.5);
+       shade), or boxes overlapping with IoU above ``assemble_strong_overlap_iou`` and
+       embeddings within ``assemble_strong_overlap_sigmas``. Parts of other kinds may overlap
+       (the data's own car bodies and wheels, sofa seats and arms overlap with IoU up to 0.5);
      - lying on placed surface: at least ``assemble_cover_share`` of its placed samples within
        ``assemble_cover_distance`` of the placed parts' samples; where the category's own
        training parts lie on each other more (rifle magazines in their bodies), the share its
@@ -342,7 +343,9 @@ class Assembler:
         """A placed part in the same region that g cannot tell apart from the candidate here: boxes
         overlapping with IoU > ``assemble_overlap_iou`` and embeddings within
         ``assemble_same_job_sigmas`` RMS standard deviations of the candidate's mode; or centres
-        within half the smaller part's size and embeddings within half that."""
+        within half the smaller part's size and embeddings within half that; or boxes overlapping
+        with IoU > ``assemble_strong_overlap_iou`` and embeddings within
+        ``assemble_strong_overlap_sigmas``."""
         s = self.settings
         if cand.row is None:
             return False
@@ -357,7 +360,12 @@ class Assembler:
         size = np.minimum(np.linalg.norm(cand.hi - cand.lo), np.linalg.norm(state.hi - state.lo, axis=1))
         near = np.linalg.norm((cand.hi + cand.lo) / 2 - (state.hi + state.lo) / 2, axis=1) < size / 2
         same = s.assemble_same_job_sigmas
-        return bool(np.any((overlap & (z < same)) | (near & (z < same / 2))))
+        # Boxes that mostly coincide (a second roof over the roof) take a wider embedding
+        # distance: two styles of one kind of part lie further apart than g's sigmas, and parts of
+        # other kinds rarely share most of a box (a car's body pieces overlap less than this).
+        strong = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_strong_overlap_iou
+        return bool(np.any((overlap & (z < same)) | (near & (z < same / 2))
+                           | (strong & (z < s.assemble_strong_overlap_sigmas))))
 
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""

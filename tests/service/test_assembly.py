@@ -21,6 +21,7 @@ from service_testkit import artifacts_folder, make_settings
 from service.artifacts.catalog import Catalog, split_shapes
 from service.artifacts.loading import load_artifacts
 from service.errors import InputError, ServiceError
+from service.geometry.boxes import box_iou
 from service.modeling.assembly import (
     STOP_REASONS,
     AssembleOptions,
@@ -133,6 +134,39 @@ def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog, settings: Set
     other = int(np.argmax(z))   # the part g finds least like part 0, at part 0's place
     assert z[other] > settings.assemble_same_job_sigmas
     assert not asm._same_job(asm._catalog_part(other, t), placed, sigma)
+
+
+def test_a_part_filling_a_placed_part_s_box_does_its_job_further_apart(engine: SuggestionEngine,
+                                                                       catalog: Catalog,
+                                                                       settings: Settings) -> None:
+    """Another style of a part (embeddings between ``assemble_same_job_sigmas`` and
+    ``assemble_strong_overlap_sigmas`` apart), fitted into a placed part's box, does its job (a
+    second roof over the roof); moved so the boxes overlap less than
+    ``assemble_strong_overlap_iou``, it does not."""
+    s = settings
+    asm = Assembler(engine, s)
+    sigma = np.full(catalog.embeddings.shape[1], float(np.std(catalog.embeddings)) / 4)
+    i = 0
+    t = catalog.translations[i].astype(np.float64)
+    z = np.sqrt(np.mean(((catalog.embeddings - catalog.embeddings[i]) / sigma) ** 2, axis=1))
+    between = np.flatnonzero((z > s.assemble_same_job_sigmas + 0.2)
+                             & (z < s.assemble_strong_overlap_sigmas - 0.2))
+    assert len(between), "no part at that embedding distance"
+    j = int(between[0])
+
+    def extent(k: int) -> np.ndarray:
+        return np.maximum(catalog.bbox_max[k] - catalog.bbox_min[k], 1e-3).astype(np.float64)
+
+    fitted = extent(i) / extent(j)   # j scaled into i's box
+    placed = _State([asm._catalog_part(i, t)], frozenset())
+    assert asm._same_job(asm._catalog_part(j, t, fitted), placed, sigma)
+    axis = int(np.argmax(extent(i)))
+    shift = np.zeros(3)
+    shift[axis] = 0.4 * extent(i)[axis]    # IoU (1 - 0.4) / (1 + 0.4) = 0.43
+    beside = asm._catalog_part(j, t + shift, fitted)
+    iou = float(box_iou(beside.lo, beside.hi, placed.lo, placed.hi)[0])
+    assert s.assemble_overlap_iou < iou < s.assemble_strong_overlap_iou
+    assert not asm._same_job(beside, placed, sigma)
 
 
 def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, catalog: Catalog,
