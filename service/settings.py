@@ -348,6 +348,12 @@ class Settings(BaseSettings):
         "`assemble_open_mode_distance` on 360 training starts (`evaluate-assembly --split train "
         "--starts 40 --no-contact`): 79.4% good runs off; 80.0-81.4% at 0.05-0.2 and 0.75-2.0, "
         "best 0.15 and 1.0 (81.4%, stacked 3.3% against 2.5%; docs/modeling.md)."))
+    assemble_open_mode_margin: float = Field(default=20.0, ge=0, description=(
+        "The candidate an unmet mode gives (see `assemble_open_mode_weight`) must have a mixture "
+        "log-likelihood within this of the most likely placed part's: far less likely parts of "
+        "a lighter mode (a seat block under a finished chair's seat) are not added. Chosen on "
+        "360 training starts: 5 / 10 / 20 / 40 / none gave 81.1 / 82.2 / 82.5 / 82.2 / 82.2% "
+        "good runs, 1.7 / 1.7 / 1.7 / 1.9 / 2.2% stacked (docs/modeling.md)."))
     assemble_open_mode_distance: float = Field(default=1.0, gt=0, description=(
         "A placed part explains a mode of g's mixture (see `assemble_open_mode_weight`) when its "
         "embedding lies within this root-mean-square distance of the mode's mean, in the mode's "

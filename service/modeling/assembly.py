@@ -624,19 +624,21 @@ class Assembler:
         margin = self.settings.assemble_complete_margin
         placed = self._best_placed(result, weights, state) + margin if can_end else np.inf
         if can_end and likely[0].suggestion.score < placed:
-            return self._open_mode_picks(result, weights, state, fresh)
+            return self._open_mode_picks(result, weights, state, fresh, placed - margin)
         picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
                              options.temperature, rng)
         if not picks:
             return [], "duplicates"
         if can_end and max(c.suggestion.score for c in picks) < placed:
-            return self._open_mode_picks(result, weights, state, fresh)
+            return self._open_mode_picks(result, weights, state, fresh, placed - margin)
         return picks, ""
 
     def _open_mode_picks(self, result: SuggestResult, weights: np.ndarray, state: _State,
-                         likely: list[_Candidate]) -> tuple[list[_Candidate], str]:
+                         likely: list[_Candidate], best_placed: float) -> tuple[list[_Candidate], str]:
         """At a step that would end ``complete``: the best eligible candidate of the heaviest mode
-        that no placed part explains (``open_modes``); none: complete.
+        that no placed part explains (``open_modes``) whose log-likelihood is within
+        ``assemble_open_mode_margin`` of the most likely placed part's (``best_placed``); none:
+        complete.
 
         Why: "complete" compares likelihoods, and a mixture's heaviest mode can keep offering more
         of what is placed (legs after legs) while a lighter mode of another kind stays unmet
@@ -648,8 +650,10 @@ class Assembler:
         assert result.mode_means is not None and result.mode_sigmas is not None
         unmet = open_modes(self.catalog.embeddings[state.rows], weights, result.mode_means,
                            result.mode_sigmas, s.assemble_open_mode_weight, s.assemble_open_mode_distance)
+        floor = best_placed - s.assemble_open_mode_margin
         for mode in unmet:
-            pick = next(self._eligible(result, [c for c in likely if c.near_mode == mode], state), None)
+            pick = next(self._eligible(result, [c for c in likely if c.near_mode == mode
+                                                and c.suggestion.score >= floor], state), None)
             if pick is not None:
                 return [pick], ""
         return [], "complete"

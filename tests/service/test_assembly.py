@@ -558,3 +558,19 @@ def test_an_unmet_mode_keeps_a_rifle_going(shipped_engine: SuggestionEngine,
     on = complete_runs(shipped_settings)
     off = complete_runs(shipped_settings.model_copy(update={"assemble_open_mode_weight": 0.0}))
     assert on > off, (on, off)
+
+
+def test_an_unmet_mode_adds_no_part_far_less_likely_than_the_placed_ones(
+        shipped_engine: SuggestionEngine, shipped_settings: Settings) -> None:
+    """The page's auto-complete from a lone seat (docs/modeling.md): without the likelihood floor
+    an unmet seat mode added a thick seat block under the finished chair's seat; with it the
+    chain holds one seat and ends complete (labels read here only, to measure)."""
+    cat = shipped_engine.catalog
+    start = Start(kind="part", part_index=cat.lookup("chair-0000/1"))
+
+    def seats(settings: Settings) -> int:
+        result = Assembler(shipped_engine, settings).assemble(start, AssembleOptions(max_parts=6))
+        return sum(n.suggestion.label == "seat" for n in result.steps)
+
+    assert seats(shipped_settings) == 0
+    assert seats(shipped_settings.model_copy(update={"assemble_open_mode_margin": 1e9})) >= 1
