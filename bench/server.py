@@ -35,9 +35,22 @@ READY_PATH = "/readyz"  # 200 once a server process has loaded and warmed up (HA
 
 def free_port(host: str = "127.0.0.1") -> int:
     """A TCP port that is free on ``host`` now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+    return free_ports(1, host)[0]
+
+
+def free_ports(n: int, host: str = "127.0.0.1") -> list[int]:
+    """``n`` distinct TCP ports free on ``host`` now: all bound at once while the OS picks them.
+
+    Why: ports picked one after the other may repeat (each socket is closed before the next
+    bind), and two servers told the same port look ready together (the second one's readiness
+    check is answered by the first, then it fails to bind): a CI run saw two "servers" behind
+    HAProxy that were one.
+    """
+    with ExitStack() as stack:
+        sockets = [stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) for _ in range(n)]
+        for s in sockets:
+            s.bind((host, 0))
+        return [int(s.getsockname()[1]) for s in sockets]
 
 
 def complementme_command() -> list[str]:
@@ -200,7 +213,7 @@ def our_servers(processes: int, log_dir: Path, *, env: dict[str, str] | None = N
     if proxy and (missing := missing_haproxy()):
         raise RuntimeError(f"{processes} server processes run behind HAProxy, which is missing: {missing}")
     with ExitStack() as stack:
-        ports = [free_port() for _ in range(processes)]
+        *ports, front = free_ports(processes + 1)
         servers = []
         for i, port in enumerate(ports):
             cmd = [*complementme_command(), "serve", "--host", "127.0.0.1", "--port", str(port)]
@@ -213,7 +226,6 @@ def our_servers(processes: int, log_dir: Path, *, env: dict[str, str] | None = N
         if not proxy:
             yield OurServers(url=backends[0], backends=backends, roots=roots)
             return
-        front = free_port()
         conf = log_dir / "haproxy.cfg"
         conf.write_text(haproxy_config(front, ports, mode=mode, balance=balance, threads=threads,
                                        timeout=timeout))

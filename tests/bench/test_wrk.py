@@ -13,7 +13,7 @@ from typing import ClassVar
 import pytest
 
 from bench.http_bench import batch_means, parse_batch_counters
-from bench.server import free_port, running_server
+from bench.server import free_port, free_ports, running_server
 from bench.wrk import LoadSettings, parse_wrk_output, run_wrk
 
 LINE = ('BENCH_JSON {"duration_us": 2000000, "requests": 100, "responses": 100, "bytes": 5000, '
@@ -118,6 +118,14 @@ complementme_batch_queue_wait_seconds_sum{route="/suggest/batch"} 0.15
 # TYPE complementme_http_requests_total counter
 complementme_http_requests_total{status="200"} 7.0
 """
+
+
+def test_ports_picked_together_are_distinct_and_free() -> None:
+    """Servers started together get distinct ports (two told the same port would look ready as one)."""
+    ports = free_ports(64)
+    assert len(set(ports)) == 64
+    server = ThreadingHTTPServer(("127.0.0.1", ports[0]), _Handler)   # free: it binds
+    server.server_close()
 
 
 def test_batch_means_from_metrics_differences() -> None:
