@@ -65,6 +65,26 @@ def test_a_manifest_that_does_not_describe_the_graphs_is_refused(exported: Path,
         load_exported_networks(folder)
 
 
+def test_an_export_with_the_concatenated_head_is_refused_by_name(exported: Path, tmp_path: Path) -> None:
+    """Exports made before h's head was split (h_head starting with a concatenation of its two
+    inputs) serve as before but cannot be read back into the split head: the error says so."""
+    folder = tmp_path / "exported"
+    shutil.copytree(exported, folder)
+    h = onnx.helper
+    width = json.loads((folder / MANIFEST).read_text())["query_feature_dim"]
+    graph = h.make_graph(
+        [h.make_node("Concat", ["query_feature", "part_feature"], ["joined"], axis=1),
+         h.make_node("ReduceSum", ["joined", "axes"], ["translation"], keepdims=1)],
+        "old_head",
+        [h.make_tensor_value_info(n, onnx.TensorProto.FLOAT, ["batch", width])
+         for n in ("query_feature", "part_feature")],
+        [h.make_tensor_value_info("translation", onnx.TensorProto.FLOAT, ["batch", 1])],
+        [onnx.numpy_helper.from_array(np.array([1], np.int64), "axes")])
+    onnx.save(h.make_model(graph), str(folder / GRAPH_FILES["h_head"]))
+    with pytest.raises(ValueError, match="exported before h's head was split"):
+        load_exported_networks(folder)
+
+
 def test_an_exported_model_recatalogued_over_a_run_split_serves_the_same_function(
         exported: Path, tiny_run: Path, tmp_path: Path) -> None:
     """`export --from-artifacts`: the exported networks, a catalog rebuilt from the run's split and data."""
