@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from service.geometry.frames import Frame
 from service.modeling.assembly import AssembleResult, Node, Start
@@ -143,9 +144,18 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
     report = tmp_path / "modeling.md"
     args = ["evaluate-assembly", "--artifacts", str(SHIPPED), "--starts", "1", "--out", str(tmp_path / "out"),
             "--report", str(report), "--no-progress", "--max-parts", "3"]
-    result = CliRunner().invoke(app, args)
+    result = CliRunner().invoke(app, [*args, "--pictures", "1"])
     assert result.exit_code == 0, result.output
     res = json.loads((tmp_path / "out" / "results.json").read_text())
+    # One picture per category, linked from the report's block relative to the report.
+    assert sorted(res["pictures"]) == sorted(res["essential_labels"])
+    for category, name in res["pictures"].items():
+        with Image.open(tmp_path / "out" / name) as picture:
+            assert picture.width > 100 and picture.height > 100
+            assert len(picture.convert("RGB").getcolors(1 << 20) or []) > 20  # shaded meshes, not blank
+        assert f"![{category}](out/{name})" in report.read_text()
+    run = res["runs"][0]
+    assert len(run["translations"]) == len(run["scales"]) == len(run["parts"])
     runs = res["runs"]
     assert len(runs) == len(res["essential_labels"])  # one start per category
     assert all(len(r["parts"]) <= 3 for r in runs)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ from service.geometry.boxes import box_iou
 from service.modeling.assembly import AssembleOptions, Assembler, AssembleResult, Start, Strategy
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
+from training.evaluate.assembly_pictures import draw_categories
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.protocol import ShapeIndex, setting_rng
 
@@ -77,6 +79,7 @@ class AssemblyEvalSettings:
     contact: bool = True                         # measure floating and interpenetration
     contact_tolerance: float = 0.02
     contact_samples: int = 256                   # surface samples per part
+    pictures: int = 0                            # runs drawn per category (out/<category>.png)
     progress: bool = True
     command: str = ""
 
@@ -90,6 +93,8 @@ class AssemblyEvalSettings:
             raise ValueError(f"unknown strategies {bad}; choose among greedy, sample")
         if not 0 < self.stack_iou < 1:
             raise ValueError(f"stack_iou must lie in (0, 1), got {self.stack_iou}")
+        if self.pictures < 0:
+            raise ValueError(f"pictures must be >= 0, got {self.pictures}")
 
 
 def essential_labels(index: ShapeIndex) -> dict[str, set[str]]:
@@ -171,6 +176,10 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
         "good": complete and not stacked, "empty": not result.steps,
         "missing": sorted(essentials - set(labels) - {None}),
         "seconds": round(result.timings.get("total", 0.0), 4),
+        # Where each part went (canonical frame; the start at its own place): enough to draw it.
+        "start_translation": np.round(np.asarray(trans[0], dtype=np.float64), 5).tolist(),
+        "translations": [np.round(np.asarray(t, dtype=np.float64), 5).tolist() for t in trans[1:]],
+        "scales": [np.round(s, 5).tolist() for s in scales[1:]],
     }
     if settings.contact and result.steps:
         meshes = [_placed_mesh(index, r, t, s, settings.contact_samples)
@@ -277,9 +286,12 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
     }
     out = Path(s.out)
     out.mkdir(parents=True, exist_ok=True)
+    if s.pictures:
+        drawn = draw_categories(cat, runs, out, s.pictures, s.split, s.strategies[0])
+        results["pictures"] = {c: p.name for c, p in drawn.items()}
     write_json_atomic(out / "results.json", results)
     if s.report is not None:
-        write_report(results, Path(s.report))
+        write_report(results, Path(s.report), out)
     log.info("assembly evaluation done in %.0f s: %s", results["seconds"], out / "results.json")
     return results
 
@@ -292,8 +304,9 @@ def _pct(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:.0f}%"
 
 
-def render_summary(results: dict[str, Any]) -> str:
-    """The Markdown block of the report: command, model, one table per strategy."""
+def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> str:
+    """The Markdown block of the report: command, model, one table per strategy, and the
+    pictures (``pictures_dir``: the results folder as the report links it)."""
     start, end = report_markers(Path(results["artifacts"]).name)
     lines = [start, "",
              f"- Command: `{results['command']}` ({results['seconds']:.0f} s)",
@@ -314,14 +327,22 @@ def render_summary(results: dict[str, Any]) -> str:
                          f"{_pct(row['data_interpenetrating'])} | {_pct(row.get('data_stacked'))} | "
                          f"{reasons} |")
         lines.append("")
+    pictures = results.get("pictures", {})
+    if pictures and pictures_dir is not None:
+        lines += [f"Pictures: the first {results['settings']['pictures']} runs of each category, "
+                  "each titled with its start part and what the evaluation found.", ""]
+        lines += [f"![{c}]({pictures_dir}/{name})" for c, name in pictures.items()]
+        lines.append("")
     lines.append(end)
     return "\n".join(lines)
 
 
-def write_report(results: dict[str, Any], report: Path) -> None:
+def write_report(results: dict[str, Any], report: Path, out: Path | None = None) -> None:
     """Replace the artifact folder's block between its markers in ``report`` (appended when it
-    has none), so that each model evaluated keeps its own block."""
-    block = render_summary(results)
+    has none), so that each model evaluated keeps its own block. ``out``: the results folder
+    (for the pictures' links)."""
+    where = None if out is None else Path(os.path.relpath(Path(out).resolve(), Path(report).resolve().parent))
+    block = render_summary(results, None if where is None else where.as_posix())
     start, end = report_markers(Path(results["artifacts"]).name)
     text = report.read_text() if report.is_file() else ""
     if start in text and end in text:

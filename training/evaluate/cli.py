@@ -131,6 +131,8 @@ def evaluate_assembly_command(
     contact: bool = typer.Option(True, "--contact/--no-contact",
                                  help="Measure floating and interpenetration (exact, slower)."),
     contact_tolerance: float = typer.Option(0.02, "--contact-tolerance", help="Gap or depth that counts."),
+    pictures: int = typer.Option(0, "--pictures", help=(
+        "Runs to draw per category, into <out>/<category>.png, linked from the report (0: none).")),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Automatic assembly from held-out start parts: complete, stacked, empty, floating runs.
@@ -143,7 +145,8 @@ def evaluate_assembly_command(
         starts_per_category=starts, split=split,
         strategies=tuple(x.strip() for x in strategies.split(",") if x.strip()),
         temperature=temperature, max_parts=max_parts, contact=contact, contact_tolerance=contact_tolerance,
-        progress=progress, command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]))
+        pictures=pictures, progress=progress,
+        command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]))
     try:
         run_assembly_evaluation(settings)
     except (ValueError, FileNotFoundError) as exc:
