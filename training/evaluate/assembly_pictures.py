@@ -61,7 +61,7 @@ def draw_runs(catalog: Catalog, runs: Sequence[dict[str, Any]], path: Path, titl
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    fig = plt.figure(figsize=(size * max(len(runs), 1), size + 0.5), dpi=80)
+    fig = plt.figure(figsize=(size * max(len(runs), 1), size + 0.5), dpi=110)
     fig.suptitle(title, fontsize=11)
     for k, run in enumerate(runs):
         ax = fig.add_subplot(1, max(len(runs), 1), k + 1, projection="3d")
