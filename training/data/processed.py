@@ -34,6 +34,7 @@ import io
 import json
 import os
 import zipfile
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,11 +48,13 @@ ARRAY_NAMES = (
 _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
 
-def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray], lzma: Collection[str] = ()) -> None:
     """Write arrays like ``np.savez_compressed`` but byte-identical for identical input.
 
     ``np.savez`` stamps the current time into the zip entries; re-running a seeded pipeline must
-    reproduce its files exactly, so entries get a fixed timestamp and a sorted order.
+    reproduce its files exactly, so entries get a fixed timestamp and a sorted order. Arrays named
+    in ``lzma`` are compressed with LZMA instead of deflate (``np.load`` reads either: zipfile
+    decompresses both), for arrays where it pays for its slower decompression.
     """
     tmp = Path(str(path) + ".tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -59,7 +62,7 @@ def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> None:
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
             info = zipfile.ZipInfo(name + ".npy", date_time=_FIXED_ZIP_TIME)
-            info.compress_type = zipfile.ZIP_DEFLATED
+            info.compress_type = zipfile.ZIP_LZMA if name in lzma else zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
             zf.writestr(info, buf.getvalue())
     os.replace(tmp, path)
