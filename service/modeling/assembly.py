@@ -77,7 +77,7 @@ from service.geometry.frames import Frame
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
-from service.suggest.mixture import mixture_log_likelihood
+from service.suggest.mixture import mixture_log_likelihood, sigma_distances
 from service.suggest.preferences import Preferences
 from service.suggest.snapshot import CatalogSnapshot
 
@@ -317,9 +317,8 @@ class Assembler:
         if len(heavy) == 0:
             return np.zeros(n, np.int64), np.full(n, np.inf)
         rows = np.array([sug.part_index for sug in result.suggestions], dtype=np.int64)
-        y = self.catalog.embeddings[rows].astype(np.float64)                    # (C, D)
-        z = (y[:, None, :] - result.mode_means[heavy][None]) / result.mode_sigmas[heavy][None]  # (C, H, D)
-        d = np.sqrt(np.mean(z * z, axis=2))                                            # (C, H)
+        d = sigma_distances(self.catalog.embeddings[rows], result.mode_means[heavy],
+                            result.mode_sigmas[heavy])                                  # (C, H)
         best = np.argmin(d, axis=1)
         return heavy[best], d[np.arange(n), best]
 
@@ -351,8 +350,7 @@ class Assembler:
             return False
         rows = np.array([-1 if p.row is None else p.row for p in state.parts])
         emb = self.catalog.embeddings
-        z = (emb[rows].astype(np.float64) - emb[cand.row]) / sigma
-        z = np.where(rows >= 0, np.sqrt(np.mean(z * z, axis=1)), np.inf)
+        z = np.where(rows >= 0, sigma_distances(emb[rows], emb[cand.row][None], sigma[None])[:, 0], np.inf)
         overlap = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_overlap_iou
         # A part g sees as (nearly) the same one counts in a wider region: centres closer than
         # half the smaller part's size (two copies of a thin stretcher a little apart have boxes
@@ -621,16 +619,16 @@ class Assembler:
         # likely ones), can beat it, so the rounds that would find only parts doing placed
         # parts' jobs are skipped.
         can_end = len(state.parts) >= least and self._fills_frame(state)
-        margin = self.settings.assemble_complete_margin
-        placed = self._best_placed(result, weights, state) + margin if can_end else np.inf
+        best = self._best_placed(result, weights, state) if can_end else np.inf
+        placed = best + self.settings.assemble_complete_margin
         if can_end and likely[0].suggestion.score < placed:
-            return self._open_mode_picks(result, weights, state, fresh, placed - margin)
+            return self._open_mode_picks(result, weights, state, fresh, best)
         picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
                              options.temperature, rng)
         if not picks:
             return [], "duplicates"
         if can_end and max(c.suggestion.score for c in picks) < placed:
-            return self._open_mode_picks(result, weights, state, fresh, placed - margin)
+            return self._open_mode_picks(result, weights, state, fresh, best)
         return picks, ""
 
     def _open_mode_picks(self, result: SuggestResult, weights: np.ndarray, state: _State,
@@ -774,8 +772,7 @@ def open_modes(placed: np.ndarray, weights: np.ndarray, means: np.ndarray, sigma
         return []
     if len(placed) == 0:
         return heavy
-    z = (np.asarray(placed, np.float64)[:, None, :] - means[heavy][None]) / sigmas[heavy][None]  # (P, H, D)
-    nearest = np.sqrt(np.mean(z * z, axis=2)).min(axis=0)                                      # (H,)
+    nearest = sigma_distances(placed, means[heavy], sigmas[heavy]).min(axis=0)             # (H,)
     return [m for m, d in zip(heavy, nearest, strict=True) if d > distance]
 
 

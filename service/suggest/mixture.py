@@ -61,3 +61,15 @@ def mixture_log_likelihood(y: np.ndarray, weights: np.ndarray, means: np.ndarray
     """
     comp = component_log_densities(y, weights, means, sigmas)
     return logsumexp_rows(comp), comp.argmax(axis=1)
+
+
+def sigma_distances(y: np.ndarray, means: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """Root-mean-square distance of each embedding to each mode's mean, in that mode's standard
+    deviations (1 = a typical draw from the mode; the unit of the assembly's and the service's
+    "within so many sigmas" rules).
+
+    Shapes:
+        y (C, D), means (K, D), sigmas (K, D) -> (C, K) float64.
+    """
+    z = (np.asarray(y, np.float64)[:, None, :] - means[None]) / sigmas[None]   # (C, K, D)
+    return np.sqrt(np.mean(z * z, axis=2))

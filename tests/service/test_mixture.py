@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import multivariate_normal
 
-from service.suggest.mixture import component_log_densities, logsumexp_rows, mixture_log_likelihood
+from service.suggest.mixture import (
+    component_log_densities,
+    logsumexp_rows,
+    mixture_log_likelihood,
+    sigma_distances,
+)
 
 
 def _mixture(rng: np.random.Generator, K: int, D: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,3 +62,14 @@ def test_switched_off_modes_stay_finite() -> None:
 def test_logsumexp_rows() -> None:
     a = np.array([[0.0, 0.0], [-1000.0, -1000.0], [5.0, -np.inf]])
     np.testing.assert_allclose(logsumexp_rows(a), [np.log(2), -1000 + np.log(2), 5.0])
+
+
+def test_sigma_distances_count_standard_deviations_of_each_mode() -> None:
+    means = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    sigmas = np.array([[0.1, 0.1, 0.1], [0.5, 1.0, 2.0]])
+    y = np.array([[0.1, -0.1, 0.1], [1.5, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    d = sigma_distances(y, means, sigmas)
+    assert d.shape == (3, 2)
+    assert d[0, 0] == pytest.approx(1.0) and d[1, 1] == pytest.approx(1.0)   # one sigma on every axis
+    assert d[2, 0] == 0.0
+    assert d[2, 1] == pytest.approx(np.sqrt((4 + 1 + 0.25) / 3))

@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 
 from service.artifacts.catalog import Catalog
+from service.geometry.frames import Frame
+from service.modeling.export_mesh import ExportItem, placed_meshes
 
 # Distinct, print-safe colours; the start part is always the first.
 COLOURS = ("#3b6ea5", "#e07b39", "#4c9a4c", "#c94c4c", "#8e6bb8", "#8c6d4f", "#d47fb6", "#7f7f7f",
@@ -26,19 +28,16 @@ _LIGHT = np.array([0.4, -0.5, 0.75]) / np.linalg.norm([0.4, -0.5, 0.75])
 
 
 def run_meshes(catalog: Catalog, run: dict[str, Any]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One run's placed meshes (start part first), in the canonical frame.
+    """One run's placed meshes (start part first), in the canonical frame, as ``/export`` places
+    them (``service.modeling.export_mesh.placed_meshes``).
 
     Shapes:
         returns [(V, 3) float64 vertices, (F, 3) int64 faces] per part.
     """
-    rows = [catalog.lookup(run["start"]), *(catalog.lookup(p) for p in run["parts"])]
-    trans = [run["start_translation"], *run["translations"]]
-    scales = [[1.0, 1.0, 1.0], *run["scales"]]
-    out = []
-    for row, t, s in zip(rows, trans, scales, strict=True):
-        v, f = catalog.mesh(row)
-        out.append((v.astype(np.float64) * np.asarray(s) + np.asarray(t), f.astype(np.int64)))
-    return out
+    items = [ExportItem(run["start"], tuple(run["start_translation"])),
+             *(ExportItem(p, tuple(t), tuple(s))
+               for p, t, s in zip(run["parts"], run["translations"], run["scales"], strict=True))]
+    return [(np.asarray(m.vertices), np.asarray(m.faces)) for _, m in placed_meshes(catalog, items, Frame())]
 
 
 def verdict(run: dict[str, Any]) -> str:
