@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.settings import Settings
 from training.data.processed import ProcessedDataset
 
 
@@ -94,8 +95,10 @@ def component_descriptors(ds: ProcessedDataset) -> np.ndarray:
 # Boxes thinner than this (unit radius) along an axis give no scale along it: a flat part's
 # thickness is noise in its samples, not a size h should learn to match.
 MIN_FIT_EXTENT = 0.02
-# The largest per-axis rescale h learns to ask for (a factor of 2 either way, the service's clip).
-MAX_FIT_LOG_SCALE = float(np.log(2.0))
+# The largest per-axis rescale h learns to ask for: the service's clip (its settings' defaults,
+# a factor of 2 either way).
+MAX_FIT_LOG_SCALE = float(min(np.log(Settings.model_fields["scale_max"].default),
+                              -np.log(Settings.model_fields["scale_min"].default)))
 
 
 def substitute_log_scale(target: np.ndarray, part: np.ndarray) -> np.ndarray:
@@ -280,11 +283,8 @@ class TripletSampler:
         if u < self.query_negative_fraction:
             negative = query[int(rng.integers(len(query)))]
         elif u < self.query_negative_fraction + self.lookalike_negative_fraction:
-            assert self.lookalikes is not None
-            candidates = self.lookalikes[query[int(rng.integers(len(query)))]]
-            candidates = candidates[candidates >= 0]
-            negative = (int(candidates[int(rng.integers(len(candidates)))]) if len(candidates)
-                        else self._negative(qset | set(neighbours), rng))
+            lookalike = self._lookalike_of(query[int(rng.integers(len(query)))], rng)
+            negative = lookalike if lookalike is not None else self._negative(qset | set(neighbours), rng)
         else:
             negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative,
@@ -381,7 +381,11 @@ class TripletSampler:
         """
         if self.substitute_fraction <= 0 or rng.random() >= self.substitute_fraction:
             return None
+        return self._lookalike_of(positive, rng)
+
+    def _lookalike_of(self, component: int, rng: np.random.Generator) -> int | None:
+        """One of ``component``'s look-alikes, drawn uniformly; None when it has none."""
         assert self.lookalikes is not None
-        candidates = self.lookalikes[positive]
+        candidates = self.lookalikes[component]
         candidates = candidates[candidates >= 0]
         return int(candidates[int(rng.integers(len(candidates)))]) if len(candidates) else None
