@@ -58,7 +58,7 @@ from service.suggest.contact import Assembly, ContactParams, PartContacts, refin
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.fit_rank import fit_keys
-from service.suggest.mixture import mixture_log_likelihood
+from service.suggest.mixture import mixture_log_likelihood, sigma_distances
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, spread_share_order
 from service.suggest.region import Region
@@ -994,8 +994,10 @@ class SuggestionEngine:
         if len(ranked.rows) == 0:
             return []
         k = ranked.modes.astype(np.int64)
-        z = (catalog.embeddings[ranked.rows] - means[k]) / sigmas[k]
-        distance = float(np.sqrt(np.mean(np.square(z), axis=1)).min())
+        # In float64 (sigma_distances): a query in a wrong frame puts candidates so far out that
+        # the squares overflow float32.
+        distance = float(sigma_distances(catalog.embeddings[ranked.rows], means, sigmas)
+                         [np.arange(len(k)), k].min())
         limit = self.config.ood_max_mode_distance
         if distance <= limit:
             return []

@@ -19,6 +19,10 @@ from service_testkit import AssemblyQuery
 
 from service.geometry.inputs import points_to_base64
 
+# A value at a bound must not overflow on its way through the engine (a float32 square of a
+# wrong-frame query's distances did, and only warned).
+pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
+
 # Integers around every boundary that matters: signs, 32, 53, 63 and 64 bits, and beyond.
 _EDGES = [0, -1, 1, 2, 3, 2**31 - 1, 2**31, 2**53 + 1, 2**63 - 1, 2**63, 2**64 - 1, 2**64, 2**100]
 INTEGERS = st.one_of(st.sampled_from(_EDGES + [-e for e in _EDGES]),
