@@ -194,6 +194,11 @@ class TrainConfig:
     # where the positive was and fitted to its size: what the service asks of h.
     substitute_fraction: float = field(
         default=0.0, metadata=_help("Share of h's examples whose part is a look-alike of the positive."))
+    # Not in the paper: queries mixed from several shapes' parts (data.sampling.TripletSampler):
+    # /assemble and modellers build assemblies from catalog parts of many shapes, which g and h
+    # otherwise only ever see whole.
+    mixed_query_fraction: float = field(
+        default=0.0, metadata=_help("Share of queries whose components are swapped half for look-alikes."))
     # Not in the paper: what real collections bring (docs/training.md): anisotropic rescaling of
     # the whole shape, small rotations about the up axis, frames off centre and scale, point
     # noise, missing surface and density changes, in the ranges of data.sampling.Augmentation.
@@ -249,6 +254,9 @@ class TrainConfig:
         if not 0.0 <= self.substitute_fraction <= 1.0:
             raise ValueError("train config: substitute_fraction must be in [0, 1], "
                              f"got {self.substitute_fraction}")
+        if not 0.0 <= self.mixed_query_fraction <= 1.0:
+            raise ValueError("train config: mixed_query_fraction must be in [0, 1], "
+                             f"got {self.mixed_query_fraction}")
         if not 0.0 <= self.removal_query_fraction <= 1.0:
             raise ValueError("train config: removal_query_fraction must be in [0, 1], "
                              f"got {self.removal_query_fraction}")

@@ -226,7 +226,9 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
                               "removal_query_fraction": cfg.removal_query_fraction,
                               "positives": cfg.positives, "augment": cfg.augment,
                               "scale_augment": cfg.scale_augment,
-                              "substitute_fraction": cfg.substitute_fraction, "categories": ds.categories()})
+                              "substitute_fraction": cfg.substitute_fraction,
+                              "mixed_query_fraction": cfg.mixed_query_fraction,
+                              "categories": ds.categories()})
     run.start_clock()
     bar = tqdm(total=cfg.steps, initial=run.step, disable=not (show_progress and env.is_main),
                desc="train", dynamic_ncols=True)

@@ -162,6 +162,28 @@ def test_substitutes_are_look_alikes_fitted_to_the_positive_s_size(dataset: Proc
     assert not plain["Y_log_scale"].any()
 
 
+def test_mixed_queries_swap_components_for_look_alikes_at_their_place(dataset: ProcessedDataset) -> None:
+    """A mixed query keeps every component's place and box (look-alikes are centred and fitted to
+    it), but its surface comes in part from other shapes; off, X is the shape's own samples."""
+    sampler = TripletSampler(dataset, n_points=256, mixed_query_fraction=1.0, lookalike_neighbours=2)
+    plain = TripletSampler(dataset, n_points=256)
+    rng = np.random.default_rng(3)
+    swapped = 0
+    for _ in range(20):
+        query = next(_triplets(plain, 1, seed=int(rng.integers(1 << 30)))).query
+        cloud = sampler.query_points(query, 256, rng)
+        lo = np.min([dataset.points[c].min(axis=0) + dataset.translation[c] for c in query], axis=0)
+        hi = np.max([dataset.points[c].max(axis=0) + dataset.translation[c] for c in query], axis=0)
+        inside = (cloud >= lo - 0.03) & (cloud <= hi + 0.03)
+        assert inside.all()
+        own = np.concatenate([dataset.points[c].astype(np.float32) + dataset.translation[c] for c in query])
+        nearest = np.min(np.linalg.norm(cloud[:, None] - own[None], axis=2), axis=1)
+        swapped += bool(np.mean(nearest > 1e-4) > 0.1)
+        ref = plain.query_points(query, 256, np.random.default_rng(0))
+        assert np.min(np.linalg.norm(ref[:, None] - own[None], axis=2), axis=1).max() < 1e-4
+    assert swapped >= 5, "no query was mixed"
+
+
 def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset) -> None:
     with pytest.raises(ValueError, match="at most 1"):
         TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.6)

@@ -228,17 +228,25 @@ class TripletSampler:
     random connected group of components. The paper's X is always connected, so a chair without
     its seat (legs and back, which do not touch) never occurs in training; a modeller's "all but
     one part" query often looks like that.
+
+    With probability ``mixed_query_fraction`` X is a mix of shapes, as an assembly a modeller or
+    ``/assemble`` builds from catalog parts is: each of its components is, with probability 1/2,
+    swapped for one of its look-alikes from another shape of the category, centred where the
+    component was and rescaled per axis to its box (as the service's h fits a part). The
+    complements Y and the negatives stay those of the original shape: a mixed chair without its
+    back still lacks a back.
     """
 
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
                  scale_augment: float = 0.0, substitute_fraction: float = 0.0,
-                 categories: list[str] | None = None):
+                 mixed_query_fraction: float = 0.0, categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
                             ("removal_query_fraction", removal_query_fraction),
-                            ("substitute_fraction", substitute_fraction)):
+                            ("substitute_fraction", substitute_fraction),
+                            ("mixed_query_fraction", mixed_query_fraction)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         if query_negative_fraction + lookalike_negative_fraction > 1.0:
@@ -251,13 +259,15 @@ class TripletSampler:
         self.removal_query_fraction = removal_query_fraction
         self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
         self.substitute_fraction = substitute_fraction
+        self.mixed_query_fraction = mixed_query_fraction
         self.ranges = Augmentation()
         # The full collection's list, so that a subset (the train split) keeps the same indices.
         categories = categories if categories is not None else ds.categories()
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
                                           np.int64)
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
-                           if lookalike_negative_fraction > 0 or substitute_fraction > 0 else None)
+                           if max(lookalike_negative_fraction, substitute_fraction, mixed_query_fraction) > 0
+                           else None)
         self.adj = ds.adjacency()
         self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
         assert self.eligible, "no shape has two or more components"
@@ -336,7 +346,7 @@ class TripletSampler:
             t = self.sample_triplet(rng)
             augmented = self.augment > 0 and rng.random() < self.augment
             by_area = not (augmented and rng.random() < ranges.uniform_density_probability)
-            X[b] = sample_assembly(self.ds, t.query, n, rng, by_area=by_area)
+            X[b] = self.query_points(t.query, n, rng, by_area)
             Y[b] = sample_part(self.ds, t.positive, n, rng)
             Z[b] = sample_part(self.ds, t.negative, n, rng)
             T[b] = self.ds.translation[t.positive]
@@ -367,6 +377,30 @@ class TripletSampler:
         Y_h = S * np.exp(log_scale)[:, None, :]
         return {"X": X, "Y": Y, "Z": Z, "Y_translation": T, "Y_h": Y_h.astype(np.float32),
                 "Y_log_scale": fit - log_scale, "P": P, "P_mask": mask, "category": category}
+
+    def query_points(self, query: list[int], n: int, rng: np.random.Generator, by_area: bool = True
+                     ) -> np.ndarray:
+        """X's samples: the query's own components, or for a share ``mixed_query_fraction`` of the
+        queries a mix of look-alikes (see the class doc).
+
+        Shapes:
+            returns (n, 3) float32.
+        """
+        if self.mixed_query_fraction <= 0 or rng.random() >= self.mixed_query_fraction:
+            return sample_assembly(self.ds, query, n, rng, by_area=by_area)
+        ds = self.ds
+        rows = np.asarray(query, dtype=np.int64)
+        samples = ds.points[rows].astype(np.float32)                        # (r, S, 3) centred
+        areas = ds.area[rows].astype(np.float64)
+        for j, comp in enumerate(query):
+            other = self._lookalike_of(comp, rng) if rng.random() < 0.5 else None
+            if other is None:
+                continue
+            scale = np.exp(substitute_log_scale(ds.points[comp].astype(np.float32),
+                                                ds.points[other].astype(np.float32)))
+            samples[j] = ds.points[other] * scale
+            areas[j] = ds.area[other] * float(np.prod(scale)) ** (2 / 3)   # area of the rescaled part, roughly
+        return draw_area_weighted(samples, ds.translation[rows], areas, np.arange(len(rows)), n, rng, by_area)
 
     def substitute(self, positive: int, rng: np.random.Generator) -> int | None:
         """For a share ``substitute_fraction`` of the triplets, a look-alike of the positive for h.
