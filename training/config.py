@@ -196,7 +196,8 @@ class TrainConfig:
         default=0.0, metadata=_help("Share of h's examples whose part is a look-alike of the positive."))
     # Not in the paper: queries mixed from several shapes' parts (data.sampling.TripletSampler):
     # /assemble and modellers build assemblies from catalog parts of many shapes, which g and h
-    # otherwise only ever see whole.
+    # otherwise only ever see whole. Tried as a third stage at 0.5 (docs/training.md): chairs got
+    # their backs more often, rifles lost bodies and retrieval lost 0.013 mAP: off.
     mixed_query_fraction: float = field(
         default=0.0, metadata=_help("Share of queries whose components are swapped half for look-alikes."))
     # Not in the paper: what real collections bring (docs/training.md): anisotropic rescaling of
