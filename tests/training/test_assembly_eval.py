@@ -64,6 +64,23 @@ def test_measure_run_complete_stacked_and_empty() -> None:
     assert stacked["complete"] and stacked["stacked"] == [[2, 0, 0.6]] and not stacked["good"]
     empty = measure_run(index, {"seat", "back"}, 0, _result([]), settings)  # type: ignore[arg-type]
     assert empty["empty"] and not empty["complete"] and empty["missing"] == ["back"]
+    assert "complete_as_data" not in empty
+
+
+def test_measure_run_counts_an_object_the_data_has() -> None:
+    """A seat with a leg lacks the majority's back but is a stool, a label set of the data; stacked
+    parts still spoil it, and a seat alone is no shape of the data."""
+    index = _Index(["seat", "back", "leg", "seat"])
+    settings = AssemblyEvalSettings(contact=False)
+    kinds = [frozenset({"seat", "leg"}), frozenset({"seat", "back", "leg"})]
+    stool = measure_run(index, {"seat", "back", "leg"}, 0, _result([_node(0, 2, [0, -1, 0])]),  # type: ignore[arg-type]
+                        settings, kinds)
+    assert stool["complete_as_data"] and stool["good_as_data"] and not stool["complete"]
+    stacked = measure_run(index, {"seat", "leg"}, 0, _result([_node(0, 2, [0, -1, 0]),  # type: ignore[arg-type]
+                                                              _node(1, 3, [0.05, 0, 0])]), settings, kinds)
+    assert stacked["complete_as_data"] and not stacked["good_as_data"]
+    alone = measure_run(index, {"seat", "leg"}, 0, _result([]), settings, kinds)  # type: ignore[arg-type]
+    assert not alone["complete_as_data"] and not alone["good_as_data"]
 
 
 def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
