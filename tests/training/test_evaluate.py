@@ -505,7 +505,13 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
             assert 0.0 <= res["tables"][key][method]["mean"] <= 1.0, (key, method)
     assert res["tables"]["hausdorff"]["Ours"]["mean"] > 0.0
     assert res["tables"]["placement_error"]["test"]["mean"] >= 0.0
+    # Like with like: a subset of the size-fit queries (top part of the removed, one-component label).
+    fit = res["tables"]["size_fit"]
+    like, on = fit["placed-box IoU, fitting on, like with like"], fit["placed-box IoU, fitting on"]
+    assert all(like["n"][c] <= on["n"][c] for c in on["n"]) and sum(like["n"].values()) > 0
+    assert all(0.0 <= like[c] <= 1.0 for c in like["n"] if like["n"][c])
     assert "Table 1" in (tmp_path / "b.md").read_text()
+    assert "Like with like" in (tmp_path / "b.md").read_text()
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:

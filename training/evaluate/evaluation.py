@@ -321,6 +321,9 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
     refinement off) with and without the fitting scale; its placed box is compared with the
     removed part's true box (the union of its components' boxes at their catalog translations):
     box IoU, and the scale error ``mean |log(placed extents / true extents)|`` over the axes.
+    ``iou_like`` repeats the IoU with fitting on only where the two boxes are of one kind: the
+    top part has the removed label and that label is one component (a pair of engines or a set of
+    legs is one labelled part whose box spans several components, which no single part can fill).
     """
     cat = index.catalog
     tops = {r["qid"]: r["top"] for r in per_query}
@@ -333,11 +336,13 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
         true_lo = np.min(cat.translations[rows] + cat.bbox_min[rows], axis=0).astype(np.float64)
         true_hi = np.max(cat.translations[rows] + cat.bbox_max[rows], axis=0).astype(np.float64)
         rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "part_id": top[0]}
+        like = len(rows) == 1 and index.labels[cat.lookup(top[0])] == index.labels[rows[0]]
         for name, fit in (("on", True), ("off", False)):
             p = ours.engine.place(q.points, [top[0]], refine_contact=False, fit_scale=fit).placements[0]
             rec[f"iou_{name}"] = float(box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)[0])
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
             true_ext = np.maximum(true_hi - true_lo, 1e-6)
             rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
+        rec["iou_like"] = rec["iou_on"] if like else None
         out.append(rec)
     return out

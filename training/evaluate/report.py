@@ -335,7 +335,11 @@ class _Report:
         return ["## Size fitting: the top suggestion of each all-but-one query placed by the service, its "
                 "box against the removed part's (IoU higher is better; scale error mean |log extent "
                 "ratio|, lower is better)", "",
-                *method_table(self.tables["size_fit"], self.cats, None, first="Measure"), ""]
+                *method_table(self.tables["size_fit"], self.cats, None, first="Measure"), "",
+                *(["\"Like with like\": only the queries whose top part has the removed label and whose "
+                   "removed label is one component (a label of several components, such as a pair of "
+                   "engines, has a box no single part fills)."]
+                  if "placed-box IoU, fitting on, like with like" in self.tables["size_fit"] else []), ""]
 
     def placement(self) -> list[str]:
         """Table 4, train and test, before and after contact refinement."""

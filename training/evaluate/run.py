@@ -25,7 +25,8 @@ Layout of ``results.json`` (undefined values are null)::
       query's category), missing_label_coverage_top10, distinct_labels_top10, live_modes (one-part
       queries with two or more labels missing):
                  {method: {category: value, ..., "mean": mean of categories, "n": {category: count}}}
-      size_fit: {"placed-box IoU, fitting on" | ... off | "scale error, fitting on" | ... off:
+      size_fit: {"placed-box IoU, fitting on" | ... off | "scale error, fitting on" | ... off |
+                 "placed-box IoU, fitting on, like with like" (top part of the removed label, one component):
                  {category: value, ...}} (the top suggestion of each all-but-one query, placed)
       placement_error, placement_error_refined (after contact refinement):
                         {"train" | "test": {category: value, ..., "mean": ..., "n": {...}}}
@@ -370,7 +371,9 @@ class _Benchmark:
             self.tables["size_fit"] = {"placed-box IoU, fitting on": table(fits, "iou_on", self.cats),
                                        "placed-box IoU, fitting off": table(fits, "iou_off", self.cats),
                                        "scale error, fitting on": table(fits, "scale_error_on", self.cats),
-                                       "scale error, fitting off": table(fits, "scale_error_off", self.cats)}
+                                       "scale error, fitting off": table(fits, "scale_error_off", self.cats),
+                                       "placed-box IoU, fitting on, like with like": table(fits, "iou_like",
+                                                                                           self.cats)}
 
     def plausibility_tables(self) -> None:
         """The contact test of the first all-but-one and test placement queries of each category."""
