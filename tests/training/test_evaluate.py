@@ -512,6 +512,10 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(0.0 <= like[c] <= 1.0 for c in like["n"] if like["n"][c])
     assert "Table 1" in (tmp_path / "b.md").read_text()
     assert "Like with like" in (tmp_path / "b.md").read_text()
+    one = res["tables"]["hausdorff_one_component"]["Ours"]
+    assert all(one["n"][c] <= res["tables"]["hausdorff"]["Ours"]["n"][c] for c in one["n"])
+    assert sum(one["n"].values()) > 0 and one["mean"] > 0.0
+    assert "removed labels of one component" in (tmp_path / "b.md").read_text()
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:
