@@ -181,13 +181,14 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
     lo = [t + s * cat.bbox_min[r] for r, t, s in zip(rows, trans, scales, strict=True)]
     hi = [t + s * cat.bbox_max[r] for r, t, s in zip(rows, trans, scales, strict=True)]
     stacked = stacked_pairs(labels, lo, hi, settings.stack_iou)
-    complete = essentials <= {lab for lab in labels if lab is not None}
+    have = {lab for lab in labels if lab is not None}
+    complete = essentials <= have
     rec: dict[str, Any] = {
         "start": cat.part_ids[start], "start_label": labels[0],
         "parts": [cat.part_ids[r] for r in rows[1:]], "labels": labels[1:],
         "stop_reason": result.stop_reason, "complete": complete, "stacked": stacked,
         "good": complete and not stacked, "empty": not result.steps,
-        "missing": sorted(essentials - set(labels) - {None}),
+        "missing": sorted(essentials - have),
         "seconds": round(result.timings.get("total", 0.0), 4),
         # Where each part went (canonical frame; the start at its own place): enough to draw it.
         "start_translation": np.round(np.asarray(trans[0], dtype=np.float64), 5).tolist(),
@@ -195,7 +196,6 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
         "scales": [np.round(s, 5).tolist() for s in scales[1:]],
     }
     if label_sets is not None:
-        have = {lab for lab in labels if lab is not None}
         rec["complete_as_data"] = any(kind <= have for kind in label_sets)
         rec["good_as_data"] = rec["complete_as_data"] and not stacked
     if settings.contact and result.steps:

@@ -331,9 +331,7 @@ class _Benchmark:
                     setting: evaluate_retrieval(m, qs, self.index, s.retrieval, s.progress)
                     for setting, qs in self.queries.items()}
         recall = [f"recall@{k}" for k in s.retrieval.recall_ks]
-        for key in ("functional_map", "hausdorff", "hausdorff_one_component", "style_map_all_but_one",
-                    "style_map_single",
-                    "median_percentile_rank", *recall, "in_category_top5"):
+        for key in (*(k for k, _, _ in _RETRIEVAL_METRICS), "style_map_single", *recall):
             self.tables[key] = {}
         for name in self.methods:
             abo, single = self.per_query[name]["all_but_one"], self.per_query[name]["single"]
