@@ -310,8 +310,7 @@ class Settings(BaseSettings):
         "magazines and bodies, boat cabins lie half on other parts; chair parts do not). 0: "
         "`assemble_cover_share` everywhere."))
     assemble_cover_shapes: int = Field(default=300, ge=1, description=(
-        "Shapes of a category the assembly's data statistics read at most (a seeded draw): the "
-        "cover rule's `assemble_cover_quantile` and the kinds of `assemble_kind_share`. The "
+        "Shapes of a category `assemble_cover_quantile` measures at most (a seeded draw): the "
         "shipped catalog has at most 144 training shapes per category, about 0.3 s on the first "
         "`/assemble` of a category per catalog version; a catalog grown by writes costs no more."))
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
@@ -359,25 +358,6 @@ class Settings(BaseSettings):
         "A placed part explains a mode of g's mixture (see `assemble_open_mode_weight`) when its "
         "embedding lies within this root-mean-square distance of the mode's mean, in the mode's "
         "standard deviations."))
-    assemble_kind_share: float = Field(default=0.5, gt=0, le=1, description=(
-        "Before `/assemble` calls an assembly complete (and no unmet mode of g has a candidate, "
-        "see `assemble_open_mode_weight`), a *kind* of part that at least this share of the data "
-        "shapes nearest the assembly hold and no placed part has gets its most likely eligible "
-        "part: a seat with legs whose nearest chairs have backs gets a back even when g's "
-        "mixture is content without (service.modeling.kinds; kinds are groups of the "
-        "category's parts linked within `assemble_kind_distance` in the embedding, the nearest "
-        "shapes the training shapes that hold the kinds of most placed parts; labels are never "
-        "read). Chosen with `assemble_kind_distance` on 360 training starts (`evaluate-assembly "
-        "--split train --starts 40 --no-contact`): 82.5% good runs off, 84.7% at 0.4 and 0.5 "
-        "(chairs 70% -> 90%), stacked 1.7% either way (docs/modeling.md)."))
-    assemble_kind_distance: float = Field(default=0.3, gt=0, description=(
-        "Two parts of a category are of one kind (see `assemble_kind_share`) when a chain of "
-        "parts links them whose embeddings lie within this distance of the next (f's "
-        "embedding; nearest parts of one label lie about 0.03-0.06 apart, of two labels 0.3 "
-        "and more in most categories)."))
-    assemble_kind_candidates: int = Field(default=16, ge=0, le=100, description=(
-        "Parts of a wanted kind (see `assemble_kind_share`) `/assemble` asks the engine for, "
-        "most likely first, and tests against the placed parts. 0: the kind rule is off."))
     assemble_complete_quantiles: tuple[float, float] = Field(default=(0.5, 0.9), description=(
         "Quantiles of the part count of the catalog's shapes of the assembly's category: "
         "`/assemble` calls an assembly with fewer parts than the first never complete on g's word "

@@ -41,11 +41,6 @@ every step or, for a tree of possibilities, several choices per step. Each step 
    complement is one the assembly has: a chair with a seat, a back and legs asks for one more
    seat or back), unless a mode of weight at least ``assemble_open_mode_weight`` has no placed
    part near its mean (``open_modes``) and an eligible candidate: then that candidate is added;
-   else, unless a *kind* of part that at least ``assemble_kind_share`` of the data shapes nearest
-   the assembly hold is missing (``service.modeling.kinds``: groups of the category's parts linked
-   in the embedding, read from the catalog's training shapes, never from labels) and the engine
-   offers an eligible part of it: then that part is added (g can be content with a seat and legs
-   when most chairs like it have a back);
 5. picks: ``greedy`` takes the most likely eligible part; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely eligible part (seeded);
@@ -70,7 +65,7 @@ import weakref
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, TypeVar, cast
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -79,7 +74,6 @@ from service.artifacts.catalog import Catalog, split_shapes
 from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
-from service.modeling.kinds import KindTable, kind_table, wanted_kinds
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
@@ -253,7 +247,6 @@ class Assembler:
         self.settings = settings
         self._part_counts: tuple[float, float] = (0.0, np.inf)   # set per assembly (its category)
         self._cover_share = settings.assemble_cover_share          # likewise
-        self._kinds: KindTable | None = None                       # likewise (None: no category)
 
     # ---------------------------------------------------------------- the parts of a state
     def _start_parts(self, start: Start) -> list[_Placed]:
@@ -524,7 +517,6 @@ class Assembler:
         only = options.categories[0] if len(options.categories) == 1 else None
         self._part_counts = self.part_counts(category or only)
         self._cover_share = self.cover_share(category or only)
-        self._kinds = self.kind_table(category or only)
         base = self._start_parts(start)
         nodes: list[Node] = []
         states: dict[int | None, _State] = {None: _State(base, frozenset(
@@ -599,15 +591,10 @@ class Assembler:
             timings["choose"] += time.perf_counter() - t
             if picks:
                 return picks, ""
-            if why == "complete":
-                t = time.perf_counter()
-                picks = self._kind_pick(query, suggest, options, result, state)
-                timings["suggest"] += time.perf_counter() - t
-                return picks, "" if picks else why
             if why != "duplicates":
                 # After a round of duplicates, running out of (likely) candidates still means
                 # that every likely one did a placed part's job.
-                return [], why if round_ == 0 else "duplicates"
+                return [], why if round_ == 0 or why == "complete" else "duplicates"
             tested += [sug.part_id for sug in result.suggestions]
         return [], "duplicates"
 
@@ -669,47 +656,6 @@ class Assembler:
                 return [pick], ""
         return [], "complete"
 
-    def _kind_pick(self, query: np.ndarray, suggest: SuggestOptions, options: AssembleOptions,
-                   result: SuggestResult, state: _State) -> list[_Candidate]:
-        """At a step that would end ``complete``: the most likely eligible part of the kind most
-        shared by the data shapes nearest the state that no placed part has
-        (``service.modeling.kinds``, at least ``assemble_kind_share`` of them); none: [].
-
-        Why: g's mixture can be content with less than the data's shapes have (a seat and legs
-        of another chair: its back mode weighs 0.04-0.08), and a kind of part most of the
-        nearest shapes hold is what "complete" asks for. The part comes from the engine (placed
-        and fitted by h, the request's filters kept) and passes the redundancy tests, not the
-        likelihood test: g is what missed it. Chosen on training starts (docs/modeling.md).
-        """
-        s = self.settings
-        table = self._kinds
-        if (table is None or s.assemble_kind_candidates <= 0 or len(state.rows) == 0
-                or len(state.parts) >= self._part_counts[1]):
-            return []
-        weights = options.preferences.weights(result.mode_weights)
-        ask = replace(suggest, k=min(s.assemble_kind_candidates, s.max_k))
-        for kind, _share in wanted_kinds(table, table.kind_of[state.rows], s.assemble_kind_share):
-            ids = tuple(self.catalog.part_ids[i] for i in np.flatnonzero(table.kind_of == kind))
-            found = self.engine.suggest(query, replace(ask, among_parts=ids), snapshot=self.snapshot)
-            if not found.suggestions:
-                continue
-            modes, dist = self._nearest_modes(found, weights)
-            cands = [_Candidate(sug, float(d), None, int(m))
-                     for sug, d, m in zip(found.suggestions, dist, modes, strict=True)]
-            pick = next(self._eligible(found, cands, state), None)
-            if pick is not None:
-                return [pick]
-        return []
-
-    def kind_table(self, category: str | None) -> KindTable | None:
-        """The kinds of ``category``'s parts (``service.modeling.kinds``; None: no category),
-        made once per snapshot and category from the catalog's training shapes."""
-        if category is None or self.settings.assemble_kind_candidates <= 0:
-            return None
-        s = self.settings
-        return _per_snapshot(self.snapshot, ("kinds", category), lambda: kind_table(
-            self.catalog, category, s.assemble_kind_distance, s.assemble_cover_shapes, s.seed))
-
     def part_counts(self, category: str | None) -> tuple[float, float]:
         """How many parts the catalog's shapes of ``category`` have (all shapes without one): the
         ``assemble_complete_quantiles`` of the count per shape, the data's own statistics."""
@@ -729,12 +675,15 @@ class Assembler:
         s = self.settings
         if s.assemble_cover_quantile <= 0 or s.assemble_cover_share >= 1:
             return s.assemble_cover_share
-        def measure() -> float:
+        with _COVER_LOCK:
+            share = _COVER_SHARES.setdefault(self.snapshot, {}).get(category)
+        if share is None:  # measured outside the lock: two first requests may both measure it
             shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance,
                                       s.assemble_cover_shapes, s.seed)
-            return float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
-
-        return max(s.assemble_cover_share, _per_snapshot(self.snapshot, ("cover", category), measure))
+            share = float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
+            with _COVER_LOCK:
+                _COVER_SHARES.setdefault(self.snapshot, {})[category] = share
+        return max(s.assemble_cover_share, share)
 
     def _fills_frame(self, state: _State) -> bool:
         """Whether the state spans the complete object's frame: a complete object's box is centred
@@ -803,26 +752,10 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
     return np.asarray(out, dtype=np.float64)
 
 
-# What each catalog snapshot's data says per category (``Assembler.cover_share``,
-# ``Assembler.kind_table``), made on first use and dropped with the snapshot.
-_PER_SNAPSHOT: weakref.WeakKeyDictionary[CatalogSnapshot, dict[tuple[str, str | None], Any]] = (
+# The cover share of each catalog snapshot and category, made on first use (``Assembler.cover_share``).
+_COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float]] = (
     weakref.WeakKeyDictionary())
-_PER_SNAPSHOT_LOCK = threading.Lock()
-
-T = TypeVar("T")
-
-
-def _per_snapshot(snapshot: CatalogSnapshot, key: tuple[str, str | None], make: Callable[[], T]) -> T:
-    """``make()``'s value for ``snapshot`` and ``key``, made once (outside the lock: two first
-    requests may both make it, and either value is kept)."""
-    with _PER_SNAPSHOT_LOCK:
-        known = _PER_SNAPSHOT.setdefault(snapshot, {})
-        if key in known:
-            return cast(T, known[key])
-    value = make()
-    with _PER_SNAPSHOT_LOCK:
-        _PER_SNAPSHOT.setdefault(snapshot, {})[key] = value
-    return value
+_COVER_LOCK = threading.Lock()
 
 
 def open_modes(placed: np.ndarray, weights: np.ndarray, means: np.ndarray, sigmas: np.ndarray,

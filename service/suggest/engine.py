@@ -105,8 +105,6 @@ class SuggestOptions:
     region: Region | None = None             # only parts placed in this spot (caller's frame)
     mixture_only: bool = False               # g's answer alone, no suggestions (frame fitting's
                                              # scoring queries; not offered by the API)
-    among_parts: tuple[str, ...] = ()        # only these parts, with the filters above (empty: all;
-                                             # the assembly's wanted kinds; not offered by the API)
 
 
 @dataclass
@@ -425,13 +423,8 @@ class SuggestionEngine:
         if options.styles:
             keep = snap.style_mask(options.styles)
             allowed = keep if allowed is None else allowed & keep
-        if options.among_parts:
-            keep = np.zeros(len(cat), bool)
-            keep[[cat.lookup(p) for p in options.among_parts]] = True
-            allowed = keep if allowed is None else allowed & keep
         key = (tuple(sorted(options.categories)), tuple(sorted(options.exclude_parts)),
-               tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)),
-               tuple(sorted(options.among_parts)))
+               tuple(sorted(options.exclude_shapes)), tuple(sorted(options.styles)))
         full = self.canonical(points, options.frame)
         region = options.region.in_frame(options.frame) if options.region is not None else None
         return Query(item, self.resample(full), full, len(points), options, k, allowed, key,
