@@ -28,13 +28,16 @@ SHIPPED = Path(__file__).resolve().parents[2] / "exported"
 
 
 class _Index:
-    """The parts of ShapeIndex that measure_run reads: a catalog of unit boxes and their labels."""
+    """The parts of ShapeIndex that measure_run reads: a catalog of unit boxes and their labels,
+    the first ``own`` parts (the start's) forming one shape, the rest another."""
 
-    def __init__(self, labels: list[str]) -> None:
+    def __init__(self, labels: list[str], own: int = 1) -> None:
         n = len(labels)
+        shapes = [{"shape_id": "start" if i < own else "other"} for i in range(n)]
         self.catalog = SimpleNamespace(part_ids=[f"s/{i}" for i in range(n)], bbox_min=np.full((n, 3), -0.1),
-                                       bbox_max=np.full((n, 3), 0.1))
+                                       bbox_max=np.full((n, 3), 0.1), records=shapes)
         self.labels = np.array(labels, dtype=object)
+        self.rows = {"start": np.arange(own), "other": np.arange(own, n)}
 
 
 def _node(i: int, row: int, at: list[float]) -> Node:
@@ -83,6 +86,27 @@ def test_measure_run_counts_an_object_the_data_has() -> None:
     assert not alone["complete_as_data"] and not alone["good_as_data"]
 
 
+def test_measure_run_knows_whether_the_start_came_from_a_complete_shape() -> None:
+    """A run from a stool's seat (its shape has no back) is marked so; the summary's "from a
+    complete shape's part" counts only the runs from complete shapes."""
+    settings = AssemblyEvalSettings(contact=False)
+    essentials = {"seat", "back", "leg"}
+    chain = _result([_node(0, 3, [0, 1, 0]), _node(1, 4, [0, -1, 0])])
+    chair = measure_run(_Index(["seat", "back", "leg", "back", "leg"], own=3), essentials, 0, chain,  # type: ignore[arg-type]
+                        settings)
+    stool = measure_run(_Index(["seat", "leg", "seat", "back", "leg"], own=2), essentials, 0, chain,  # type: ignore[arg-type]
+                        settings)
+    assert chair["start_shape_complete"] and not stool["start_shape_complete"]
+    assert chair["good"] and stool["good"]
+    runs = [{**chair, "category": "chair"}, {**stool, "category": "chair", "good": False},
+            {**stool, "category": "chair"}]
+    summary = summarize(runs, [], ["chair"])["chair"]
+    assert summary["complete_starts"] == 1 and summary["good_from_complete"] == 1.0
+    assert summary["good"] == pytest.approx(2 / 3)
+    lone = summarize([{**stool, "category": "chair"}], [], ["chair"])["chair"]
+    assert lone["complete_starts"] == 0 and lone["good_from_complete"] is None
+
+
 def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
     """A shape whose two wheel parts (tyres, hubs) share one box is stacked, as a run would be;
     parts of one label apart, or of two labels in one box, are not."""
@@ -120,6 +144,7 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
         start, end = report_markers(tag)
         assert text.count(start) == 1 and text.count(end) == 1
     assert "before" in text and text.count("| chair | 2 | 50% |") == 2
+    assert "From a complete shape's part" in text and "| 50% | n/a | n/a (0) |" in text
     assert "Data: stacked" in text and "| 100% | 50% | complete 1, unlikely 1 |" in text
 
 

@@ -13,6 +13,10 @@ excluded so the run cannot rebuild its source) and measures each run:
   ``stack_iou`` (a second seat over the seat, a hub in a tyre);
 * *good*: complete and nothing stacked;
 * *empty*: the run added no part;
+* *from a complete shape's part*: whether the start's own shape holds every label *complete* asks
+  for (a bar stool's seat sits at the top of the frame, where no back fits: a run from it can
+  only be complete as a stool); "good" is also reported over these starts alone, beside the
+  acceptance's figure over all starts;
 * every placed part's contact with the parts placed before it, measured exactly
   (``training.evaluate.contact``: mesh distances and winding numbers, tolerance
   ``contact_tolerance``): *floating* (gap above it) and *interpenetrating* (depth above it).
@@ -183,11 +187,13 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
     stacked = stacked_pairs(labels, lo, hi, settings.stack_iou)
     have = {lab for lab in labels if lab is not None}
     complete = essentials <= have
+    own = {index.labels[r] for r in index.rows[str(cat.records[start]["shape_id"])]}
     rec: dict[str, Any] = {
         "start": cat.part_ids[start], "start_label": labels[0],
         "parts": [cat.part_ids[r] for r in rows[1:]], "labels": labels[1:],
         "stop_reason": result.stop_reason, "complete": complete, "stacked": stacked,
         "good": complete and not stacked, "empty": not result.steps,
+        "start_shape_complete": essentials <= own,
         "missing": sorted(essentials - have),
         "seconds": round(result.timings.get("total", 0.0), 4),
         # Where each part went (canonical frame; the start at its own place): enough to draw it.
@@ -243,9 +249,13 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             continue
         placed = [(f, i) for r in rs for f, i in zip(r.get("floating", []), r.get("interpenetrating", []),
                                                          strict=True)]
+        whole = [r for r in rs if r.get("start_shape_complete")]
         out[c] = {
             "runs": len(rs),
             "good": float(np.mean([r["good"] for r in rs])),
+            # Over the starts whose own shape is complete (a stool's part can only make a stool).
+            "good_from_complete": float(np.mean([r["good"] for r in whole])) if whole else None,
+            "complete_starts": len(whole),
             "complete": float(np.mean([r["complete"] for r in rs])),
             "good_as_data": _share(rs, "good_as_data"),
             "stacked": float(np.mean([bool(r["stacked"]) for r in rs])),
@@ -334,16 +344,21 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
                  f"{c} {', '.join(v)}" for c, v in results["essential_labels"].items()),
              "- Some shape's labels = every label of at least one shape of the category (a stool, "
              "a shotgun); measured beside the acceptance's Complete, not instead of it",
+             "- From a complete shape's part = Complete, nothing stacked, over the starts whose own "
+             "shape is complete (their count in brackets); also beside the acceptance's figure",
              ""]
     for strategy, summary in results["summary"].items():
         lines += [f"**{strategy}**", "",
                   "| Category | Runs | Complete, nothing stacked | Some shape's labels, nothing stacked "
-                  "| Complete | Stacked | Empty | Parts added "
+                  "| From a complete shape's part | Complete | Stacked | Empty | Parts added "
                   "| Floating | Interpenetrating | Data: interpenetrating | Data: stacked | Stop reasons |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for c, row in summary.items():
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(row["stop_reasons"].items()))
+            whole = (f"{_pct(row.get('good_from_complete'))} ({row['complete_starts']})"
+                     if "complete_starts" in row else "n/a")
             lines.append(f"| {c} | {row['runs']} | {_pct(row['good'])} | {_pct(row.get('good_as_data'))} | "
+                         f"{whole} | "
                          f"{_pct(row['complete'])} | "
                          f"{_pct(row['stacked'])} | {_pct(row['empty'])} | {row['parts']:.1f} | "
                          f"{_pct(row['floating'])} | {_pct(row['interpenetrating'])} | "
