@@ -18,6 +18,7 @@ from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
     data_stacked,
     measure_run,
+    misplaced,
     report_markers,
     start_parts,
     summarize,
@@ -107,6 +108,26 @@ def test_measure_run_knows_whether_the_start_came_from_a_complete_shape() -> Non
     assert lone["complete_starts"] == 0 and lone["good_from_complete"] is None
 
 
+def test_a_part_far_from_every_training_part_of_its_label_is_misplaced() -> None:
+    """A back where the data's backs sit is in place; a back under the seat, or a part of a label
+    the category's training shapes never have, is misplaced."""
+    places = {"back": np.array([[0.0, 0.5, -0.3], [0.0, 0.4, -0.35]]), "leg": np.array([[0.3, -0.5, 0.3]])}
+    assert not misplaced(places, "back", np.array([0.0, 0.55, -0.25]), 0.15)
+    assert misplaced(places, "back", np.array([0.0, 0.0, 0.0]), 0.15)
+    assert misplaced(places, "wing", np.array([0.0, 0.5, -0.3]), 0.15)
+    assert misplaced(places, None, np.array([0.0, 0.5, -0.3]), 0.15)
+    index = _Index(["seat", "back", "leg"])
+    chain = _result([_node(0, 1, [0.0, 0.5, -0.3]), _node(1, 2, [0.0, 0.9, 0.0])])
+    rec = measure_run(index, {"seat", "back"}, 0, chain, AssemblyEvalSettings(contact=False),  # type: ignore[arg-type]
+                      places=places)
+    assert rec["misplaced"] == [False, True]
+    runs = [{**rec, "category": "chair"}]
+    data = [{"category": "chair", "stacked": False, "misplaced": False}]
+    assert summarize(runs, data, ["chair"])["chair"]["misplaced"] == 0.5
+    assert summarize(runs, data, ["chair"])["chair"]["data_misplaced"] == 0.0
+    assert "misplaced" not in measure_run(index, {"seat"}, 0, chain, AssemblyEvalSettings(contact=False))  # type: ignore[arg-type]
+
+
 def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
     """A shape whose two wheel parts (tyres, hubs) share one box is stacked, as a run would be;
     parts of one label apart, or of two labels in one box, are not."""
@@ -145,7 +166,7 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
         assert text.count(start) == 1 and text.count(end) == 1
     assert "before" in text and text.count("| chair | 2 | 50% |") == 2
     assert "From a complete shape's part" in text and "| 50% | n/a | n/a (0) |" in text
-    assert "Data: stacked" in text and "| 100% | 50% | complete 1, unlikely 1 |" in text
+    assert "Data: stacked" in text and "| n/a | 100% | 50% | n/a | complete 1, unlikely 1 |" in text
 
 
 class _Shapes:
@@ -203,7 +224,9 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
     assert all(len(r["parts"]) <= 3 for r in runs)
     assert all(r["start"].split("/")[0] not in {p.split("/")[0] for p in r["parts"]} for r in runs)
     placed = [r for r in runs if r["parts"]]
-    assert all(len(r["gap"]) == len(r["parts"]) for r in placed)
+    assert all(len(r["gap"]) == len(r["parts"]) == len(r["misplaced"]) for r in placed)
+    # The held-out shapes' own parts lie where the training shapes have their labels.
+    assert res["summary"]["greedy"]["all"]["data_misplaced"] == 0.0
     assert 0.0 <= res["summary"]["greedy"]["all"]["good"] <= 1.0
     assert report_markers("exported")[0] in report.read_text()
     # Seeded: the same command draws the same starts.
