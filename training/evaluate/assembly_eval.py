@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from service.artifacts.catalog import Catalog
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_artifacts
 from service.geometry.boxes import box_iou
@@ -145,7 +146,7 @@ def label_places(index: ShapeIndex) -> dict[str, dict[str, np.ndarray]]:
     return {c: {lab: np.array(v) for lab, v in by.items()} for c, by in out.items()}
 
 
-def _own_centre(cat: Any, row: int) -> np.ndarray:
+def _own_centre(cat: Catalog, row: int) -> np.ndarray:
     """A catalog part's box centre at its place in its own shape (canonical frame)."""
     return cat.translations[row].astype(np.float64) + (cat.bbox_min[row] + cat.bbox_max[row]) / 2
 
@@ -279,10 +280,10 @@ def data_contact(index: ShapeIndex, start: int, seed: int, settings: AssemblyEva
     """``data_component`` at its true place against the rest of its shape."""
     cat = index.catalog
     rows = index.rows[str(cat.records[start]["shape_id"])].tolist()
-    r = data_component(index, start, seed)
-    if r is None:
+    part = data_component(index, start, seed)
+    if part is None:
         return {}
-    j = rows.index(r)
+    j = rows.index(part)
     meshes = [_placed_mesh(index, r, cat.translations[r], np.ones(3), settings.contact_samples) for r in rows]
     c = contact(meshes[j], meshes[:j] + meshes[j + 1:])
     tol = settings.contact_tolerance
