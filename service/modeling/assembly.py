@@ -40,7 +40,8 @@ every step or, for a tree of possibilities, several choices per step. Each step 
    mixture than a part already placed, by ``assemble_complete_margin`` (g's most wanted
    complement is one the assembly has: a chair with a seat, a back and legs asks for one more
    seat or back), unless a mode of weight at least ``assemble_open_mode_weight`` has no placed
-   part near its mean (``open_modes``) and an eligible candidate: then that candidate is added;
+   part near its mean (``open_modes``) and an eligible candidate: then that candidate is added
+   (in a tree, one per unmet mode, up to the branching);
 5. picks: ``greedy`` takes the most likely eligible part; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely eligible part (seeded);
@@ -221,6 +222,7 @@ class _Candidate:
     distance: float                          # to its nearest heavy mode's mean, RMS standard deviations
     placed: _Placed | None                   # where h puts it (made when the candidate is tested)
     near_mode: int                           # that nearest heavy mode
+    redundant: bool | None = None            # the step's verdict once tested (None: not yet)
 
 
 def estimate_area(points: np.ndarray) -> float:
@@ -410,14 +412,17 @@ class Assembler:
 
     def _eligible(self, result: SuggestResult, likely: list[_Candidate], state: _State
                   ) -> Iterator[_Candidate]:
-        """The likely candidates that do no placed part's job, best first, tested lazily."""
+        """The likely candidates that do no placed part's job, best first, tested lazily (each
+        once per step: a step that ends in the open-mode rule walks candidates ``_choose`` tested)."""
         assert result.mode_sigmas is not None
         sigmas = result.mode_sigmas.astype(np.float64)
         for c in likely:
-            sug = c.suggestion
-            c.placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64),
-                                          sug.scale)
-            if not self._redundant(c.placed, state, sigmas[c.near_mode]):
+            if c.redundant is None:
+                sug = c.suggestion
+                c.placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64),
+                                              sug.scale)
+                c.redundant = self._redundant(c.placed, state, sigmas[c.near_mode])
+            if not c.redundant:
                 yield c
 
     def _best_placed(self, result: SuggestResult, weights: np.ndarray, state: _State) -> float:
@@ -622,21 +627,22 @@ class Assembler:
         best = self._best_placed(result, weights, state) if can_end else np.inf
         placed = best + self.settings.assemble_complete_margin
         if can_end and likely[0].suggestion.score < placed:
-            return self._open_mode_picks(result, weights, state, fresh, best)
+            return self._open_mode_picks(result, weights, state, fresh, best, n)
         picks = self._choose(self._eligible(result, fresh, state), n, options.strategy, weights,
                              options.temperature, rng)
         if not picks:
             return [], "duplicates"
         if can_end and max(c.suggestion.score for c in picks) < placed:
-            return self._open_mode_picks(result, weights, state, fresh, best)
+            return self._open_mode_picks(result, weights, state, fresh, best, n)
         return picks, ""
 
     def _open_mode_picks(self, result: SuggestResult, weights: np.ndarray, state: _State,
-                         likely: list[_Candidate], best_placed: float) -> tuple[list[_Candidate], str]:
+                         likely: list[_Candidate], best_placed: float, n: int = 1
+                         ) -> tuple[list[_Candidate], str]:
         """At a step that would end ``complete``: the best eligible candidate of the heaviest mode
         that no placed part explains (``open_modes``) whose log-likelihood is within
-        ``assemble_open_mode_margin`` of the most likely placed part's (``best_placed``); none:
-        complete.
+        ``assemble_open_mode_margin`` of the most likely placed part's (``best_placed``), and for
+        a tree (``n`` >= 2) those of the next unmet modes, up to ``n`` that differ; none: complete.
 
         Why: "complete" compares likelihoods, and a mixture's heaviest mode can keep offering more
         of what is placed (legs after legs) while a lighter mode of another kind stays unmet
@@ -649,12 +655,16 @@ class Assembler:
         unmet = open_modes(self.catalog.embeddings[state.rows], weights, result.mode_means,
                            result.mode_sigmas, s.assemble_open_mode_weight, s.assemble_open_mode_distance)
         floor = best_placed - s.assemble_open_mode_margin
+        picks: list[_Candidate] = []
         for mode in unmet:
             pick = next(self._eligible(result, [c for c in likely if c.near_mode == mode
                                                 and c.suggestion.score >= floor], state), None)
-            if pick is not None:
-                return [pick], ""
-        return [], "complete"
+            if pick is not None and not any(
+                    _near_identical(pick, p, s.assemble_branch_min_distance) for p in picks):
+                picks.append(pick)
+                if len(picks) >= n:
+                    break
+        return (picks, "") if picks else ([], "complete")
 
     def part_counts(self, category: str | None) -> tuple[float, float]:
         """How many parts the catalog's shapes of ``category`` have (all shapes without one): the

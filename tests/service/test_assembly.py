@@ -22,6 +22,7 @@ from service.artifacts.catalog import Catalog, split_shapes
 from service.artifacts.loading import load_artifacts
 from service.errors import InputError, ServiceError
 from service.geometry.boxes import box_iou
+from service.geometry.frames import Frame
 from service.modeling.assembly import (
     STOP_REASONS,
     AssembleOptions,
@@ -29,6 +30,7 @@ from service.modeling.assembly import (
     Node,
     Start,
     Strategy,
+    _Candidate,
     _Placed,
     _State,
     estimate_area,
@@ -38,7 +40,7 @@ from service.modeling.assembly import (
 from service.settings import Settings
 from service.suggest.contact import Assembly as ContactAssembly
 from service.suggest.contact import Surface, measure_contact
-from service.suggest.engine import SuggestionEngine
+from service.suggest.engine import Suggestion, SuggestionEngine, SuggestResult
 
 # What a complete shape of each category must hold (labels of training/data/generator).
 ESSENTIAL = {
@@ -528,6 +530,48 @@ def test_open_modes_are_the_heavy_modes_no_placed_part_explains() -> None:
     assert 1 in open_modes(off_second, weights, means, sigmas, 0.1, 2.9)
     assert 1 not in open_modes(off_second, weights, means, sigmas, 0.1, 3.1)
     assert open_modes(near_first, weights, means, sigmas, 0.6, 1.0) == []
+
+
+def _own_place_candidate(catalog: Catalog, row: int, mode: int) -> _Candidate:
+    """A candidate placed where the part sits in its own shape, attributed to ``mode``."""
+    t = catalog.translations[row].astype(np.float64)
+    sug = Suggestion(rank=1, part_index=row, part_id=catalog.part_ids[row], shape_id="s", category="c",
+                     label=None, score=0.0, rank_score=0.0, mode=mode, mode_weight=0.5, duplicates=1,
+                     translation=t, bbox_min=t + catalog.bbox_min[row], bbox_max=t + catalog.bbox_max[row])
+    return _Candidate(sug, 0.0, None, mode)
+
+
+def test_open_modes_give_a_tree_one_child_each(engine: SuggestionEngine, catalog: Catalog,
+                                               settings: Settings) -> None:
+    """A state that would end complete while two heavy modes are unmet: a chain takes the
+    heaviest mode's part, a tree (n = 2) one part of each mode, candidates tested once."""
+    shape = max(split_shapes(catalog, "train").values(), key=len)
+    placed, *others = [int(r) for r in shape]
+    # Two parts of the same shape that neither lie on the placed one nor do its job.
+    asm = Assembler(engine, settings)
+    state = _State([asm._catalog_part(placed, catalog.translations[placed].astype(np.float64))], frozenset())
+    free = [r for r in others if not asm._redundant(
+        asm._catalog_part(r, catalog.translations[r].astype(np.float64)), state)][:2]
+    assert len(free) == 2
+    emb = catalog.embeddings
+    result = SuggestResult(suggestions=[], mode_weights=np.array([0.6, 0.4], np.float32), frame=Frame(),
+                           n_input_points=0, candidates=2, mode_means=emb[free].astype(np.float32),
+                           mode_sigmas=np.full((2, emb.shape[1]), 0.01, np.float32))
+    weights = result.mode_weights.astype(np.float64)
+
+    def candidates() -> list[_Candidate]:
+        return [_own_place_candidate(catalog, r, m) for m, r in enumerate(free)]
+
+    one, why = asm._open_mode_picks(result, weights, state, candidates(), 0.0)
+    assert why == "" and [c.suggestion.part_index for c in one] == [free[0]]     # the heavier mode
+    likely = candidates()
+    two, why = asm._open_mode_picks(result, weights, state, likely, 0.0, n=2)
+    assert why == "" and [c.suggestion.part_index for c in two] == free
+    assert all(c.redundant is False for c in likely)                             # tested, kept
+    # Below the margin of the most likely placed part: none, complete.
+    none, why = asm._open_mode_picks(result, weights, state, candidates(),
+                                     settings.assemble_open_mode_margin + 1.0, n=2)
+    assert none == [] and why == "complete"
 
 
 def test_an_unmet_mode_keeps_a_rifle_going(shipped_engine: SuggestionEngine,
