@@ -4,6 +4,7 @@ report block, and one small seeded run of `complementme evaluate-assembly` on th
 from __future__ import annotations
 
 import json
+from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -22,6 +23,7 @@ from training.evaluate.assembly_eval import (
     report_markers,
     start_parts,
     summarize,
+    too_many,
     write_report,
 )
 
@@ -128,6 +130,22 @@ def test_a_part_far_from_every_training_part_of_its_label_is_misplaced() -> None
     assert "misplaced" not in measure_run(index, {"seat"}, 0, chain, AssemblyEvalSettings(contact=False))  # type: ignore[arg-type]
 
 
+def test_more_parts_of_a_label_than_any_shape_has_is_too_many() -> None:
+    """Two seats where every chair has one, five legs where chairs have four at most: too many;
+    four legs, or a label the data never counted (never more than zero), are judged alike."""
+    most = Counter({"seat": 1, "leg": 4, "back": 1})
+    assert too_many(most, ["seat", "leg", "leg", "back"]) == []
+    assert too_many(most, ["seat", "seat", "leg", "leg", "leg", "leg", "leg"]) == ["leg", "seat"]
+    assert too_many(most, ["seat", "wing", None]) == ["wing"]
+    index = _Index(["seat", "seat", "leg"])
+    chain = _result([_node(0, 1, [0.0, 1.0, 0.0]), _node(1, 2, [0.0, -1.0, 0.0])])
+    rec = measure_run(index, {"seat", "leg"}, 0, chain, AssemblyEvalSettings(contact=False),  # type: ignore[arg-type]
+                      most=most)
+    assert rec["too_many"] == ["seat"] and rec["good"]   # "good" does not ask it (a measure beside)
+    summary = summarize([{**rec, "category": "chair"}], [{"category": "chair", "too_many": False}], ["chair"])
+    assert summary["chair"]["too_many"] == 1.0 and summary["chair"]["data_too_many"] == 0.0
+
+
 def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
     """A shape whose two wheel parts (tyres, hubs) share one box is stacked, as a run would be;
     parts of one label apart, or of two labels in one box, are not."""
@@ -166,7 +184,8 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
         assert text.count(start) == 1 and text.count(end) == 1
     assert "before" in text and text.count("| chair | 2 | 50% |") == 2
     assert "From a complete shape's part" in text and "| 50% | n/a | n/a (0) |" in text
-    assert "Data: stacked" in text and "| n/a | 100% | 50% | n/a | complete 1, unlikely 1 |" in text
+    assert "Data: stacked" in text
+    assert "| n/a | n/a | 100% | 50% | n/a | n/a | complete 1, unlikely 1 |" in text
 
 
 class _Shapes:
@@ -227,6 +246,7 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
     assert all(len(r["gap"]) == len(r["parts"]) == len(r["misplaced"]) for r in placed)
     # The held-out shapes' own parts lie where the training shapes have their labels.
     assert res["summary"]["greedy"]["all"]["data_misplaced"] == 0.0
+    assert all(isinstance(r["too_many"], list) for r in runs)
     assert 0.0 <= res["summary"]["greedy"]["all"]["good"] <= 1.0
     assert report_markers("exported")[0] in report.read_text()
     # Seeded: the same command draws the same starts.

@@ -17,6 +17,9 @@ excluded so the run cannot rebuild its source) and measures each run:
   the box centre of every part of its label in the category's training shapes (a back under a
   bar stool's seat; the data's own held-out parts lie within 0.045 of such a centre in 99% of
   cases); the data's rate from the same random component of each start shape as its contacts;
+* *too many*: the run holds more parts of a label than any training shape of its category does
+  (four car body pieces where the data's cars have at most three, two bulbs in a lamp); the
+  data's rate from the start shapes themselves;
 * *from a complete shape's part*: whether the start's own shape holds every label *complete* asks
   for (a bar stool's seat sits at the top of the frame, where no back fits: a run from it can
   only be complete as a stool); "good" is also reported over these starts alone, beside the
@@ -146,6 +149,22 @@ def label_places(index: ShapeIndex) -> dict[str, dict[str, np.ndarray]]:
     return {c: {lab: np.array(v) for lab, v in by.items()} for c, by in out.items()}
 
 
+def label_counts(index: ShapeIndex) -> dict[str, Counter[str]]:
+    """Per category, the most parts of each label one training shape has (measuring only)."""
+    out: dict[str, Counter[str]] = {}
+    for c in index.categories():
+        most: Counter[str] = Counter()
+        for sid in index.shapes(c, "train"):
+            most |= Counter(index.labels[r] for r in index.rows[sid].tolist())
+        out[c] = most
+    return out
+
+
+def too_many(most: Counter[str], labels: list[str | None]) -> list[str]:
+    """The labels ``labels`` holds more often than ``most`` allows, sorted."""
+    return sorted(lab for lab, n in Counter(x for x in labels if x is not None).items() if n > most[lab])
+
+
 def _own_centre(cat: Catalog, row: int) -> np.ndarray:
     """A catalog part's box centre at its place in its own shape (canonical frame)."""
     return cat.translations[row].astype(np.float64) + (cat.bbox_min[row] + cat.bbox_max[row]) / 2
@@ -209,10 +228,12 @@ def data_stacked(index: ShapeIndex, start: int, settings: AssemblyEvalSettings) 
 
 def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: AssembleResult,
                 settings: AssemblyEvalSettings, label_sets: list[frozenset[str]] | None = None,
-                places: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+                places: dict[str, np.ndarray] | None = None, most: Counter[str] | None = None
+                ) -> dict[str, Any]:
     """One run's record: its parts, completeness, stacked pairs and contacts (see module doc);
     with ``label_sets`` (``data_label_sets``) also whether it holds some shape's labels, with
-    ``places`` (``label_places``, the run's category) whether each added part is misplaced."""
+    ``places`` (``label_places``, the run's category) whether each added part is misplaced, with
+    ``most`` (``label_counts``, the run's category) the labels it holds too many of."""
     cat = index.catalog
     rows = [start, *(n.suggestion.part_index for n in result.steps)]
     trans = [result.start_translation, *(n.translation for n in result.steps)]
@@ -237,6 +258,8 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
         "translations": [np.round(np.asarray(t, dtype=np.float64), 5).tolist() for t in trans[1:]],
         "scales": [np.round(s, 5).tolist() for s in scales[1:]],
     }
+    if most is not None:
+        rec["too_many"] = too_many(most, labels)
     if places is not None:
         rec["misplaced"] = [misplaced(places, lab, (a + b) / 2, settings.place_tolerance)
                             for lab, a, b in zip(labels[1:], lo[1:], hi[1:], strict=True)]
@@ -266,14 +289,17 @@ def data_component(index: ShapeIndex, start: int, seed: int) -> int | None:
     return int(rows[int(np.random.default_rng([seed, start]).integers(len(rows)))])
 
 
-def data_place(index: ShapeIndex, start: int, seed: int, places: dict[str, np.ndarray],
+def data_place(index: ShapeIndex, start: int, seed: int, places: dict[str, np.ndarray], most: Counter[str],
                settings: AssemblyEvalSettings) -> dict[str, Any]:
-    """Whether ``data_component`` at its true place is misplaced by the runs' measure."""
-    r = data_component(index, start, seed)
-    if r is None:
-        return {}
+    """Whether ``data_component`` at its true place is misplaced, and whether the start's shape
+    holds too many of a label, by the runs' measures."""
     cat = index.catalog
-    return {"misplaced": misplaced(places, index.labels[r], _own_centre(cat, r), settings.place_tolerance)}
+    own = index.rows[str(cat.records[start]["shape_id"])].tolist()
+    out: dict[str, Any] = {"too_many": bool(too_many(most, [index.labels[r] for r in own]))}
+    r = data_component(index, start, seed)
+    if r is not None:
+        out["misplaced"] = misplaced(places, index.labels[r], _own_centre(cat, r), settings.place_tolerance)
+    return out
 
 
 def data_contact(index: ShapeIndex, start: int, seed: int, settings: AssemblyEvalSettings) -> dict[str, Any]:
@@ -326,6 +352,9 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             "data_interpenetrating": _share(ds, "interpenetrating"),
             "data_floating": _share(ds, "floating"),
             "misplaced": float(np.mean(added)) if added else None,
+            "too_many": _share([{"too_many": bool(r["too_many"])} for r in rs if "too_many" in r],
+                               "too_many"),
+            "data_too_many": _share(ds, "too_many"),
             "data_misplaced": _share(ds, "misplaced"),
             "data_stacked": _share(ds, "stacked"),
             "stop_reasons": dict(Counter(r["stop_reason"] for r in rs)),
@@ -346,6 +375,7 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
     essentials = essential_labels(index)
     label_sets = data_label_sets(index)
     places = label_places(index)
+    most = label_counts(index)
     starts = start_parts(index, s.starts_per_category, s.seed, s.split)
     assembler = Assembler(engine, settings)
     cat = artifacts.catalog
@@ -357,12 +387,12 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
                                       exclude_shapes=(str(cat.records[row]["shape_id"]),))
             result = assembler.assemble(Start(kind="part", part_index=row), options)
             rec = measure_run(index, essentials[category], row, result, s, label_sets[category],
-                              places.get(category, {}))
+                              places.get(category, {}), most.get(category, Counter()))
             runs.append({"category": category, "strategy": strategy, **rec})
     data = []
     for category, row in starts:
         d = {**(data_contact(index, row, s.seed, s) if s.contact else {}),
-             **data_place(index, row, s.seed, places.get(category, {}), s)}
+             **data_place(index, row, s.seed, places.get(category, {}), most.get(category, Counter()), s)}
         data.append({"category": category, "stacked": data_stacked(index, row, s), **d})
     categories = index.categories()
     results: dict[str, Any] = {
@@ -413,15 +443,16 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
              f"- Misplaced = added parts whose box centre lies farther than "
              f"{results.get('settings', {}).get('place_tolerance', AssemblyEvalSettings.place_tolerance):g}"
              " from every training part of their "
-             "label in the category (a back under a stool's seat)",
+             "label in the category (a back under a stool's seat); Too many = runs with more parts of "
+             "a label than any training shape of the category has",
              ""]
     for strategy, summary in results["summary"].items():
         lines += [f"**{strategy}**", "",
                   "| Category | Runs | Complete, nothing stacked | Some shape's labels, nothing stacked "
                   "| From a complete shape's part | Complete | Stacked | Empty | Parts added "
-                  "| Floating | Interpenetrating | Misplaced | Data: interpenetrating | Data: stacked "
-                  "| Data: misplaced | Stop reasons |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| Floating | Interpenetrating | Misplaced | Too many | Data: interpenetrating "
+                  "| Data: stacked | Data: misplaced | Data: too many | Stop reasons |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for c, row in summary.items():
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(row["stop_reasons"].items()))
             whole = (f"{_pct(row.get('good_from_complete'))} ({row['complete_starts']})"
@@ -431,9 +462,10 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
                          f"{_pct(row['complete'])} | "
                          f"{_pct(row['stacked'])} | {_pct(row['empty'])} | {row['parts']:.1f} | "
                          f"{_pct(row['floating'])} | {_pct(row['interpenetrating'])} | "
-                         f"{_pct(row.get('misplaced'))} | "
+                         f"{_pct(row.get('misplaced'))} | {_pct(row.get('too_many'))} | "
                          f"{_pct(row['data_interpenetrating'])} | {_pct(row.get('data_stacked'))} | "
-                         f"{_pct(row.get('data_misplaced'))} | {reasons} |")
+                         f"{_pct(row.get('data_misplaced'))} | {_pct(row.get('data_too_many'))} | "
+                         f"{reasons} |")
         lines.append("")
     pictures = results.get("pictures", {})
     if pictures and pictures_dir is not None:
