@@ -165,6 +165,11 @@ def too_many(most: Counter[str], labels: list[str | None]) -> list[str]:
     return sorted(lab for lab, n in Counter(x for x in labels if x is not None).items() if n > most[lab])
 
 
+def _start_shape(index: ShapeIndex, start: int) -> list[int]:
+    """The catalog rows of the start part's own shape."""
+    return index.rows[str(index.catalog.records[start]["shape_id"])].tolist()
+
+
 def _own_centre(cat: Catalog, row: int) -> np.ndarray:
     """A catalog part's box centre at its place in its own shape (canonical frame)."""
     return cat.translations[row].astype(np.float64) + (cat.bbox_min[row] + cat.bbox_max[row]) / 2
@@ -220,7 +225,7 @@ def data_stacked(index: ShapeIndex, start: int, settings: AssemblyEvalSettings) 
     definition runs are measured with (the data's own rate: a car's tyres and hubs are two
     wheel parts in one box)."""
     cat = index.catalog
-    rows = index.rows[str(cat.records[start]["shape_id"])].tolist()
+    rows = _start_shape(index, start)
     lo = [cat.translations[r].astype(np.float64) + cat.bbox_min[r] for r in rows]
     hi = [cat.translations[r].astype(np.float64) + cat.bbox_max[r] for r in rows]
     return bool(stacked_pairs([index.labels[r] for r in rows], lo, hi, settings.stack_iou))
@@ -244,7 +249,7 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
     stacked = stacked_pairs(labels, lo, hi, settings.stack_iou)
     have = {lab for lab in labels if lab is not None}
     complete = essentials <= have
-    own = {index.labels[r] for r in index.rows[str(cat.records[start]["shape_id"])]}
+    own = {index.labels[r] for r in _start_shape(index, start)}
     rec: dict[str, Any] = {
         "start": cat.part_ids[start], "start_label": labels[0],
         "parts": [cat.part_ids[r] for r in rows[1:]], "labels": labels[1:],
@@ -283,7 +288,7 @@ def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: Ass
 def data_component(index: ShapeIndex, start: int, seed: int) -> int | None:
     """The random component of the start's shape the data's rates are measured on (None: the
     shape has one part)."""
-    rows = index.rows[str(index.catalog.records[start]["shape_id"])].tolist()
+    rows = _start_shape(index, start)
     if len(rows) < 2:
         return None
     return int(rows[int(np.random.default_rng([seed, start]).integers(len(rows)))])
@@ -294,8 +299,8 @@ def data_place(index: ShapeIndex, start: int, seed: int, places: dict[str, np.nd
     """Whether ``data_component`` at its true place is misplaced, and whether the start's shape
     holds too many of a label, by the runs' measures."""
     cat = index.catalog
-    own = index.rows[str(cat.records[start]["shape_id"])].tolist()
-    out: dict[str, Any] = {"too_many": bool(too_many(most, [index.labels[r] for r in own]))}
+    own = [index.labels[r] for r in _start_shape(index, start)]
+    out: dict[str, Any] = {"too_many": bool(too_many(most, own))}
     r = data_component(index, start, seed)
     if r is not None:
         out["misplaced"] = misplaced(places, index.labels[r], _own_centre(cat, r), settings.place_tolerance)
@@ -305,7 +310,7 @@ def data_place(index: ShapeIndex, start: int, seed: int, places: dict[str, np.nd
 def data_contact(index: ShapeIndex, start: int, seed: int, settings: AssemblyEvalSettings) -> dict[str, Any]:
     """``data_component`` at its true place against the rest of its shape."""
     cat = index.catalog
-    rows = index.rows[str(cat.records[start]["shape_id"])].tolist()
+    rows = _start_shape(index, start)
     part = data_component(index, start, seed)
     if part is None:
         return {}
@@ -316,10 +321,14 @@ def data_contact(index: ShapeIndex, start: int, seed: int, settings: AssemblyEva
     return {"floating": c.gap > tol, "interpenetrating": c.depth > tol}
 
 
+def _mean(values: list[Any]) -> float | None:
+    """The mean of ``values`` (booleans: the share that is true); None when there are none."""
+    return float(np.mean(values)) if values else None
+
+
 def _share(records: list[dict[str, Any]], key: str) -> float | None:
     """The share of the records whose ``key`` is true, among those that have it (None: none has)."""
-    values = [d[key] for d in records if key in d]
-    return float(np.mean(values)) if values else None
+    return _mean([d[key] for d in records if key in d])
 
 
 def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories: list[str]
@@ -339,7 +348,7 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             "runs": len(rs),
             "good": float(np.mean([r["good"] for r in rs])),
             # Over the starts whose own shape is complete (a stool's part can only make a stool).
-            "good_from_complete": float(np.mean([r["good"] for r in whole])) if whole else None,
+            "good_from_complete": _mean([r["good"] for r in whole]),
             "complete_starts": len(whole),
             "complete": float(np.mean([r["complete"] for r in rs])),
             "good_as_data": _share(rs, "good_as_data"),
@@ -351,9 +360,8 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             "interpenetrating": float(np.mean([p[1] for p in placed])) if placed else None,
             "data_interpenetrating": _share(ds, "interpenetrating"),
             "data_floating": _share(ds, "floating"),
-            "misplaced": float(np.mean(added)) if added else None,
-            "too_many": _share([{"too_many": bool(r["too_many"])} for r in rs if "too_many" in r],
-                               "too_many"),
+            "misplaced": _mean(added),
+            "too_many": _mean([bool(r["too_many"]) for r in rs if "too_many" in r]),
             "data_too_many": _share(ds, "too_many"),
             "data_misplaced": _share(ds, "misplaced"),
             "data_stacked": _share(ds, "stacked"),
