@@ -75,6 +75,7 @@ from service.artifacts.catalog import Catalog, split_shapes
 from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
+from service.geometry.scaling import scaled_area
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
@@ -277,7 +278,7 @@ class Assembler:
         def surface() -> Surface:
             return contacts.part_surface(cat, i).scaled(sc).moved(t)
 
-        return _Placed(pts, surface, max(float(cat.records[i]["area"]) * float(np.prod(sc)) ** (2 / 3), 1e-9),
+        return _Placed(pts, surface, max(scaled_area(float(cat.records[i]["area"]), sc), 1e-9),
                        cat.bbox_min[i].astype(np.float64) * sc + t,
                        cat.bbox_max[i].astype(np.float64) * sc + t,
                        row=i)

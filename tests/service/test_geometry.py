@@ -335,3 +335,18 @@ def test_triangle_areas_compiled_are_numpys_to_the_bit() -> None:
     assert triangle_areas(vertices, np.zeros((0, 3), dtype=np.int64)).shape == (0,)
     with pytest.raises(IndexError):
         triangle_areas(vertices, np.array([[0, 1, 500]]))
+
+
+def test_scaled_area_is_exact_for_a_uniform_scale_and_brackets_a_stretched_box() -> None:
+    from service.geometry.scaling import scaled_area
+
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    assert scaled_area(box.area, None) == pytest.approx(box.area)
+    assert scaled_area(box.area, np.full(3, 2.0)) == pytest.approx(trimesh.creation.box(extents=(2, 2, 2)).area)
+    # A per-axis scale: the estimate keeps the volume change's uniform equivalent; a surface
+    # stretched along one axis lies between the areas of the boxes scaled by the smallest and by
+    # the largest factor.
+    stretched = trimesh.creation.box(extents=(2.0, 1.0, 1.0)).area
+    estimate = scaled_area(box.area, np.array([2.0, 1.0, 1.0]))
+    assert box.area < estimate < trimesh.creation.box(extents=(2, 2, 2)).area
+    assert abs(estimate - stretched) / stretched < 0.1

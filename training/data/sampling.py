@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.geometry.scaling import scaled_area
 from service.settings import Settings
 from training.data.processed import ProcessedDataset
 
@@ -399,7 +400,7 @@ class TripletSampler:
             scale = np.exp(substitute_log_scale(ds.points[comp].astype(np.float32),
                                                 ds.points[other].astype(np.float32)))
             samples[j] = ds.points[other] * scale
-            areas[j] = ds.area[other] * float(np.prod(scale)) ** (2 / 3)   # area of the rescaled part, roughly
+            areas[j] = scaled_area(float(ds.area[other]), scale)
         return draw_area_weighted(samples, ds.translation[rows], areas, np.arange(len(rows)), n, rng, by_area)
 
     def substitute(self, positive: int, rng: np.random.Generator) -> int | None:
