@@ -342,11 +342,12 @@ def test_scaled_area_is_exact_for_a_uniform_scale_and_brackets_a_stretched_box()
 
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
     assert scaled_area(box.area, None) == pytest.approx(box.area)
-    assert scaled_area(box.area, np.full(3, 2.0)) == pytest.approx(trimesh.creation.box(extents=(2, 2, 2)).area)
+    doubled = trimesh.creation.box(extents=(2.0, 2.0, 2.0)).area
+    assert scaled_area(box.area, np.full(3, 2.0)) == pytest.approx(doubled)
     # A per-axis scale: the estimate keeps the volume change's uniform equivalent; a surface
     # stretched along one axis lies between the areas of the boxes scaled by the smallest and by
     # the largest factor.
     stretched = trimesh.creation.box(extents=(2.0, 1.0, 1.0)).area
     estimate = scaled_area(box.area, np.array([2.0, 1.0, 1.0]))
-    assert box.area < estimate < trimesh.creation.box(extents=(2, 2, 2)).area
+    assert box.area < estimate < doubled
     assert abs(estimate - stretched) / stretched < 0.1
