@@ -204,6 +204,23 @@ class _Shapes:
         return ["chair", "lamp"]
 
 
+def test_start_parts_never_repeat_and_keep_their_first_pass() -> None:
+    """Past the number of shapes a category's starts are other components of the same shapes, never
+    one twice; with more starts asked than components, each component once; the first pass (one
+    per shape) is the same whatever the number asked."""
+    index = _Shapes()  # 4 test shapes of 3 components per category
+    ten = start_parts(index, 10, seed=0)  # type: ignore[arg-type]
+    for c in ("chair", "lamp"):
+        rows = [row for cat, row in ten if cat == c]
+        assert len(rows) == 10 and len(set(rows)) == 10
+        first = [row for cat, row in start_parts(index, 4, seed=0) if cat == c]  # type: ignore[arg-type]
+        assert rows[:4] == first
+        assert len({next(s for s in index.shapes(c, "test") if r in index.rows[s]) for r in first}) == 4
+    every = start_parts(index, 50, seed=0)  # type: ignore[arg-type]
+    assert len(every) == 24 and len(set(every)) == 24
+    assert start_parts(index, 10, seed=1) != ten  # type: ignore[arg-type]
+
+
 def test_start_parts_come_from_the_split_asked_for() -> None:
     """The reported split is test; train starts are for choosing settings without looking at it."""
     index = _Shapes()

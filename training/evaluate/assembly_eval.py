@@ -3,7 +3,8 @@
 The assembly (``service.modeling.assembly``) never reads labels; this evaluation reads them, to measure
 only. For every category it draws ``starts_per_category`` start parts from the held-out shapes
 (the catalog's ``split`` = test, the same split the benchmark reads through ``ShapeIndex``;
-one component of a distinct shape each, seeded), runs ``POST /assemble``'s code
+one component of each shape, then other components of the same shapes, never one twice,
+seeded), runs ``POST /assemble``'s code
 (``Assembler.assemble``, the service's settings, the start's category, the start's own shape
 excluded so the run cannot rebuild its source) and measures each run:
 
@@ -80,7 +81,7 @@ class AssemblyEvalSettings:
     out: Path = Path("docs/assembly")            # results.json
     report: Path | None = Path("docs/modeling.md")  # Markdown summary between the markers
     seed: int = 0
-    starts_per_category: int = 20
+    starts_per_category: int = 100
     # The split start parts come from: "test" (held out, what is reported) or "train" (for
     # choosing the assembly's settings without looking at the reported split).
     split: str = "test"
@@ -182,8 +183,13 @@ def misplaced(places: dict[str, np.ndarray], label: str | None, centre: np.ndarr
 
 
 def start_parts(index: ShapeIndex, n: int, seed: int, split: str = "test") -> list[tuple[str, int]]:
-    """``n`` start parts per category: one random component of each of ``n`` shapes of ``split``
-    (fewer shapes than ``n``: shapes are reused with other components), seeded per category."""
+    """``n`` start parts per category, seeded per category: one random component of each shape of
+    ``split`` in a random order, then, past the number of shapes, the shapes again in that order,
+    each with a component not drawn yet (a shape whose components are all drawn is passed over;
+    a category with fewer components than ``n`` gives every one once). Never the same start twice.
+
+    The first pass draws exactly as before components were kept apart, so the first runs of a
+    category are the same for any ``n``."""
     out: list[tuple[str, int]] = []
     for c in index.categories():
         shapes = index.shapes(c, split)
@@ -191,9 +197,18 @@ def start_parts(index: ShapeIndex, n: int, seed: int, split: str = "test") -> li
             continue
         rng = setting_rng(seed, c, "assembly")
         order = rng.permutation(len(shapes))
-        for j in range(n):
-            rows = index.rows[shapes[int(order[j % len(shapes)])]]
-            out.append((c, int(rows[int(rng.integers(len(rows)))])))
+        left = {int(k): list(range(len(index.rows[shapes[int(k)]]))) for k in order}
+        want = min(n, sum(len(v) for v in left.values()))
+        drawn, j = 0, 0
+        while drawn < want:
+            k = int(order[j % len(shapes)])
+            j += 1
+            if not left[k]:
+                continue
+            rows = index.rows[shapes[k]]
+            pick = left[k].pop(int(rng.integers(len(left[k]))))
+            out.append((c, int(rows[pick])))
+            drawn += 1
     return out
 
 

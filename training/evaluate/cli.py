@@ -120,7 +120,8 @@ def evaluate_assembly_command(
                                           help="Markdown file whose assembly-evaluation block is rewritten."),
     no_report: bool = typer.Option(False, "--no-report", help="Write results.json only."),
     seed: int = typer.Option(0, "--seed", help="Seed of the start parts and the sampler."),
-    starts: int = typer.Option(20, "--starts", help="Held-out start parts per category."),
+    starts: int = typer.Option(100, "--starts", help=(
+        "Start parts per category (at least 20: one run is then 5 points of a category's figure).")),
     split: str = typer.Option("test", "--split", help=(
         "Shapes the start parts come from: test (held out, reported) or train (for tuning the "
         "assembly's settings; the start's own shape is still excluded).")),
