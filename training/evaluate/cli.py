@@ -120,8 +120,9 @@ def evaluate_assembly_command(
                                           help="Markdown file whose assembly-evaluation block is rewritten."),
     no_report: bool = typer.Option(False, "--no-report", help="Write results.json only."),
     seed: int = typer.Option(0, "--seed", help="Seed of the start parts and the sampler."),
-    starts: int = typer.Option(100, "--starts", help=(
-        "Start parts per category (at least 20: one run is then 5 points of a category's figure).")),
+    starts: Optional[int] = typer.Option(None, "--starts", help=(  # noqa: UP045
+        "Start parts per category (unset: the evaluation's default, AssemblyEvalSettings."
+        "starts_per_category).")),
     split: str = typer.Option("test", "--split", help=(
         "Shapes the start parts come from: test (held out, reported) or train (for tuning the "
         "assembly's settings; the start's own shape is still excluded).")),
@@ -143,7 +144,7 @@ def evaluate_assembly_command(
 
     settings = AssemblyEvalSettings(
         artifacts=artifacts, out=out, report=None if no_report else report, seed=seed,
-        starts_per_category=starts, split=split,
+        **({} if starts is None else {"starts_per_category": starts}), split=split,
         strategies=tuple(x.strip() for x in strategies.split(",") if x.strip()),
         temperature=temperature, max_parts=max_parts, contact=contact, contact_tolerance=contact_tolerance,
         pictures=pictures, progress=progress,
