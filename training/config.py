@@ -204,6 +204,11 @@ class TrainConfig:
     # the whole shape, small rotations about the up axis, frames off centre and scale, point
     # noise, missing surface and density changes, in the ranges of data.sampling.Augmentation.
     augment: float = field(default=0.0, metadata=_help("Share of triplets augmented (0 = off)."))
+    # Not in the paper: the shape's layout warped per axis (data.sampling.layout_warp: parts move
+    # and rescale with a random monotone map, contacts kept), so h reads where the query leaves
+    # room instead of where each kind of part sat in the training styles (docs/training.md).
+    layout_warp: float = field(default=0.0,
+                               metadata=_help("Share of triplets whose layout is warped (0 = off)."))
     # Measurement only: "styles" holds out one style per category (leave-one-style-out
     # benchmark); styles are never read by the training itself.
     split: str = field(default="random", metadata=_help("Test split: random | styles (one style held out)."))
@@ -255,6 +260,8 @@ class TrainConfig:
         if not 0.0 <= self.substitute_fraction <= 1.0:
             raise ValueError("train config: substitute_fraction must be in [0, 1], "
                              f"got {self.substitute_fraction}")
+        if not 0.0 <= self.layout_warp <= 1.0:
+            raise ValueError(f"train config: layout_warp must be in [0, 1], got {self.layout_warp}")
         if not 0.0 <= self.mixed_query_fraction <= 1.0:
             raise ValueError("train config: mixed_query_fraction must be in [0, 1], "
                              f"got {self.mixed_query_fraction}")

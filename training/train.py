@@ -228,6 +228,7 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
                               "scale_augment": cfg.scale_augment,
                               "substitute_fraction": cfg.substitute_fraction,
                               "mixed_query_fraction": cfg.mixed_query_fraction,
+                              "layout_warp": cfg.layout_warp,
                               "categories": ds.categories()})
     run.start_clock()
     bar = tqdm(total=cfg.steps, initial=run.step, disable=not (show_progress and env.is_main),

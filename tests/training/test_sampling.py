@@ -15,9 +15,11 @@ from training.data.sampling import (
     Triplet,
     TripletSampler,
     component_descriptors,
+    layout_warp,
     lookalike_components,
     sample_assembly,
     sample_part,
+    warp_boxes,
 )
 from training.data.shapes import RawPiece, RawShape
 
@@ -182,6 +184,48 @@ def test_mixed_queries_swap_components_for_look_alikes_at_their_place(dataset: P
         ref = plain.query_points(query, 256, np.random.default_rng(0))
         assert np.min(np.linalg.norm(ref[:, None] - own[None], axis=2), axis=1).max() < 1e-4
     assert swapped >= 5, "no query was mixed"
+
+
+def test_a_layout_warp_is_monotone_and_keeps_the_frame() -> None:
+    knots, warped = layout_warp(np.random.default_rng(4))
+    np.testing.assert_allclose(warped[:, [0, -1]], [[-1, 1]] * 3)
+    assert (np.diff(warped, axis=1) > 0).all()
+    assert np.abs(warped - knots).max() > 0.02, "the warp moved nothing"
+
+
+def test_warped_boxes_that_meet_at_a_face_still_meet() -> None:
+    """A leg under a seat: the leg's top face and the seat's bottom face are one coordinate, which
+    the warp maps to one place; each box is rescaled to the warped span of its corners."""
+    knots, warped = layout_warp(np.random.default_rng(5))
+    centre = np.array([[0.0, -0.5, 0.0], [0.0, 0.05, 0.0]])     # leg (y -1..0), seat (y 0..0.1)
+    half = np.array([[0.05, 0.5, 0.05], [0.5, 0.05, 0.5]])
+    new_centre, scale = warp_boxes(knots, warped, centre, half)
+    leg_top = new_centre[0, 1] + half[0, 1] * scale[0, 1]
+    seat_bottom = new_centre[1, 1] - half[1, 1] * scale[1, 1]
+    assert leg_top == pytest.approx(seat_bottom, abs=1e-6)
+    assert new_centre[0, 1] - half[0, 1] * scale[0, 1] == pytest.approx(-1.0, abs=1e-6)
+    thin = warp_boxes(knots, warped, np.zeros((1, 3)), np.zeros((1, 3)))[1]
+    assert (thin > 0).all(), "a flat box takes its segment's stretch"
+
+
+def test_warped_layouts_move_parts_with_their_boxes(dataset: ProcessedDataset) -> None:
+    """With the layout warped, the positive's target place and size are its warped box's, the
+    query's points lie on warped components, and h's part stays the catalog geometry (its fitting
+    scale undoes the warp); off, batches are drawn exactly as before."""
+    sampler = TripletSampler(dataset, n_points=256, layout_warp=1.0)
+    batch = sampler.batch(32, np.random.default_rng(9))
+    moved = np.abs(batch["Y_log_scale"]).max(axis=1) > 0.01
+    assert moved.mean() > 0.5, "no positive was rescaled by the warp"
+    fitted = batch["Y_h"] * np.exp(batch["Y_log_scale"])[:, None, :]
+    want, got = np.ptp(batch["Y"], axis=1), np.ptp(fitted, axis=1)
+    fat = want > 0.05
+    assert np.abs(np.log(got[fat] / want[fat])).max() < 0.05
+    inside = np.abs(batch["X"]) <= 1.0 + 1e-3      # the warp keeps the unit frame
+    assert inside.all()
+    plain = TripletSampler(dataset, n_points=64).batch(8, np.random.default_rng(8))
+    off = TripletSampler(dataset, n_points=64, layout_warp=0.0).batch(8, np.random.default_rng(8))
+    for key in plain:
+        np.testing.assert_array_equal(plain[key], off[key])
 
 
 def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset) -> None:

@@ -171,6 +171,8 @@ class Augmentation:
     hole_probability: float = 0.3      # chance that X loses the points within a random ball
     hole_radius: float = 0.25
     uniform_density_probability: float = 0.3  # chance that X samples components evenly, not by area
+    warp_log_slope: float = 0.5        # layout warp: each segment's stretch, exp(U(-a, a)) before renormalising
+    warp_segments: int = 4             # layout warp: equal segments of [-1, 1] per axis
 
 
 def augmentation_transform(rng: np.random.Generator, strength: float,
@@ -188,6 +190,46 @@ def augmentation_transform(rng: np.random.Generator, strength: float,
     A = rot @ np.diag(scale)
     t = rng.uniform(-1, 1, 3) * ranges.frame_offset * strength
     return A.astype(np.float32), t.astype(np.float32)
+
+
+def layout_warp(rng: np.random.Generator, ranges: Augmentation = Augmentation()) -> tuple[np.ndarray, np.ndarray]:
+    """A random monotone piecewise-linear map of [-1, 1] onto itself, one per axis.
+
+    Each of ``warp_segments`` equal segments is stretched by exp(U(-a, a)), then the whole is
+    rescaled to span [-1, 1] again: the shape keeps its frame, its proportions change (a taller
+    lamp pole, a lower seat, engines further along a wing).
+
+    Shapes:
+        returns knots (K + 1,) float64 and warped knots (3, K + 1) float64.
+    """
+    k = ranges.warp_segments
+    knots = np.linspace(-1.0, 1.0, k + 1)
+    lengths = np.exp(rng.uniform(-ranges.warp_log_slope, ranges.warp_log_slope, (3, k)))
+    warped = np.concatenate([np.zeros((3, 1)), np.cumsum(lengths, axis=1)], axis=1)
+    return knots, warped / warped[:, -1:] * 2.0 - 1.0
+
+
+def warp_boxes(knots: np.ndarray, warped: np.ndarray, centre: np.ndarray, half: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Each box mapped affinely onto the warped image of its corners: new centre and per-axis scale.
+
+    Why boxes, not points: parts stay rigid up to a per-axis rescale (as the service fits a
+    catalog part), and two parts that meet at a box face still meet after the warp, since the
+    face's coordinate maps to one place for both.
+
+    Shapes:
+        knots (K + 1,), warped (3, K + 1), centre (C, 3), half (C, 3) -> centre (C, 3), scale (C, 3)
+        float32.
+    """
+    lo, hi = centre - half, centre + half
+    new_lo = np.stack([np.interp(lo[:, a], knots, warped[a]) for a in range(3)], axis=1)
+    new_hi = np.stack([np.interp(hi[:, a], knots, warped[a]) for a in range(3)], axis=1)
+    segment = np.clip(np.searchsorted(knots, centre) - 1, 0, len(knots) - 2)          # (C, 3)
+    slopes = np.diff(warped, axis=1) / np.diff(knots)                                  # (3, K)
+    slope = np.take_along_axis(slopes.T, segment, axis=0)   # a thin box takes its segment's stretch
+    span = hi - lo
+    scale = np.where(span > 1e-4, (new_hi - new_lo) / np.maximum(span, 1e-4), slope)
+    return ((new_lo + new_hi) / 2).astype(np.float32), scale.astype(np.float32)
 
 
 def punch_hole(points: np.ndarray, rng: np.random.Generator, radius: float) -> np.ndarray:
@@ -242,12 +284,14 @@ class TripletSampler:
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
                  scale_augment: float = 0.0, substitute_fraction: float = 0.0,
-                 mixed_query_fraction: float = 0.0, categories: list[str] | None = None):
+                 mixed_query_fraction: float = 0.0, layout_warp: float = 0.0,
+                 categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
                             ("removal_query_fraction", removal_query_fraction),
                             ("substitute_fraction", substitute_fraction),
-                            ("mixed_query_fraction", mixed_query_fraction)):
+                            ("mixed_query_fraction", mixed_query_fraction),
+                            ("layout_warp", layout_warp)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         if query_negative_fraction + lookalike_negative_fraction > 1.0:
@@ -261,7 +305,10 @@ class TripletSampler:
         self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
         self.substitute_fraction = substitute_fraction
         self.mixed_query_fraction = mixed_query_fraction
+        self.layout_warp = layout_warp
         self.ranges = Augmentation()
+        # Half extents of each component's box (its samples are centred at the box centre).
+        self.half = (ds.points.max(axis=1) - ds.points.min(axis=1)).astype(np.float32) / 2
         # The full collection's list, so that a subset (the train split) keeps the same indices.
         categories = categories if categories is not None else ds.categories()
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
@@ -347,19 +394,30 @@ class TripletSampler:
             t = self.sample_triplet(rng)
             augmented = self.augment > 0 and rng.random() < self.augment
             by_area = not (augmented and rng.random() < ranges.uniform_density_probability)
-            X[b] = self.query_points(t.query, n, rng, by_area)
+            warp = self.warp_of(t.shape, rng)
+            X[b] = self.query_points(t.query, n, rng, by_area, warp)
             Y[b] = sample_part(self.ds, t.positive, n, rng)
             Z[b] = sample_part(self.ds, t.negative, n, rng)
             T[b] = self.ds.translation[t.positive]
             others = [c for c in t.missing if c != t.positive]
             extra = rng.permutation(others)[:npos - 1].tolist() if npos > 1 else []
-            P[b, 0] = Y[b]
-            for j, comp in enumerate(extra, start=1):
-                P[b, j] = sample_part(self.ds, int(comp), n, rng)
-            mask[b, :1 + len(extra)] = True
             category[b] = self.category_of_shape[t.shape]
             substitute = self.substitute(t.positive, rng)
             S[b] = Y[b] if substitute is None else sample_part(self.ds, substitute, n, rng)
+            if warp is not None:
+                # The shape's own parts take the warp; S stays the catalog geometry h is given,
+                # so the fitting scale below learns the warp's rescale of the positive.
+                first = int(self.ds.first_comp[t.shape])
+                T[b] = warp[0][t.positive - first]
+                Y[b] = Y[b] * warp[1][t.positive - first]
+                if first <= t.negative < int(self.ds.first_comp[t.shape + 1]):
+                    Z[b] = Z[b] * warp[1][t.negative - first]
+            P[b, 0] = Y[b]
+            for j, comp in enumerate(extra, start=1):
+                P[b, j] = sample_part(self.ds, int(comp), n, rng)
+                if warp is not None:
+                    P[b, j] *= warp[1][int(comp) - int(self.ds.first_comp[t.shape])]
+            mask[b, :1 + len(extra)] = True
             if augmented:
                 A, offset = augmentation_transform(rng, 1.0, ranges)
                 X[b] = X[b] @ A.T + offset
@@ -368,7 +426,7 @@ class TripletSampler:
                 X[b] += rng.normal(0.0, rng.uniform(0, ranges.noise), X[b].shape)
                 if rng.random() < ranges.hole_probability:
                     X[b] = punch_hole(X[b], rng, ranges.hole_radius)
-            if substitute is not None:
+            if substitute is not None or warp is not None:
                 fit[b] = substitute_log_scale(Y[b], S[b])
         a = self.scale_augment
         log_scale = rng.uniform(-a, a, (batch_size, 3)).astype(np.float32) if a > 0 \
@@ -379,29 +437,62 @@ class TripletSampler:
         return {"X": X, "Y": Y, "Z": Z, "Y_translation": T, "Y_h": Y_h.astype(np.float32),
                 "Y_log_scale": fit - log_scale, "P": P, "P_mask": mask, "category": category}
 
-    def query_points(self, query: list[int], n: int, rng: np.random.Generator, by_area: bool = True
-                     ) -> np.ndarray:
+    def warp_of(self, shape: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+        """For a share ``layout_warp`` of the triplets, the shape's components under a random
+        ``layout_warp``: their new centres and per-axis scales, indexed from the shape's first
+        component. None: the shape as it is.
+
+        Why: h learned where each kind of part sits in the training styles and placed a part of a
+        style it never saw there (a floor lamp's bulb at a table lamp's height: held-out style
+        placement error 0.22 against 0.04 in style, docs/training.md); moved proportions make it
+        read where the query leaves room.
+
+        Shapes:
+            returns centre (C, 3) float32, scale (C, 3) float32 for the shape's C components.
+        """
+        if self.layout_warp <= 0 or rng.random() >= self.layout_warp:
+            return None
+        comps = self.ds.components_of(shape)
+        knots, warped = layout_warp(rng, self.ranges)
+        return warp_boxes(knots, warped, self.ds.translation[comps].astype(np.float64),
+                          self.half[comps].astype(np.float64))
+
+    def query_points(self, query: list[int], n: int, rng: np.random.Generator, by_area: bool = True,
+                     warp: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """X's samples: the query's own components, or for a share ``mixed_query_fraction`` of the
-        queries a mix of look-alikes (see the class doc).
+        queries a mix of look-alikes (see the class doc); ``warp`` (``warp_of``) moves and rescales
+        the components.
 
         Shapes:
             returns (n, 3) float32.
         """
-        if self.mixed_query_fraction <= 0 or rng.random() >= self.mixed_query_fraction:
+        mixed = self.mixed_query_fraction > 0 and rng.random() < self.mixed_query_fraction
+        if not mixed and warp is None:
             return sample_assembly(self.ds, query, n, rng, by_area=by_area)
         ds = self.ds
         rows = np.asarray(query, dtype=np.int64)
         samples = ds.points[rows].astype(np.float32)                        # (r, S, 3) centred
         areas = ds.area[rows].astype(np.float64)
+        translations = ds.translation[rows].astype(np.float32)
+        if warp is not None:
+            local = rows - int(ds.first_comp[ds.shape_of[rows[0]]])
+            stretch = warp[1][local]
+            samples = samples * stretch[:, None, :]
+            areas = np.array([scaled_area(float(a), sc) for a, sc in zip(areas, stretch, strict=True)])
+            translations = warp[0][local]
+        if not mixed:
+            return draw_area_weighted(samples, translations, areas, np.arange(len(rows)), n, rng, by_area)
         for j, comp in enumerate(query):
             other = self._lookalike_of(comp, rng) if rng.random() < 0.5 else None
             if other is None:
                 continue
             scale = np.exp(substitute_log_scale(ds.points[comp].astype(np.float32),
                                                 ds.points[other].astype(np.float32)))
+            if warp is not None:
+                scale = scale * stretch[j]
             samples[j] = ds.points[other] * scale
             areas[j] = scaled_area(float(ds.area[other]), scale)
-        return draw_area_weighted(samples, ds.translation[rows], areas, np.arange(len(rows)), n, rng, by_area)
+        return draw_area_weighted(samples, translations, areas, np.arange(len(rows)), n, rng, by_area)
 
     def substitute(self, positive: int, rng: np.random.Generator) -> int | None:
         """For a share ``substitute_fraction`` of the triplets, a look-alike of the positive for h.
