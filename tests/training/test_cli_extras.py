@@ -68,3 +68,14 @@ def test_library_chatter_is_quiet_unless_verbose() -> None:
         root.setLevel(before[0])
         for n, level in before[1].items():
             logging.getLogger(n).setLevel(level)
+
+
+def test_evaluate_writes_its_report_beside_its_own_out_folder() -> None:
+    """Only the committed benchmark (no --out, no --quick) writes docs/benchmark.md: an exploratory
+    run with --out keeps its report beside its results."""
+    from training.evaluate.cli import QUICK_OUT, default_report
+
+    assert default_report(None, quick=False) == Path("docs/benchmark.md")
+    assert default_report(Path("/tmp/try"), quick=False) == Path("/tmp/try/benchmark.md")
+    assert default_report(None, quick=True) == QUICK_OUT / "benchmark.md"
+    assert default_report(Path("/tmp/try"), quick=True) == Path("/tmp/try/benchmark.md")

@@ -16,6 +16,15 @@ import typer
 QUICK_OUT = Path("runs/benchmark-quick")
 
 
+def default_report(out: Path | None, quick: bool) -> Path:
+    """Where ``evaluate`` writes its Markdown report without ``--report``: beside results.json when
+    ``--out`` or ``--quick`` names the folder, else the committed docs/benchmark.md. Why: an
+    exploratory run with its own ``--out`` must never overwrite the committed report."""
+    if out is None and not quick:
+        return Path("docs/benchmark.md")
+    return (out or QUICK_OUT) / "benchmark.md"
+
+
 def evaluate_command(
     artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder (Ours)."),
     run: Path = typer.Option(Path("runs/shipped"), "--run", "--run-dir",
@@ -28,7 +37,7 @@ def evaluate_command(
                                             "(default: docs/benchmark; runs/benchmark-quick with --quick)."),
     report: Optional[Path] = typer.Option(None, "--report",  # noqa: UP045
                                           help="Markdown report (default: docs/benchmark.md; "
-                                               "<out>/benchmark.md with --quick)."),
+                                               "<out>/benchmark.md with --out or --quick)."),
     quick: bool = typer.Option(False, "--quick", help="CI mode: a few queries per category, a token "
                                                       "fixed-embedding training (minutes -> seconds)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the queries, samples and baselines."),
@@ -77,7 +86,7 @@ def evaluate_command(
     from training.evaluate.run import BenchmarkSettings, quick_settings, run_benchmark
 
     out_dir = out or (QUICK_OUT if quick else Path("docs/benchmark"))
-    report_path = report or (out_dir / "benchmark.md" if quick else Path("docs/benchmark.md"))
+    report_path = report or default_report(out, quick)
     notes_text = None
     if notes is not None:
         if not notes.is_file():
