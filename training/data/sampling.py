@@ -307,8 +307,9 @@ class TripletSampler:
         self.mixed_query_fraction = mixed_query_fraction
         self.layout_warp = layout_warp
         self.ranges = Augmentation()
-        # Half extents of each component's box (its samples are centred at the box centre).
-        self.half = (ds.points.max(axis=1) - ds.points.min(axis=1)).astype(np.float32) / 2
+        # Half extents of each component's box (component_descriptors owns the box), only when
+        # the warp needs them.
+        self.half = component_descriptors(ds)[:, 3:] / 2 if layout_warp > 0 else None
         # The full collection's list, so that a subset (the train split) keeps the same indices.
         categories = categories if categories is not None else ds.categories()
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
@@ -404,10 +405,10 @@ class TripletSampler:
             category[b] = self.category_of_shape[t.shape]
             substitute = self.substitute(t.positive, rng)
             S[b] = Y[b] if substitute is None else sample_part(self.ds, substitute, n, rng)
+            first = int(self.ds.first_comp[t.shape])   # warp_of's arrays start at the shape's first
             if warp is not None:
                 # The shape's own parts take the warp; S stays the catalog geometry h is given,
                 # so the fitting scale below learns the warp's rescale of the positive.
-                first = int(self.ds.first_comp[t.shape])
                 T[b] = warp[0][t.positive - first]
                 Y[b] = Y[b] * warp[1][t.positive - first]
                 if first <= t.negative < int(self.ds.first_comp[t.shape + 1]):
@@ -416,7 +417,7 @@ class TripletSampler:
             for j, comp in enumerate(extra, start=1):
                 P[b, j] = sample_part(self.ds, int(comp), n, rng)
                 if warp is not None:
-                    P[b, j] *= warp[1][int(comp) - int(self.ds.first_comp[t.shape])]
+                    P[b, j] *= warp[1][int(comp) - first]
             mask[b, :1 + len(extra)] = True
             if augmented:
                 A, offset = augmentation_transform(rng, 1.0, ranges)
@@ -450,7 +451,7 @@ class TripletSampler:
         Shapes:
             returns centre (C, 3) float32, scale (C, 3) float32 for the shape's C components.
         """
-        if self.layout_warp <= 0 or rng.random() >= self.layout_warp:
+        if self.half is None or rng.random() >= self.layout_warp:
             return None
         comps = self.ds.components_of(shape)
         knots, warped = layout_warp(rng, self.ranges)
