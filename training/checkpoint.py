@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,13 +18,15 @@ from typing import Any
 import torch
 
 from service.artifacts.files import write_file_atomic
-from training.config import TrainConfig, config_from_dict, config_to_dict
+from training.config import TrainConfig, config_from_dict, config_to_dict, known_options
 from training.models import PlacementNet, RetrievalPair, build_models
 
 CHECKPOINT_FILE = "checkpoint.pt"
 CONFIG_FILE = "config.json"
 SUMMARY_FILE = "summary.json"
 CHECKPOINT_FORMAT = 1
+
+log = logging.getLogger(__name__)
 
 
 def summary_of(run_dir: Path) -> dict[str, Any]:
@@ -90,20 +93,37 @@ def load_trained_config(run_dir: Path) -> TrainConfig:
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: {run_dir} is not a training run folder")
-    return config_from_dict(json.loads(path.read_text()))
+    return _stored_config(json.loads(path.read_text()), path)[0]
+
+
+def _stored_config(data: dict[str, Any], source: Path) -> tuple[TrainConfig, list[str]]:
+    """A stored config read for its weights: options this version does not know are ignored
+    (``config.known_options`` says why), with a warning; returns the config and their names."""
+    known, unknown = known_options(data)
+    if unknown:
+        log.warning("%s: ignoring options of the stored config that this version does not know: %s",
+                    source, ", ".join(unknown))
+    return config_from_dict(known), unknown
 
 
 def load_trained(run_dir: Path) -> Trained:
-    """Rebuild f, g and h of a run folder from its checkpoint (eval mode, CPU)."""
-    state = load_checkpoint(checkpoint_path(run_dir))
-    cfg = config_from_dict(state["config"])
+    """Rebuild f, g and h of a run folder from its checkpoint (eval mode, CPU).
+
+    Options of the stored config that this code does not know (a run trained by another version)
+    are ignored with a warning; if the weights then do not fit the networks, the error names them.
+    Resuming such a run is refused (``train.config_for_resume`` reads the config strictly).
+    """
+    path = checkpoint_path(run_dir)
+    state = load_checkpoint(path)
+    cfg, unknown = _stored_config(state["config"], path)
     pair, placement = build_models(cfg.model)
     try:
         pair.load_state_dict(state["retrieval"])
         placement.load_state_dict(state["placement"])
     except RuntimeError as exc:
-        raise ValueError(f"{checkpoint_path(run_dir)}: weights do not match the stored config ({exc})") \
-            from exc
+        why = (f"; the run was trained with options this version does not know ({', '.join(unknown)}), "
+               "which may change the networks" if unknown else "")
+        raise ValueError(f"{path}: weights do not match the stored config{why} ({exc})") from exc
     pair.eval()
     placement.eval()
     return Trained(config=cfg, pair=pair, placement=placement, state=state)

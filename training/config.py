@@ -447,6 +447,28 @@ def config_from_dict(data: dict[str, Any]) -> TrainConfig:
     return cfg
 
 
+def known_options(data: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """A stored config without the options this code does not know, and their names.
+
+    Why: a run's stored config names every option of the code that trained it, so a run trained
+    by another version (a branch with one more option) would not load here at all. Reading its
+    weights (export, evaluation) needs only the options this code knows; whether the unknown
+    ones changed the networks shows when the weights are loaded (``checkpoint.load_trained``).
+
+    Shapes:
+        data: a ``config_to_dict`` dict -> (the same without unknown keys, ["name" | "model.name"]).
+    """
+    train_names = {f.name for f in dataclasses.fields(TrainConfig)}
+    model_names = {f.name for f in dataclasses.fields(ModelConfig)}
+    known = {k: v for k, v in data.items() if k in train_names}
+    dropped = sorted(k for k in data if k not in train_names)
+    model = data.get("model")
+    if isinstance(model, dict):
+        known["model"] = {k: v for k, v in model.items() if k in model_names}
+        dropped += sorted(f"model.{k}" for k in model if k not in model_names)
+    return known, dropped
+
+
 def model_config_from_dict(data: dict[str, Any]) -> ModelConfig:
     """Rebuild a ``ModelConfig`` from its dict (as stored in manifests and checkpoints)."""
     return apply_overrides(TrainConfig(), {"model": data}, source="stored model config").model

@@ -17,13 +17,13 @@ import torch
 from typer.testing import CliRunner
 
 from service.artifacts.layout import GRAPH_FILES, INDEX_FILE, read_manifest
-from training.checkpoint import load_checkpoint, load_trained
+from training.checkpoint import load_checkpoint, load_trained, save_checkpoint
 from training.cli import app
 from training.config import resolve_config
 from training.export import export_run
 from training.plots import LOSSES_CSV, VALIDATION_CSV, read_csv
 from training.split import load_split, make_split, save_split
-from training.train import lr_factor, retrieval_objective, train
+from training.train import config_for_resume, lr_factor, retrieval_objective, train
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,6 +80,31 @@ def test_resume_continues_where_the_checkpoint_stopped(toy_dataset_dir: Path, tm
     assert set(adam_steps) == {12}
     trained = load_trained(run)
     assert trained.config.steps == 12
+
+
+def test_a_run_of_another_version_loads_for_its_weights_and_never_resumes(
+        toy_dataset_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture):
+    """Options the code does not know (a run trained by a branch with one more option) are
+    ignored when only the weights are read; if the weights then do not fit, the error names
+    them; resuming such a run is refused."""
+    run = tmp_path / "run"
+    train(_tiny(toy_dataset_dir, run, steps=2), show_progress=False)
+    path = run / "checkpoint.pt"
+    state = load_checkpoint(path)
+    state["config"] = {**state["config"], "future_option": 0.5,
+                       "model": {**state["config"]["model"], "future_layer": 0}}
+    save_checkpoint(path, state)
+    with caplog.at_level("WARNING", logger="training.checkpoint"):
+        trained = load_trained(run)
+    assert "future_option, model.future_layer" in caplog.text
+    assert trained.config.steps == 2
+    with pytest.raises(ValueError, match=r"stored config: unknown (model )?option"):
+        config_for_resume(run, {})
+    # Weights of a network this version cannot build: the unknown options are named.
+    state["placement"] = {**state["placement"], "query.extra.weight": torch.zeros(1)}
+    save_checkpoint(path, state)
+    with pytest.raises(ValueError, match=r"does not know \(future_option, model.future_layer\)"):
+        load_trained(run)
 
 
 def test_cli_train_and_export(toy_dataset_dir: Path, tmp_path: Path):
