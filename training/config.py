@@ -458,8 +458,7 @@ def known_options(data: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
     Shapes:
         data: a ``config_to_dict`` dict -> (the same without unknown keys, ["name" | "model.name"]).
     """
-    train_names = {f.name for f in dataclasses.fields(TrainConfig)}
-    model_names = {f.name for f in dataclasses.fields(ModelConfig)}
+    train_names, model_names = field_types(TrainConfig), field_types(ModelConfig)  # as apply_overrides
     known = {k: v for k, v in data.items() if k in train_names}
     dropped = sorted(k for k in data if k not in train_names)
     model = data.get("model")
