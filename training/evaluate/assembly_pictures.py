@@ -65,6 +65,8 @@ def draw_runs(catalog: Catalog, runs: Sequence[dict[str, Any]], path: Path, titl
     for k, run in enumerate(runs):
         ax = fig.add_subplot(1, max(len(runs), 1), k + 1, projection="3d")
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        tris: list[np.ndarray] = []
+        colours: list[np.ndarray] = []
         for j, (v, f) in enumerate(run_meshes(catalog, run)):
             if len(f) == 0:
                 continue
@@ -73,8 +75,15 @@ def draw_runs(catalog: Catalog, runs: Sequence[dict[str, Any]], path: Path, titl
             normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
             shade = 0.45 + 0.55 * np.abs(normal @ _LIGHT)               # two-sided flat shading
             base = np.array(matplotlib.colors.to_rgb(COLOURS[j % len(COLOURS)]))
-            ax.add_collection3d(Poly3DCollection(tri, facecolors=shade[:, None] * base, linewidths=0))
+            tris.append(tri)
+            colours.append(shade[:, None] * base)
             lo, hi = np.minimum(lo, tri.reshape(-1, 3).min(0)), np.maximum(hi, tri.reshape(-1, 3).max(0))
+        if tris:
+            # One collection for every part: matplotlib depth-sorts the triangles of a collection,
+            # not collections against each other, so a part drawn per collection could paint over
+            # a part in front of it.
+            ax.add_collection3d(Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colours),
+                                                 linewidths=0))
         centre, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-3)
         for axis, c in zip("xyz", centre, strict=True):
             getattr(ax, f"set_{axis}lim")(c - half, c + half)
