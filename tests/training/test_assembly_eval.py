@@ -271,3 +271,57 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
     assert again.exit_code == 0, again.output
     res2 = json.loads((tmp_path / "again" / "results.json").read_text())
     assert [r["start"] for r in res2["runs"]] == [r["start"] for r in runs]
+
+
+def _colour_pixels(path: Path, colour: str) -> int:
+    """Pixels of ``path`` whose chromaticity is ``colour``'s (any shade of it; white and grey
+    pixels do not count)."""
+    import matplotlib.colors
+
+    rgb = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64)
+    total = rgb.sum(axis=2, keepdims=True)
+    coloured = (rgb.max(axis=2) - rgb.min(axis=2)) > 40            # not white, grey or black text
+    target = np.asarray(matplotlib.colors.to_rgb(colour))
+    chroma = rgb / np.maximum(total, 1.0)
+    close = np.abs(chroma - target / target.sum()).sum(axis=2) < 0.06
+    return int(np.sum(close & coloured))
+
+
+@pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="no trained artifacts in exported/ yet")
+def test_a_picture_hides_what_lies_behind_another_part_triangle_by_triangle(tmp_path: Path) -> None:
+    """A pole through a plate: from the pictures' raised camera the plate hides the pole's lower
+    half and the pole's upper half hides some of the plate. Drawn part by part as wholes, one of
+    the two would show in full."""
+    from service.artifacts.loading import load_artifacts
+    from training.evaluate.assembly_pictures import COLOURS, draw_runs
+
+    catalog = load_artifacts(SHIPPED).catalog
+    extent = catalog.bbox_max - catalog.bbox_min                            # (P, 3), y up
+    flat = int(np.argmax(np.minimum(extent[:, 0], extent[:, 2]) / np.maximum(extent[:, 1], 1e-3)))
+    tall = int(np.argmax(extent[:, 1] / np.maximum(extent[:, [0, 2]].max(axis=1), 1e-3)))
+    # Per-axis scales that make the plate 1.2 wide and 0.05 thick, the pole 1.2 tall and 0.12 wide.
+    plate_scale = tuple(float(v) for v in np.array([1.2, 0.05, 1.2]) / extent[flat])
+    pole_scale = tuple(float(v) for v in np.array([0.12, 1.2, 0.12]) / extent[tall])
+    tiny = (1e-3, 1e-3, 1e-3)
+    # The start is never scaled: the catalog's smallest part, in a corner, with a near-invisible
+    # part in the opposite corner: they fix the drawn box, so the three pictures share one scale.
+    small = catalog.part_ids[int(np.argmin(extent.max(axis=1)))]
+
+    def picture(name: str, plate: tuple[float, ...], pole: tuple[float, ...]) -> Path:
+        run = {"start": small, "start_translation": [-1.0, -1.0, -1.0],
+               "parts": [catalog.part_ids[flat], catalog.part_ids[tall], small],
+               "translations": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]],
+               "scales": [list(plate), list(pole), list(tiny)],
+               "empty": False, "stacked": [], "missing": []}
+        path = tmp_path / f"{name}.png"
+        draw_runs(catalog, [run], path, name)
+        return path
+
+    both = picture("both", plate_scale, pole_scale)
+    plate_alone = picture("plate", plate_scale, tiny)
+    pole_alone = picture("pole", tiny, pole_scale)
+    plate, pole = COLOURS[1], COLOURS[2]
+    assert _colour_pixels(plate_alone, plate) > 1000 and _colour_pixels(pole_alone, pole) > 300
+    # Each part loses a real share of its pixels to the other.
+    assert _colour_pixels(both, plate) < 0.95 * _colour_pixels(plate_alone, plate)
+    assert _colour_pixels(both, pole) < 0.9 * _colour_pixels(pole_alone, pole)
