@@ -77,13 +77,13 @@ def draw_runs(catalog: Catalog, runs: Sequence[dict[str, Any]], path: Path, titl
             base = np.array(matplotlib.colors.to_rgb(COLOURS[j % len(COLOURS)]))
             tris.append(tri)
             colours.append(shade[:, None] * base)
-            lo, hi = np.minimum(lo, tri.reshape(-1, 3).min(0)), np.maximum(hi, tri.reshape(-1, 3).max(0))
         if tris:
             # One collection for every part: matplotlib depth-sorts the triangles of a collection,
             # not collections against each other, so a part drawn per collection could paint over
             # a part in front of it.
-            ax.add_collection3d(Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colours),
-                                                 linewidths=0))
+            every = np.concatenate(tris)                                  # (T, 3, 3)
+            ax.add_collection3d(Poly3DCollection(every, facecolors=np.concatenate(colours), linewidths=0))
+            lo, hi = every.reshape(-1, 3).min(0), every.reshape(-1, 3).max(0)
         centre, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-3)
         for axis, c in zip("xyz", centre, strict=True):
             getattr(ax, f"set_{axis}lim")(c - half, c + half)
