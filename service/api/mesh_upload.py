@@ -24,8 +24,19 @@ from fastapi import File, Form, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 
+from service.api.schemas import ErrorResponse
 from service.errors import InputError, UnsupportedMediaError
 from service.geometry.inputs import mesh_format
+
+# The answers every mesh upload can get from reading the file, whichever route takes it (the
+# routes add what they decide themselves; 400 and the JSON body limit are service.api.openapi_extras').
+MESH_UPLOAD_ERRORS: dict[int | str, dict[str, Any]] = {
+    413: {"model": ErrorResponse, "description": (
+        "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh with more vertices, faces, glTF nodes "
+        "or nesting than COMPLEMENTME_MAX_MESH_VERTICES, COMPLEMENTME_MAX_MESH_FACES, "
+        "COMPLEMENTME_MAX_MESH_NODES or COMPLEMENTME_MAX_MESH_NESTING.")},
+    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+}
 
 # Media types that name a mesh format; any other raw body needs the ``format`` query parameter.
 RAW_MEDIA_FORMATS = {

@@ -96,3 +96,23 @@ def test_the_document_carries_this_servers_limits_and_the_server_enforces_them(s
         assert batch.status_code == 422 and batch.json()["error"]["code"] == "too_many_items"
         few = c.post("/suggest", json={"points": points[:19]})
         assert few.status_code == 422 and few.json()["error"]["code"] == "too_few_points"
+
+
+
+def test_the_answers_of_the_layers_and_of_mesh_reading_are_documented_once(client: TestClient) -> None:
+    """400 (not JSON, not a valid form) comes from the parsers, not from a route, and a mesh upload's
+    413 and 415 from reading the file: every operation documents each in the same words (one owner:
+    service.api.openapi_extras and service.api.mesh_upload.MESH_UPLOAD_ERRORS), and each 413 names
+    the limits that apply (the JSON body limit, or the upload and mesh limits)."""
+    schema = client.get("/openapi.json").json()
+    with_body = {(path, m): op for path, ops in schema["paths"].items() for m, op in ops.items()
+                 if "requestBody" in op}
+    meshes = {key: op for key, op in with_body.items() if "415" in op["responses"]
+              and "Not OBJ" in op["responses"]["415"]["description"]}
+    assert {path for path, _m in meshes} >= {"/suggest/mesh", "/assemble/mesh", "/parts"}
+    for status, ops in (("400", with_body), ("413", meshes), ("415", meshes)):
+        said = {op["responses"][status]["description"] for op in ops.values()}
+        assert len(said) == 1, f"{status} is documented {len(said)} ways: {sorted(said)}"
+    for key, op in with_body.items():
+        limit = "COMPLEMENTME_MAX_MESH_VERTICES" if key in meshes else "COMPLEMENTME_MAX_BODY_BYTES"
+        assert limit in op["responses"]["413"]["description"], (key, op["responses"]["413"])

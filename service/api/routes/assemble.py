@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
 from service.api.deps import DeadlineDep, ServedDep, SettingsDep, UploadsDep
-from service.api.mesh_upload import MeshUpload, mesh_upload_dependency, with_raw_bodies
+from service.api.mesh_upload import MESH_UPLOAD_ERRORS, MeshUpload, mesh_upload_dependency, with_raw_bodies
 from service.api.render_modeling import render_assemble
 from service.api.responses import OrjsonResponse
 from service.api.schemas import ErrorResponse
@@ -33,9 +33,7 @@ from service.suggest.snapshot import CatalogSnapshot
 router = APIRouter(tags=["modeling"])
 
 _ERRORS: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorResponse, "description": "The body is not JSON."},
     404: {"model": ErrorResponse, "description": "The start part (or an excluded shape) is unknown."},
-    413: {"model": ErrorResponse, "description": "The body is larger than COMPLEMENTME_MAX_BODY_BYTES."},
     422: {"model": ErrorResponse, "description": (
         "No start or two of them, bad points, max_parts or branching out of range, unknown "
         "category or style, bad mode weights.")},
@@ -101,8 +99,7 @@ _assemble_upload = mesh_upload_dependency(
 
 @router.post("/assemble/mesh", response_model=AssembleResponse, summary=(
     "Grow a shape automatically from an uploaded mesh"), openapi_extra=_MESH_EXAMPLE, responses={
-    413: {"model": ErrorResponse, "description": "Upload or mesh over the limits."},
-    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    **MESH_UPLOAD_ERRORS,
     422: {"model": ErrorResponse, "description": (
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field or query parameter "
         "(duplicate_field); options in the query string of a form upload (conflicting_fields).")},

@@ -33,6 +33,7 @@ from starlette.responses import Response
 
 from service.api.auth import WriterDep
 from service.api.deps import DeadlineDep, SettingsDep, served_of
+from service.api.mesh_upload import MESH_UPLOAD_ERRORS
 from service.api.render import render_stored_part
 from service.api.responses import OrjsonResponse
 from service.api.routes.parts import PartId
@@ -170,9 +171,7 @@ async def _read_form(request: Request) -> tuple[UploadFile, PartUploadIn]:
              openapi_extra=_UPLOAD_BODY, responses={
     **_AUTH_ERRORS,
     409: {"model": ErrorResponse, "description": "shape_id belongs to the shipped catalog."},
-    413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or too many "
-          "vertices or faces."},
-    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    **MESH_UPLOAD_ERRORS,
     422: {"model": ErrorResponse, "description": "Missing file or category, bad fields, corrupt or "
           "empty mesh, external references, a part too large for the canonical frame."},
     503: {"model": ErrorResponse, "description": "The catalog database cannot be reached "

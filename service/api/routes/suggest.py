@@ -28,7 +28,7 @@ from service.api.deps import (
     UploadsDep,
 )
 from service.api.errors import service_error_body, validation_error
-from service.api.mesh_upload import MeshUpload, mesh_upload_dependency, with_raw_bodies
+from service.api.mesh_upload import MESH_UPLOAD_ERRORS, MeshUpload, mesh_upload_dependency, with_raw_bodies
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
 from service.api.schemas import (
@@ -54,9 +54,7 @@ router = APIRouter(tags=["suggest"])
 batched = APIRouter(tags=["suggest"], route_class=BatchedRoute)  # the routes that go through the batcher
 
 _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorResponse, "description": "The body is not JSON."},
     404: {"model": ErrorResponse, "description": "An excluded or placed part (or shape) is unknown."},
-    413: {"model": ErrorResponse, "description": "The body is larger than COMPLEMENTME_MAX_BODY_BYTES."},
     422: {"model": ErrorResponse, "description": (
         "Empty input, too few or too many points, NaN or infinite values, wrong shape, "
         "non-numeric values, bad base64, k out of range, unknown category, a bad region "
@@ -108,9 +106,7 @@ _suggest_upload = mesh_upload_dependency(
 @batched.post("/suggest/mesh", response_model=SuggestResponse, summary=(
     "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
     responses={
-    413: {"model": ErrorResponse, "description": "Upload over COMPLEMENTME_MAX_UPLOAD_BYTES, or a mesh "
-          "with more vertices, faces, nodes or nesting than the limits."},
-    415: {"model": ErrorResponse, "description": "Not OBJ, PLY, STL, OFF, GLB or glTF."},
+    **MESH_UPLOAD_ERRORS,
     422: {"model": ErrorResponse, "description": (
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field or query parameter "
         "(duplicate_field); options in the query string of a form upload (conflicting_fields).")},
