@@ -510,6 +510,14 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     like, on = fit["placed-box IoU, fitting on, like with like"], fit["placed-box IoU, fitting on"]
     assert all(like["n"][c] <= on["n"][c] for c in on["n"]) and sum(like["n"].values()) > 0
     assert all(0.0 <= like[c] <= 1.0 for c in like["n"] if like["n"][c])
+    # Where like with like loses IoU: the same queries, the box at the true centre or with the true
+    # extents (IoUs), and the placed centre's distances to the true one and to its own shape's.
+    for row, upper in (("like with like, at the true centre", 1.0),
+                       ("like with like, at the true extents", 1.0),
+                       ("like with like: placed centre to the true one", 10.0),
+                       ("like with like: placed centre to the part's in its own shape", 10.0)):
+        assert fit[row]["n"] == like["n"], row
+        assert all(0.0 <= fit[row][c] <= upper for c in like["n"] if like["n"][c]), row
     assert "Table 1" in (tmp_path / "b.md").read_text()
     assert "Like with like" in (tmp_path / "b.md").read_text()
     one = res["tables"]["hausdorff_one_component"]["Ours"]

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from service.artifacts.catalog import Catalog
 from service.geometry.boxes import box_iou
+from service.suggest.engine import Placement
 from training.evaluate.baselines import Method, rank_by_scores
 from training.evaluate.contact import Mesh, contact
 from training.evaluate.metrics import (
@@ -316,6 +317,29 @@ def evaluate_coverage(method: Method, queries: list[Query], index: ShapeIndex, s
     return out
 
 
+_LIKE_DIAGNOSTICS = ("iou_like_true_centre", "iou_like_true_extents", "centre_error_like",
+                     "centre_to_source_like")
+
+
+def _like_diagnostics(placed: Placement, true_lo: np.ndarray, true_hi: np.ndarray, source: np.ndarray
+                      ) -> dict[str, float]:
+    """Where a like-with-like placed box loses IoU (see ``evaluate_size_fit``).
+
+    Shapes:
+        true_lo, true_hi, source: (3,) in the shape frame.
+    """
+    lo, hi = np.asarray(placed.bbox_min, np.float64), np.asarray(placed.bbox_max, np.float64)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    true_centre, true_half = (true_lo + true_hi) / 2, (true_hi - true_lo) / 2
+
+    def iou(c: np.ndarray, h: np.ndarray) -> float:
+        return float(box_iou(c - h, c + h, true_lo, true_hi)[0])
+
+    return {"iou_like_true_centre": iou(true_centre, half), "iou_like_true_extents": iou(centre, true_half),
+            "centre_error_like": float(np.linalg.norm(centre - true_centre)),
+            "centre_to_source_like": float(np.linalg.norm(centre - source))}
+
+
 def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str, Any]], index: ShapeIndex,
                       progress: bool = False) -> list[dict[str, Any]]:
     """Size fitting of the top suggestion of each all-but-one query, on and off.
@@ -327,6 +351,11 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
     ``iou_like`` repeats the IoU with fitting on only where the two boxes are of one kind: the
     top part has the removed label and that label is one component (a pair of engines or a set of
     legs is one labelled part whose box spans several components, which no single part can fill).
+    On those queries, where the IoU is lost: ``iou_like_true_centre`` keeps the fitted extents at
+    the true box's centre, ``iou_like_true_extents`` the true extents at the placed centre;
+    ``centre_error_like`` is the placed centre's distance to the true one and
+    ``centre_to_source_like`` its distance to the part's centre in its own shape (how much of
+    where h puts a part is where that part came from).
     """
     cat = index.catalog
     tops = {r["qid"]: r["top"] for r in per_query}
@@ -340,12 +369,18 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
         true_hi = np.max(cat.translations[rows] + cat.bbox_max[rows], axis=0).astype(np.float64)
         rec: dict[str, Any] = {"qid": q.qid, "category": q.category, "part_id": top[0]}
         like = len(rows) == 1 and index.labels[cat.lookup(top[0])] == index.labels[rows[0]]
+        true_ext = np.maximum(true_hi - true_lo, 1e-6)
+        placed: dict[str, Placement] = {}
         for name, fit in (("on", True), ("off", False)):
-            p = ours.engine.place(q.points, [top[0]], refine_contact=False, fit_scale=fit).placements[0]
+            p = placed[name] = ours.engine.place(q.points, [top[0]], refine_contact=False,
+                                                 fit_scale=fit).placements[0]
             rec[f"iou_{name}"] = float(box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)[0])
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
-            true_ext = np.maximum(true_hi - true_lo, 1e-6)
             rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
         rec["iou_like"] = rec["iou_on"] if like else None
+        rec.update(dict.fromkeys(_LIKE_DIAGNOSTICS))
+        if like:
+            rec.update(_like_diagnostics(placed["on"], true_lo, true_hi,
+                                         cat.translations[cat.lookup(top[0])].astype(np.float64)))
         out.append(rec)
     return out

@@ -341,7 +341,11 @@ class _Report:
                 *method_table(self.tables["size_fit"], self.cats, None, first="Measure"), "",
                 *(["\"Like with like\": only the queries whose top part has the removed label and whose "
                    "removed label is one component (a label of several components, such as a pair of "
-                   "engines, has a box no single part fills)."]
+                   "engines, has a box no single part fills). On those queries, \"at the true centre\" moves "
+                   "the placed box to the true box's centre, keeping its fitted extents, and \"at the true "
+                   "extents\" gives it the true extents at its placed centre: which of the two loses more "
+                   "IoU. The last two rows are distances (unit radius): from the placed centre to the true "
+                   "one, and to the part's centre in the shape it comes from."]
                   if "placed-box IoU, fitting on, like with like" in self.tables["size_fit"] else []), ""]
 
     def placement(self) -> list[str]:

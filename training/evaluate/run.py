@@ -374,7 +374,15 @@ class _Benchmark:
                                        "scale error, fitting on": table(fits, "scale_error_on", self.cats),
                                        "scale error, fitting off": table(fits, "scale_error_off", self.cats),
                                        "placed-box IoU, fitting on, like with like": table(fits, "iou_like",
-                                                                                           self.cats)}
+                                                                                           self.cats),
+                                       "like with like, at the true centre": table(
+                                           fits, "iou_like_true_centre", self.cats),
+                                       "like with like, at the true extents": table(
+                                           fits, "iou_like_true_extents", self.cats),
+                                       "like with like: placed centre to the true one": table(
+                                           fits, "centre_error_like", self.cats),
+                                       "like with like: placed centre to the part's in its own shape": table(
+                                           fits, "centre_to_source_like", self.cats)}
 
     def plausibility_tables(self) -> None:
         """The contact test of the first all-but-one and test placement queries of each category."""
