@@ -157,9 +157,10 @@ def bar_chart(rows: dict[str, dict[str, Any]], categories: list[str], title: str
     plt.close(fig)
 
 
-# The paper's means (Tables 1, 2 and 4, "Ours (Joint)") and the project's targets (issue 5).
+# The paper's means (Tables 1, 2 and 4, "Ours (Joint)") and the project's targets: issue 15's
+# (model v3; issue 5 asked for 0.12 and 0.06 before it).
 PAPER_MEANS = {"functional_map": 0.81, "hausdorff": 0.16, "placement_error": 0.12}
-TARGETS = {"functional_map": 0.90, "hausdorff": 0.12, "placement_error": 0.06}
+TARGETS = {"functional_map": 0.90, "hausdorff": 0.15, "placement_error": 0.04}
 SUMMARY_METRICS = (("functional_map", "Functional mAP@5 (Table 1)", True),
                    ("hausdorff", "Hausdorff distance (Table 2)", False),
                    ("placement_error", "Placement test error of h (Table 4)", False))
