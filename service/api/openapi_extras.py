@@ -31,6 +31,12 @@ _FASTAPI_422 = "#/components/schemas/HTTPValidationError"
 _ALWAYS_UP = ("/healthz", "/metrics")
 
 
+# The body limit's answer; a route that can refuse a body for a reason of its own (413
+# over_budget) declares this text followed by its reason.
+BODY_TOO_LARGE = ("The body is larger than COMPLEMENTME_MAX_BODY_BYTES (COMPLEMENTME_MAX_UPLOAD_BYTES for "
+                  "mesh uploads).")
+
+
 def _common(path: str, op: dict[str, Any]) -> dict[str, str]:
     """Status -> description of the answers the layers around ``op`` may give."""
     extra: dict[str, str] = {}
@@ -39,8 +45,7 @@ def _common(path: str, op: dict[str, Any]) -> dict[str, str]:
         if "application/json" in op["requestBody"].get("content", {}):
             extra["415"] = ("unsupported_media_type: a Content-Type other than JSON, or a JSON body that is "
                             "not UTF-8.")
-        extra["413"] = ("The body is larger than COMPLEMENTME_MAX_BODY_BYTES (COMPLEMENTME_MAX_UPLOAD_BYTES "
-                        "for mesh uploads).")
+        extra["413"] = BODY_TOO_LARGE
     if path not in _ALWAYS_UP:
         extra["503"] = ("not_ready: the artifacts are not loaded yet; overloaded: more requests than "
                         "COMPLEMENTME_MAX_INFLIGHT + COMPLEMENTME_MAX_QUEUE (with Retry-After).")

@@ -99,20 +99,27 @@ def test_the_document_carries_this_servers_limits_and_the_server_enforces_them(s
 
 
 
+
 def test_the_answers_of_the_layers_and_of_mesh_reading_are_documented_once(client: TestClient) -> None:
     """400 (not JSON, not a valid form) comes from the parsers, not from a route, and a mesh upload's
     413 and 415 from reading the file: every operation documents each in the same words (one owner:
-    service.api.openapi_extras and service.api.mesh_upload.MESH_UPLOAD_ERRORS), and each 413 names
-    the limits that apply (the JSON body limit, or the upload and mesh limits)."""
+    service.api.openapi_extras and service.api.mesh_upload.MESH_UPLOAD_ERRORS). A 413 names the
+    limits that apply, and the suggestion routes' also their request budget (413 over_budget)."""
+    from service.api.mesh_upload import MESH_UPLOAD_ERRORS
+    from service.api.openapi_extras import BODY_TOO_LARGE
+
     schema = client.get("/openapi.json").json()
     with_body = {(path, m): op for path, ops in schema["paths"].items() for m, op in ops.items()
                  if "requestBody" in op}
-    meshes = {key: op for key, op in with_body.items() if "415" in op["responses"]
-              and "Not OBJ" in op["responses"]["415"]["description"]}
+    meshes = {key for key, op in with_body.items() if "Not OBJ" in op["responses"].get("415", {}).get(
+        "description", "")}
     assert {path for path, _m in meshes} >= {"/suggest/mesh", "/assemble/mesh", "/parts"}
-    for status, ops in (("400", with_body), ("413", meshes), ("415", meshes)):
-        said = {op["responses"][status]["description"] for op in ops.values()}
+    for status, keys in (("400", set(with_body)), ("415", meshes)):
+        said = {with_body[key]["responses"][status]["description"] for key in keys}
         assert len(said) == 1, f"{status} is documented {len(said)} ways: {sorted(said)}"
     for key, op in with_body.items():
-        limit = "COMPLEMENTME_MAX_MESH_VERTICES" if key in meshes else "COMPLEMENTME_MAX_BODY_BYTES"
-        assert limit in op["responses"]["413"]["description"], (key, op["responses"]["413"])
+        said = op["responses"]["413"]["description"]
+        shared = MESH_UPLOAD_ERRORS[413]["description"] if key in meshes else BODY_TOO_LARGE
+        assert said.startswith(shared), (key, said)
+        budgeted = key[0] in ("/suggest", "/suggest/batch", "/suggest/mesh")
+        assert ("over_budget" in said and "COMPLEMENTME_MAX_REQUEST_COST_MS" in said) == budgeted, (key, said)

@@ -29,6 +29,7 @@ from service.api.deps import (
 )
 from service.api.errors import service_error_body, validation_error
 from service.api.mesh_upload import MESH_UPLOAD_ERRORS, MeshUpload, mesh_upload_dependency, with_raw_bodies
+from service.api.openapi_extras import BODY_TOO_LARGE
 from service.api.render import render_place, render_suggest
 from service.api.responses import OrjsonResponse
 from service.api.schemas import (
@@ -53,6 +54,10 @@ _ANY_REGION = Region.ball(np.zeros(3), 1.0)
 router = APIRouter(tags=["suggest"])
 batched = APIRouter(tags=["suggest"], route_class=BatchedRoute)  # the routes that go through the batcher
 
+# The suggestion routes refuse a request whose estimated CPU time is over the budget before any
+# work starts (SuggestionEngine.check_budget), with the body limit's status.
+_OVER_BUDGET = ("Or over_budget: the request's estimated CPU time is over "
+                "COMPLEMENTME_MAX_REQUEST_COST_MS.")
 _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "An excluded or placed part (or shape) is unknown."},
     422: {"model": ErrorResponse, "description": (
@@ -60,6 +65,8 @@ _POINT_ERRORS: dict[int | str, dict[str, Any]] = {
         "non-numeric values, bad base64, k out of range, unknown category, a bad region "
         "(invalid_region).")},
 }
+_SUGGEST_ERRORS: dict[int | str, dict[str, Any]] = {
+    **_POINT_ERRORS, 413: {"model": ErrorResponse, "description": f"{BODY_TOO_LARGE} {_OVER_BUDGET}"}}
 
 # The form's examples; the raw-body media types are added (service.api.mesh_upload).
 _MESH_EXAMPLE: dict[str, Any] = with_raw_bodies({"requestBody": {"content": {
@@ -72,7 +79,7 @@ _MESH_EXAMPLE: dict[str, Any] = with_raw_bodies({"requestBody": {"content": {
 }}}}})
 
 
-@batched.post("/suggest", response_model=SuggestResponse, responses=_POINT_ERRORS,
+@batched.post("/suggest", response_model=SuggestResponse, responses=_SUGGEST_ERRORS,
               summary="Suggest complementary parts for a partial assembly given as points")
 async def post_suggest(body: SuggestRequest, served: ServedDep, settings: SettingsDep, ticket: TicketDep,
                        deadline: DeadlineDep) -> OrjsonResponse:
@@ -107,6 +114,7 @@ _suggest_upload = mesh_upload_dependency(
     "Suggest complementary parts for a partial assembly uploaded as a mesh"), openapi_extra=_MESH_EXAMPLE,
     responses={
     **MESH_UPLOAD_ERRORS,
+    413: {"model": ErrorResponse, "description": f"{MESH_UPLOAD_ERRORS[413]['description']} {_OVER_BUDGET}"},
     422: {"model": ErrorResponse, "description": (
         "Corrupt, empty or zero-area mesh; bad options; a repeated form field or query parameter "
         "(duplicate_field); options in the query string of a form upload (conflicting_fields).")},
@@ -131,7 +139,7 @@ async def post_suggest_mesh(
     return OrjsonResponse(render_suggest(result, served.model_version, fit))
 
 
-@batched.post("/suggest/batch", response_model=BatchResponse, responses=_POINT_ERRORS,
+@batched.post("/suggest/batch", response_model=BatchResponse, responses=_SUGGEST_ERRORS,
               summary="Suggest for many partial assemblies at once (batched inference)")
 async def post_suggest_batch(body: BatchRequest, served: ServedDep, settings: SettingsDep, ticket: TicketDep,
                              deadline: DeadlineDep) -> OrjsonResponse:
