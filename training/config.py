@@ -212,6 +212,10 @@ class TrainConfig:
     # Measurement only: "styles" holds out one style per category (leave-one-style-out
     # benchmark); styles are never read by the training itself.
     split: str = field(default="random", metadata=_help("Test split: random | styles (one style held out)."))
+    # Which shapes (or, with split styles, which style per category) are held out depends on this
+    # seed alone, so the same held-out draw can be trained with other seeds and a figure judged
+    # over several draws (docs/training.md, "How much the figure owes to the draw").
+    split_seed: int = field(default=-1, metadata=_help("Seed of the train/test split (-1 = --seed)."))
     placement_lr: float = field(default=1e-3, metadata=_help("Initial Adam learning rate of h."))
     # Fine-tuning: the run starts from an exported model's networks (read back from its graphs by
     # training.from_onnx) instead of random weights. Batch norm is frozen (eval mode) throughout:
@@ -270,6 +274,9 @@ class TrainConfig:
                              f"got {self.removal_query_fraction}")
         if not 0.0 <= self.augment <= 1.0:
             raise ValueError(f"train config: augment must be in [0, 1], got {self.augment}")
+        if self.split_seed < -1:
+            raise ValueError(f"train config: split_seed must be >= 0, or -1 for the seed, got "
+                             f"{self.split_seed}")
         if self.positives < 1 or self.split not in ("random", "styles"):
             raise ValueError(f"train config: positives must be >= 1 (got {self.positives}) and split "
                              f"random or styles (got {self.split!r})")

@@ -275,7 +275,8 @@ def _split_of(cfg: TrainConfig, ds: ProcessedDataset, run_dir: Path, env: _Dist)
     if (run_dir / SPLIT_FILE).exists():
         split = load_split(run_dir, ds)
     else:
-        split = make_split(ds, cfg.test_fraction, cfg.seed, by_style=cfg.split == "styles")
+        seed = cfg.seed if cfg.split_seed < 0 else cfg.split_seed
+        split = make_split(ds, cfg.test_fraction, seed, by_style=cfg.split == "styles")
         if env.is_main:
             save_split(split, ds, run_dir)
     if len(split.test) == 0:

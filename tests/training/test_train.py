@@ -162,6 +162,20 @@ def test_split_is_per_category_seeded_and_checked(toy_dataset, tmp_path: Path):
         load_split(tmp_path, other)
 
 
+def test_split_seed_picks_the_held_out_draw_apart_from_the_seed(toy_dataset, toy_dataset_dir: Path,
+                                                               tmp_path: Path):
+    """--split-seed fixes which shapes are held out whatever --seed trains with; -1 follows --seed."""
+    held = {}
+    for name, seed, split_seed in (("a", 0, 3), ("b", 5, 3), ("c", 5, -1)):
+        train(_tiny(toy_dataset_dir, tmp_path / name, steps=1, seed=seed, split_seed=split_seed),
+              show_progress=False)
+        held[name] = load_split(tmp_path / name, toy_dataset).test
+    assert (held["a"] == held["b"]).all() and (held["a"] == make_split(toy_dataset, 0.2, seed=3).test).all()
+    assert (held["c"] == make_split(toy_dataset, 0.2, seed=5).test).all()
+    assert (held["c"] != held["b"]).any()
+    with pytest.raises(ValueError, match="split_seed"):
+        _tiny(toy_dataset_dir, tmp_path / "d", split_seed=-2).validate()
+
 def test_lr_schedules():
     exp = resolve_config(overrides={"lr_decay": 0.8, "lr_decay_steps": 100})
     assert lr_factor(exp, 0, 0.0) == 1.0
