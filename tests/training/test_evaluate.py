@@ -574,3 +574,21 @@ def test_render_only_replaces_the_notes(tmp_path: Path) -> None:
     assert json.loads((out / "results.json").read_text())["notes"].startswith("Lamps")
     missing = runner.invoke(app, ["evaluate", "--out", str(tmp_path / "none"), "--render-only"])
     assert missing.exit_code == 2 and "no results" in missing.output
+
+
+def test_the_size_fit_table_keeps_its_row_order_when_rendered_again(tmp_path: Path) -> None:
+    """results.json sorts its keys; the report shows the size-fitting rows in SIZE_FIT_ROWS' order
+    (so its text can name rows by where they stand) whether it is written fresh or re-rendered."""
+    from training.evaluate.report import SIZE_FIT_ROWS
+    from training.evaluate.run import rerender
+
+    committed = Path(__file__).resolve().parents[2] / "docs" / "benchmark" / "results.json"
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").write_text(committed.read_text(encoding="utf-8"), encoding="utf-8")
+    rerender(out, tmp_path / "b.md")
+    text = (tmp_path / "b.md").read_text(encoding="utf-8")
+    section = text[text.index("## Size fitting"):]
+    table_lines = section.split("\n\n")[1].splitlines()[2:]   # the heading, then the table
+    rows = [line.split(" | ")[0].lstrip("| ") for line in table_lines]
+    assert rows == [title for title, _key in SIZE_FIT_ROWS]

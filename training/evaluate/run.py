@@ -366,23 +366,12 @@ class _Benchmark:
 
     def size_fit_table(self) -> None:
         """The top suggestion of each all-but-one query, placed, against the removed part's box."""
+        from training.evaluate.report import SIZE_FIT_ROWS  # the report (and matplotlib) only when run
+
         with self._timed("size fit"):
             fits = evaluate_size_fit(self.ours, self.queries["all_but_one"],
                                      self.per_query["Ours"]["all_but_one"], self.index, self.s.progress)
-            self.tables["size_fit"] = {"placed-box IoU, fitting on": table(fits, "iou_on", self.cats),
-                                       "placed-box IoU, fitting off": table(fits, "iou_off", self.cats),
-                                       "scale error, fitting on": table(fits, "scale_error_on", self.cats),
-                                       "scale error, fitting off": table(fits, "scale_error_off", self.cats),
-                                       "placed-box IoU, fitting on, like with like": table(fits, "iou_like",
-                                                                                           self.cats),
-                                       "like with like, at the true centre": table(
-                                           fits, "iou_like_true_centre", self.cats),
-                                       "like with like, at the true extents": table(
-                                           fits, "iou_like_true_extents", self.cats),
-                                       "like with like: placed centre to the true one": table(
-                                           fits, "centre_error_like", self.cats),
-                                       "like with like: placed centre to the part's in its own shape": table(
-                                           fits, "centre_to_source_like", self.cats)}
+            self.tables["size_fit"] = {title: table(fits, key, self.cats) for title, key in SIZE_FIT_ROWS}
 
     def plausibility_tables(self) -> None:
         """The contact test of the first all-but-one and test placement queries of each category."""
