@@ -437,8 +437,10 @@ class SuggestionEngine:
             canonical: (M, 3) float32.
         """
         c = self.config
-        lo, hi = canonical.min(axis=0), canonical.max(axis=0)
-        reach = float(np.linalg.norm(canonical - (lo + hi) / 2, axis=1).max())
+        # float64: a tiny frame.radius puts float32 points near 1e20, whose squares overflow float32.
+        pts = canonical.astype(np.float64)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        reach = float(np.linalg.norm(pts - (lo + hi) / 2, axis=1).max())
         if c.ood_min_extent <= reach <= c.ood_max_extent:
             return []
         return [QueryWarning("frame", f"the points reach {reach:.3g} from their centre in the model's frame, "

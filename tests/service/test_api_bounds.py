@@ -138,3 +138,17 @@ def test_assemble_is_as_strict_as_suggest(client: TestClient, query: AssemblyQue
         r = client.post("/assemble", json={"part_id": query.kept[0], field: value})
         assert r.status_code == 422, (field, r.text)
         assert r.json()["error"]["details"][0]["loc"][:2] == ["body", field]
+
+
+@pytest.mark.parametrize("radius", [1e-20, 1e-38])
+def test_a_tiny_frame_radius_is_answered_with_a_frame_warning(client: TestClient, query: AssemblyQuery,
+                                                              radius: float) -> None:
+    """Points divided by a tiny radius lie near 1e20-1e38 in float32: the reach check squares them
+    in float64 (float32 overflowed: a RuntimeWarning, found by the property test above), and the
+    answer says the frame is wrong."""
+    body = _suggest_body(query)
+    body["frame"]["radius"] = radius
+    response = client.post("/suggest", json=body)
+    _check(response)
+    assert response.status_code == 200
+    assert any(w["code"] == "frame" for w in response.json()["warnings"]), response.json()["warnings"]
