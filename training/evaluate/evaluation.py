@@ -317,10 +317,6 @@ def evaluate_coverage(method: Method, queries: list[Query], index: ShapeIndex, s
     return out
 
 
-_LIKE_DIAGNOSTICS = ("iou_like_true_centre", "iou_like_true_extents", "centre_error_like",
-                     "centre_to_source_like")
-
-
 def _like_diagnostics(placed: Placement, true_lo: np.ndarray, true_hi: np.ndarray, source: np.ndarray
                       ) -> dict[str, float]:
     """Where a like-with-like placed box loses IoU (see ``evaluate_size_fit``).
@@ -378,7 +374,6 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
             rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
         rec["iou_like"] = rec["iou_on"] if like else None
-        rec.update(dict.fromkeys(_LIKE_DIAGNOSTICS))
         if like:
             rec.update(_like_diagnostics(placed["on"], true_lo, true_hi,
                                          cat.translations[cat.lookup(top[0])].astype(np.float64)))
