@@ -592,3 +592,25 @@ def test_the_size_fit_table_keeps_its_row_order_when_rendered_again(tmp_path: Pa
     table_lines = section.split("\n\n")[1].splitlines()[2:]   # the heading, then the table
     rows = [line.split(" | ")[0].lstrip("| ") for line in table_lines]
     assert rows == [title for title, _key in SIZE_FIT_ROWS]
+
+
+def test_a_report_does_not_depend_on_the_key_order_of_its_results(tmp_path: Path) -> None:
+    """The report is a function of the results' content: written fresh (dicts in run order) or
+    re-rendered from results.json (keys sorted), its run times, recall sections, query counts and
+    pool read the same. Checked on the committed results with every dict's keys reversed."""
+    from training.evaluate.report import write_report
+
+    def reversed_keys(o: Any) -> Any:
+        if isinstance(o, dict):
+            return {k: reversed_keys(o[k]) for k in reversed(list(o))}
+        return [reversed_keys(x) for x in o] if isinstance(o, list) else o
+
+    committed = Path(__file__).resolve().parents[2] / "docs" / "benchmark" / "results.json"
+    results = json.loads(committed.read_text(encoding="utf-8"))
+    results["tables"]["recall@5"] = results["tables"]["recall@1"]   # k = 1, 5, 10: not the names' order
+    write_report(results, tmp_path / "a.md", tmp_path / "charts")
+    write_report(reversed_keys(results), tmp_path / "b.md", tmp_path / "charts")
+    a, b = (tmp_path / "a.md").read_text(encoding="utf-8"), (tmp_path / "b.md").read_text(encoding="utf-8")
+    assert a == b
+    assert a.index("### Recall@1") < a.index("### Recall@5") < a.index("### Recall@10")
+    assert "\n\n\n" not in a

@@ -277,6 +277,9 @@ class _Report:
 
     def header(self) -> list[str]:
         r, s, art = self.results, self.settings, self.results["artifact"]
+        # Every list the report takes from a dict of results.json is put in a fixed order here
+        # (stages by name, settings by name, categories as listed): the file sorts its keys, so
+        # order taken from the dict would make a re-rendered report differ from the first.
         timing = r["timing_seconds"]
         return [
             "# Benchmark", "",
@@ -292,7 +295,7 @@ class _Report:
             f"category has fewer {_split_words(s)} (shape, labelled part) pairs); "
             f"{s['placement_queries_per_category']} placement queries per category and split.",
             f"- Run time: {timing.get('total', 0):.0f} s "
-            f"({', '.join(f'{k} {v:.0f} s' for k, v in timing.items() if k != 'total')}).",
+            f"({', '.join(f'{k} {timing[k]:.0f} s' for k in sorted(timing) if k != 'total')}).",
             ""]
 
     def summary(self) -> list[str]:
@@ -357,8 +360,8 @@ class _Report:
                    "the placed box to the true box's centre, keeping its fitted extents, and \"at the true "
                    "extents\" gives it the true extents at its placed centre: which of the two loses more "
                    "IoU. The two \"placed centre\" rows are distances (unit radius): from the placed centre "
-                   "to the true one, and to the part's centre in the shape it comes from."]
-                  if "placed-box IoU, fitting on, like with like" in self.tables["size_fit"] else []), ""]
+                   "to the true one, and to the part's centre in the shape it comes from.", ""]
+                  if "placed-box IoU, fitting on, like with like" in self.tables["size_fit"] else [])]
 
     def _size_fit_rows(self) -> dict[str, Any]:
         rows = self.tables["size_fit"]
@@ -385,7 +388,9 @@ class _Report:
 
     def recall(self) -> list[str]:
         """Exact-component recall at each k and the median percentile rank; the last k's chart."""
-        recall_keys = [k for k in self.tables if k.startswith("recall@")]
+        # By k, not by name: results.json sorts its keys, and "recall@10" sorts before "recall@5".
+        recall_keys = sorted((k for k in self.tables if k.startswith("recall@")),
+                             key=lambda k: int(k.removeprefix("recall@")))
         if not recall_keys:
             return []
         lines = ["## Exact-component recall (higher is better) and median percentile rank (lower is "
@@ -446,9 +451,11 @@ class _Report:
         cats = self.cats
         lines = ["## Query counts", "", "| Setting | " + " | ".join(cats) + " |",
                  "|---" * (len(cats) + 1) + "|"]
-        for setting, counts in self.results["queries"].items():
+        queries = self.results["queries"]
+        for setting in sorted(queries):
+            counts = queries[setting]
             lines.append(f"| {setting} | " + " | ".join(str(counts.get(c, 0)) for c in cats) + " |")
-        pool = ", ".join(f"{c} {n}" for c, n in self.results["pool"].items())
+        pool = ", ".join(f"{c} {self.results['pool'][c]}" for c in self.cats if c in self.results["pool"])
         return [*lines, "",
                 "Candidate parts per category (whole catalog, before excluding the query's shape): "
                 f"{pool}.", "",
