@@ -203,7 +203,8 @@ class LocalSink:
         try:
             part = prepare_part(
                 mesh, "ply", name=filename, frame=Frame(), networks=engine.networks,
-                n_points=engine.artifacts.n_points, preview_points=self.writer.builder.n_points, seed=s.seed,
+                n_points=engine.artifacts.n_points, placement_points=engine.artifacts.placement_points,
+                preview_points=self.writer.builder.n_points, seed=s.seed,
                 max_vertices=s.max_mesh_vertices, max_faces=s.max_mesh_faces, max_nodes=s.max_mesh_nodes,
                 max_nesting=s.max_mesh_nesting, max_extent=s.max_part_extent,
                 category=category, part_name=fields.get("name"), style=fields.get("style"),

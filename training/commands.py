@@ -109,6 +109,9 @@ def export_command(
     data: Path | None = typer.Option(None, "--data", help="Processed dataset (default: the run's)."),
     n_points: int | None = typer.Option(None, "--n-points",
                                         help="Points per query or part when serving (default: training N)."),
+    placement_points: int | None = typer.Option(
+        None, "--placement-points", min=1,
+        help="Points h takes per query and part when serving (default: --n-points)."),
     catalog_points: int = typer.Option(256, "--catalog-points", help="Points stored per catalog part."),
     seed: int = typer.Option(0, "--seed", help="Seed of the catalog point samples."),
     duplicate_embedding_radius: float = typer.Option(0.05, "--duplicate-embedding-radius",
@@ -129,7 +132,8 @@ def export_command(
     from training.export import ExportOptions, export_run
     from training.from_onnx import trained_from_artifacts
 
-    opts = ExportOptions(n_points=n_points, catalog_points=catalog_points, seed=seed,
+    opts = ExportOptions(n_points=n_points, placement_points=placement_points, catalog_points=catalog_points,
+                         seed=seed,
                          duplicate_embedding_radius=duplicate_embedding_radius,
                          duplicate_chamfer_factor=duplicate_chamfer_factor,
                          duplicate_size_tolerance=duplicate_size_tolerance, max_megabytes=max_megabytes)

@@ -64,6 +64,9 @@ class ExportOptions:
 
     # Points the service samples per query or part (manifest n_points); None = the training N.
     n_points: int | None = None
+    # Points h takes of a query and of a part (manifest placement_points); None = n_points. h
+    # places more precisely on more points than f and g need (docs/training.md, "h on 512 points").
+    placement_points: int | None = None
     # Points stored per catalog part (float16) for the service's previews and checks.
     catalog_points: int = 256
     # Seed of the catalog's point samples.
@@ -320,6 +323,9 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
     # Embeddings and placement features from the shipped graphs, on n_points samples per part.
     parts = sample_parts(ds, n_points, opts.seed)
     embeddings = run_chunked(f_sess, parts, opts.chunk).astype(np.float32)
+    placement_points = opts.placement_points or n_points
+    if placement_points != n_points:
+        parts = sample_parts(ds, placement_points, opts.seed)
     part_features = run_chunked(part_sess, parts, opts.chunk).astype(np.float32)
     preview = sample_parts(ds, opts.catalog_points, opts.seed + 1).astype(np.float16)
 
@@ -362,6 +368,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
     manifest = {
         "model_version": f"{name}-{_models_hash(folder)}",
         "n_points": int(n_points),
+        # Written only when h takes its own count (the loader reads N without it).
+        **({"placement_points": int(placement_points)} if placement_points != n_points else {}),
         "embedding_dim": cfg.model.embedding_dim,
         "n_modes": cfg.model.n_modes,
         "part_count": len(records),

@@ -476,13 +476,16 @@ class CategoryOut(BaseModel):
 
 class ModelInfo(BaseModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{
-        "model_version": "2025.01-chairs", "format_version": 1, "n_points": 1000, "embedding_dim": 50,
-        "n_modes": 10, "part_count": 4210, "categories": [{"name": "chair", "parts": 2210}],
+        "model_version": "2025.01-chairs", "format_version": 1, "n_points": 1000, "placement_points": 1000,
+        "embedding_dim": 50, "n_modes": 10, "part_count": 4210,
+        "categories": [{"name": "chair", "parts": 2210}],
         "limits": {"min_points": 16, "max_points": 100000, "default_k": 10, "max_k": 100}}]})
 
     model_version: str
     format_version: int
     n_points: int
+    placement_points: int = Field(description="Points h takes of a query and of a part (n_points "
+                                  "unless the artifacts give h its own count).")
     embedding_dim: int
     n_modes: int
     part_count: int

@@ -25,6 +25,9 @@ Layout of an artifact folder (``exported/`` ships with the repository)::
                         components (P, K * D + K) about mean (K * D + K,); the manifest's
                         "familiarity" entry holds the distance threshold calibrated on them
 
+manifest.json's ``n_points`` (N) is the point count of f and g, of h too unless the manifest
+gives h its own, ``placement_points`` (format 2: a reader of format 1 would give h N points).
+
 Query points are in the canonical frame: y up, front +x, the complete object centred at its
 bounding-box centre and scaled to unit radius. Part points are centred at the part's
 bounding-box centre (same scale). A translation is the part's bounding-box centre.
@@ -44,6 +47,10 @@ import numpy as np
 from service.artifacts.files import write_file_atomic
 
 FORMAT_VERSION = 1
+# Format 2 is format 1 with the manifest's optional ``placement_points``; a folder without it
+# is still written as format 1, so every reader of format 1 keeps reading it.
+PLACEMENT_POINTS_FORMAT = 2
+SUPPORTED_FORMATS = (FORMAT_VERSION, PLACEMENT_POINTS_FORMAT)
 
 MANIFEST = "manifest.json"
 GRAPH_FILES = {
@@ -154,7 +161,7 @@ def write_manifest(folder: Path, manifest: dict[str, Any]) -> dict[str, Any]:
     for extra in sorted(folder.glob("*.onnx.data")):
         checksums[extra.name] = sha256_file(extra)
     full = dict(manifest)
-    full["format_version"] = FORMAT_VERSION
+    full["format_version"] = PLACEMENT_POINTS_FORMAT if "placement_points" in manifest else FORMAT_VERSION
     full["files"] = checksums
     write_json_atomic(folder / MANIFEST, full)
     return full
@@ -171,9 +178,12 @@ def read_manifest(folder: Path, verify_checksums: bool = True) -> dict[str, Any]
     except (OSError, json.JSONDecodeError) as exc:
         raise ArtifactError(f"{path}: not valid JSON ({exc})") from exc
     version = manifest.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in SUPPORTED_FORMATS:
         raise ArtifactError(f"{path}: format_version {version!r} is not supported "
-                            f"(expected {FORMAT_VERSION})")
+                            f"(expected one of {', '.join(map(str, SUPPORTED_FORMATS))})")
+    if "placement_points" in manifest and version != PLACEMENT_POINTS_FORMAT:
+        raise ArtifactError(f"{path}: placement_points needs format_version {PLACEMENT_POINTS_FORMAT}, "
+                            f"found {version!r}")
     for key in ("model_version", "n_points", "embedding_dim", "n_modes", "part_count", "files"):
         if key not in manifest:
             raise ArtifactError(f"{path}: required key {key!r} missing")

@@ -104,6 +104,18 @@ class Artifacts:
         return int(self.manifest["n_points"])
 
     @property
+    def placement_points(self) -> int:
+        """Points h takes of a query and of a part (the manifest's ``placement_points``; N when
+        absent). h places more precisely on more points than f and g need (docs/training.md)."""
+        return int(self.manifest.get("placement_points", self.n_points))
+
+    @property
+    def query_points(self) -> int:
+        """Points a query should bring for every network: what the service samples a mesh or an
+        assembly to before each network takes its own count."""
+        return max(self.n_points, self.placement_points)
+
+    @property
     def n_modes(self) -> int:
         return int(self.manifest["n_modes"])
 
@@ -278,7 +290,9 @@ def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 
     if not folder.is_dir():
         raise ArtifactError(f"artifact folder not found: {folder}")
     manifest = read_manifest(folder, verify_checksums=verify_checksums)
-    for key in ("n_points", "embedding_dim", "n_modes", "part_count"):
+    for key in ("n_points", "embedding_dim", "n_modes", "part_count", "placement_points"):
+        if key not in manifest and key == "placement_points":  # optional: N when absent
+            continue
         value = manifest[key]
         if not (isinstance(value, int) and value > 0):
             raise ArtifactError(f"{folder / 'manifest.json'}: {key} must be a positive integer, "

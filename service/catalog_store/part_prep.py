@@ -21,14 +21,17 @@ from service.geometry.mesh import MeshError, load_mesh_bytes, mesh_area, sample_
 
 
 def embed_geometry(networks: Networks, vertices: np.ndarray, faces: np.ndarray, n_points: int,
-                   seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """f's embedding and h's part feature of a centred mesh, from ``n_points`` seeded samples.
+                   seed: int, placement_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """f's embedding and h's part feature of a centred mesh, from ``n_points`` seeded samples
+    (h's from ``placement_points`` when the artifacts give h its own count; as the export does).
 
     Shapes:
         vertices (V, 3), faces (F, 3) -> embedding (D,) float32, part_feature (Fp,) float32.
     """
     pts = sample_surface(vertices, faces, n_points, seed)[None]  # (1, N, 3)
     embedding = networks.embed(pts)[0]
+    if placement_points is not None and placement_points != n_points:
+        pts = sample_surface(vertices, faces, placement_points, seed)[None]
     feature = networks.part_features(pts)[0]
     if not (np.isfinite(embedding).all() and np.isfinite(feature).all()):
         raise InputError("non_finite", "the networks gave non-finite outputs for this part")
@@ -38,13 +41,15 @@ def embed_geometry(networks: Networks, vertices: np.ndarray, faces: np.ndarray, 
 def prepare_part(data: bytes, file_type: str, *, name: str, frame: Frame, networks: Networks,
                  n_points: int, preview_points: int, seed: int, max_vertices: int, max_faces: int,
                  max_nodes: int, max_nesting: int, max_extent: float, category: str,
-                 part_name: str | None, style: str | None, label: str | None, model_version: str) -> NewPart:
+                 part_name: str | None, style: str | None, label: str | None, model_version: str,
+                 placement_points: int | None = None) -> NewPart:
     """Load, check, centre, sample and embed one uploaded part.
 
     Args:
         data, file_type, name: the upload's bytes, format (``MESH_FORMATS``) and how errors name it.
         frame: the caller's frame (centre and radius of the complete object, up axis).
-        n_points: points the networks take (N); preview_points: samples kept for display (S).
+        n_points: points the networks take (N); placement_points: h's, when its own (None: N);
+            preview_points: samples kept for display (S).
         max_extent: largest bounding-box diagonal in the canonical frame.
 
     Raises:
@@ -71,7 +76,7 @@ def prepare_part(data: bytes, file_type: str, *, name: str, frame: Frame, networ
     area = mesh_area(v, faces)
     if not area > 0:
         raise InputError("zero_area", f"{name}: the part's surface area is zero in the canonical frame")
-    embedding, feature = embed_geometry(networks, v, faces, n_points, seed)
+    embedding, feature = embed_geometry(networks, v, faces, n_points, seed, placement_points)
     preview = sample_surface(v, faces, preview_points, seed + 1).astype(np.float16)
     geometry = PartGeometry(vertices=v.astype(np.float32), faces=faces.astype(np.int32), points=preview)
     return NewPart(category=category, name=part_name, style=style, label=label, translation=centre,

@@ -181,7 +181,7 @@ class CatalogWriter:
                 log.error("cannot re-embed: %s", exc)
                 continue
             e, f = embed_geometry(self.engine.networks, g.vertices, g.faces, self.engine.artifacts.n_points,
-                                  self.settings.seed)
+                                  self.settings.seed, self.engine.artifacts.placement_points)
             updates.append((p.id, e, f))
         if updates:
             self.store.update_embeddings(updates, self.model_version)
@@ -422,7 +422,8 @@ class CatalogWriter:
                 continue
             if restamp:
                 e, f = embed_geometry(self.engine.networks, g.vertices, g.faces,
-                                      self.engine.artifacts.n_points, self.settings.seed)
+                                      self.engine.artifacts.n_points, self.settings.seed,
+                                      self.engine.artifacts.placement_points)
                 p = dataclasses.replace(p, embedding=e, part_feature=f, model_version=self.model_version)
             if len(g.points) != S:  # preview size of another artifact version
                 g = dataclasses.replace(g, points=resample_points(g.points, S, self.settings.seed))

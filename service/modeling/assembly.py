@@ -284,12 +284,13 @@ class Assembler:
                        row=i)
 
     def _query(self, parts: list[_Placed], seed: int) -> np.ndarray:
-        """The state's query: N points over its parts, shares proportional to their areas.
+        """The state's query: Q points over its parts, shares proportional to their areas (Q: the
+        artifacts' ``query_points``, enough for every network; the engine resamples for each).
 
         Shapes:
-            returns (N, 3) float32 canonical.
+            returns (Q, 3) float32 canonical.
         """
-        n = self.engine.artifacts.n_points
+        n = self.engine.artifacts.query_points
         areas = np.array([p.area for p in parts])
         counts = np.maximum(1, np.floor(n * areas / areas.sum()).astype(int))
         counts[np.argmax(counts)] += n - counts.sum()

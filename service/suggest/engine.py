@@ -2,7 +2,8 @@
 
 One request (or a batch of them) goes through these steps, each one batched:
 
-1. points to the canonical frame, resampled to the networks' N points (seeded);
+1. points to the canonical frame, resampled to the networks' N points (seeded; h takes its own
+   count when the artifacts give it one, ``placement_points``);
 2. g: the mixture {phi_k, mu_k, sigma_k} and h_query: the query's placement feature, one run
    each for the whole batch; g's head names the category when the request does not, and g's
    answer is compared with its answers for training shapes (``service.suggest.familiarity``:
@@ -390,13 +391,19 @@ class SuggestionEngine:
                              "check the frame's center and radius")
         return pts
 
-    def resample(self, canonical: np.ndarray) -> np.ndarray:
-        """Canonical points resampled to the networks' N points (seeded): (M, 3) -> (N, 3) float32."""
-        n = self.artifacts.n_points
+    def resample(self, canonical: np.ndarray, n: int | None = None) -> np.ndarray:
+        """Canonical points resampled to n points (seeded; None: f and g's N): (M, 3) -> (n, 3) float32."""
+        n = self.artifacts.n_points if n is None else n
         pts = canonical
         if len(pts) != n:
             pts = resample_points(pts, n, self.config.seed)
         return np.ascontiguousarray(pts, dtype=np.float32)
+
+    def placement_input(self, q: Query) -> np.ndarray:
+        """The points h takes of a query: its f and g points, or its own count of the full cloud
+        when the artifacts give h more (``placement_points``). (N_h, 3) float32."""
+        n = self.artifacts.placement_points
+        return q.points if n == len(q.points) else self.resample(q.full, n)
 
     def prepare(self, points: np.ndarray, frame: Frame) -> np.ndarray:
         """Check limits, map to the canonical frame and resample to N points.
@@ -594,7 +601,10 @@ class SuggestionEngine:
         everything = np.stack([q.points for q in queries])  # (B, N, 3)
         # Mixture-only queries (frame fitting's) stop after g: the rest go on without them.
         rest = [b for b, q in enumerate(queries) if not q.options.mixture_only]
-        batch = everything if len(rest) == len(queries) else everything[rest]
+        if self.artifacts.placement_points == self.artifacts.n_points or not rest:
+            batch = everything if len(rest) == len(queries) else everything[rest]
+        else:  # h takes its own count of each query's points (placement_points)
+            batch = np.stack([self.placement_input(queries[b]) for b in rest])
         # h_query needs only the points and is needed only by h_head: it runs on a thread of its
         # own meanwhile (ONNX Runtime releases the GIL), beside g, the search and the scoring.
         beside = (self._runner().submit(_timed, self.networks.query_features, batch)
@@ -740,7 +750,7 @@ class SuggestionEngine:
         timer = StageTimer()
         with timer.stage("prepare"):
             full = self.canonical(points, frame)
-            canonical = self.resample(full)
+            canonical = self.resample(full, self.artifacts.placement_points)
         with timer.stage("h_query"):
             qf = self.networks.query_features(canonical[None])
         with timer.stage("h_head"):

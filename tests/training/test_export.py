@@ -164,6 +164,28 @@ def test_export_refuses_to_exceed_the_size_limit(tiny_run: Path, tmp_path: Path)
     assert not list(tmp_path.glob(".exported.export-*")), "temporary folder left behind"
 
 
+def test_h_can_take_its_own_point_count(tiny_run: Path, exported: Path, toy_dataset, tmp_path: Path):
+    """--placement-points: h's part features from that many samples, f's embeddings as before, and
+    the manifest says so; without it the manifest has no such key (the loader reads N)."""
+    from service.artifacts.loading import load_artifacts
+
+    out = tmp_path / "exported"
+    manifest = export_run(tiny_run, out, options=ExportOptions(placement_points=48))
+    n = manifest["n_points"]
+    assert manifest["placement_points"] == 48 != n
+    assert "placement_points" not in read_manifest(exported)
+    with np.load(out / CATALOG_ARRAYS) as npz, np.load(exported / CATALOG_ARRAYS) as base:
+        np.testing.assert_array_equal(npz["embeddings"], base["embeddings"])
+        parts = sample_parts(toy_dataset, 48, 0)[:6]
+        feats = _session(out / GRAPH_FILES["h_part"]).run(None, {"points": parts})[0]
+        np.testing.assert_allclose(npz["part_features"][:6].astype(np.float32), feats, rtol=2e-3, atol=1e-3)
+        assert not np.allclose(npz["part_features"], base["part_features"])
+    loaded = load_artifacts(out)
+    assert (loaded.n_points, loaded.placement_points, loaded.query_points) == (n, 48, max(n, 48))
+    shipped_like = load_artifacts(exported)
+    assert shipped_like.placement_points == shipped_like.query_points == n
+
+
 def test_a_catalog_past_index_flat_max_gets_a_tuned_index(tiny_run: Path, tmp_path: Path):
     """Above the threshold the export builds IVF, records its search breadth, and the service uses it."""
     from service.artifacts.loading import load_artifacts

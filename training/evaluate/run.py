@@ -108,7 +108,7 @@ class BenchmarkSettings:
     placement_queries_per_category: int = 100  # per split (train, test)
     plausibility_queries_per_category: int = 50   # per category: all-but-one and test placement queries
                                               # whose placements get the (costly) contact test
-    n_points: int | None = None               # query points (default: the manifest's n_points)
+    n_points: int | None = None               # query points (default: the artifacts' query_points)
     dense_points: int = 1024                  # surface samples per part (queries, Hausdorff, contact)
     methods: tuple[str, ...] = METHOD_KEYS
     ck10_shapes: int = 5                      # CK10: most similar shapes whose parts come first
@@ -273,7 +273,8 @@ class _Benchmark:
             self.service_settings = Settings().model_copy(update={"artifacts": Path(s.artifacts)})
             self.engine = SuggestionEngine(self.artifacts, self.service_settings)
             self.index = ShapeIndex(self.artifacts.catalog, dense_points=s.dense_points, seed=s.seed)
-            self.n_points = s.n_points or self.artifacts.n_points
+            # Enough points for every network (h may take more than f and g: placement_points).
+            self.n_points = s.n_points or self.artifacts.query_points
 
     def draw_queries(self) -> None:
         """The seeded retrieval and placement queries of every category."""
@@ -397,6 +398,7 @@ class _Benchmark:
             "artifact": {"folder": str(s.artifacts), "model_version": manifest["model_version"],
                          "format_version": manifest["format_version"], "created": manifest.get("created"),
                          "part_count": manifest["part_count"], "n_points": manifest["n_points"],
+                         "placement_points": self.artifacts.placement_points,
                          "dataset_hash": manifest.get("dataset", {}).get("hash"),
                          "training": manifest.get("training", {})},
             "settings": settings_to_dict(s),

@@ -111,7 +111,7 @@ async def post_assemble_mesh(
     """The mesh comes as a multipart form, or as the request body (``service.api.mesh_upload``);
     its surface is sampled area-weighted (seeded), and its area weighs it in the queries."""
     opts = upload.parse_options(AssembleOptionsIn)
-    n = max(served.engine.artifacts.n_points, settings.contact_part_samples)
+    n = max(served.engine.artifacts.query_points, settings.contact_part_samples)
     points, area = await run_in_threadpool(uploads.sample, upload.data, upload.format, n=n, name=upload.name,
                                            deadline=deadline)
     del upload

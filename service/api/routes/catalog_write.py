@@ -259,7 +259,9 @@ def _add(writer: CatalogWriter, settings: Settings, data: bytes, fmt: str, name:
     def prepare() -> NewPart:
         engine = writer.engine
         return prepare_part(data, fmt, name=name, frame=frame, networks=engine.networks,
-                            n_points=engine.artifacts.n_points, preview_points=writer.builder.n_points,
+                            n_points=engine.artifacts.n_points,
+                            placement_points=engine.artifacts.placement_points,
+                            preview_points=writer.builder.n_points,
                             seed=settings.seed, max_vertices=settings.max_mesh_vertices,
                             max_faces=settings.max_mesh_faces, max_nodes=settings.max_mesh_nodes,
                             max_nesting=settings.max_mesh_nesting, max_extent=settings.max_part_extent,

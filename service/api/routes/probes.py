@@ -64,7 +64,8 @@ async def get_model(served: ServedDep, settings: SettingsDep) -> OrjsonResponse:
     counts = np.bincount(cat.category_of, minlength=len(cat.categories))
     body: dict[str, Any] = {
         "model_version": served.model_version, "format_version": m["format_version"],
-        "n_points": m["n_points"], "embedding_dim": m["embedding_dim"], "n_modes": m["n_modes"],
+        "n_points": m["n_points"], "placement_points": served.engine.artifacts.placement_points,
+        "embedding_dim": m["embedding_dim"], "n_modes": m["n_modes"],
         "part_count": len(cat),  # shipped + added parts, as the categories below
         "categories": [{"name": n, "parts": int(c)} for n, c in zip(cat.categories, counts, strict=True)],
         "limits": {name: getattr(settings, name) for name in LIMIT_SETTINGS},

@@ -124,10 +124,11 @@ async def post_suggest_mesh(
     upload: Annotated[MeshUpload, Depends(_suggest_upload)],
 ) -> OrjsonResponse:
     """The mesh comes as a multipart form, or as the request body (``service.api.mesh_upload``);
-    its surface is sampled area-weighted (seeded) to the model's point count."""
+    its surface is sampled area-weighted (seeded) to the model's point count (``query_points``:
+    enough for every network)."""
     opts = upload.parse_options(SuggestOptionsIn)
     options_out = opts.to_options()
-    n_points = served.engine.artifacts.n_points
+    n_points = served.engine.artifacts.query_points
     served.check(n_points, options_out)
     points, _ = await run_in_threadpool(uploads.sample, upload.data, upload.format, n=n_points,
                                         name=upload.name, deadline=deadline)
