@@ -290,9 +290,8 @@ def load_artifacts(folder: Path, *, onnx_threads: int = 1, faiss_threads: int = 
     if not folder.is_dir():
         raise ArtifactError(f"artifact folder not found: {folder}")
     manifest = read_manifest(folder, verify_checksums=verify_checksums)
-    for key in ("n_points", "embedding_dim", "n_modes", "part_count", "placement_points"):
-        if key not in manifest and key == "placement_points":  # optional: N when absent
-            continue
+    optional = [key for key in ("placement_points",) if key in manifest]  # absent: N
+    for key in ("n_points", "embedding_dim", "n_modes", "part_count", *optional):
         value = manifest[key]
         if not (isinstance(value, int) and value > 0):
             raise ArtifactError(f"{folder / 'manifest.json'}: {key} must be a positive integer, "
