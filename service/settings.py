@@ -336,6 +336,15 @@ class Settings(BaseSettings):
         "`assemble_same_job_sigmas`) 82.2% / 2.2%; with 3.25 / 5.2: 81.7% / 2.8%, 82.2% / 2.5%; "
         "IoU 0.6 with 3.9: 81.4% / 3.3%; IoU 0.4 with 5.2: 77.5% (cars 53%: car bodies are "
         "several overlapping pieces); docs/modeling.md."))
+    assemble_overlap_mode_distance: float = Field(default=2.3, ge=0, description=(
+        "Boxes overlapping past `assemble_overlap_iou` also do the same job when the placed part "
+        "lies within this root-mean-square distance of the candidate's mode's mean, in that "
+        "mode's standard deviations: the kind of part the mode proposes is already there (a "
+        "second roof shifted along the first, its style too far from the first's for "
+        "`assemble_same_job_sigmas`). 0: off. Chosen on 360 training starts (`evaluate-assembly "
+        "--split train --starts 40 --no-contact`): off / 2.0 / 2.3 / 2.55: 82.5% / 82.5% / 82.5% / "
+        "81.9% good (stacked 1.7% at each but 2.55); for the 512-point h candidate 81.4% / 81.4% / "
+        "82.2% / 81.9% (stacked 3.6% / 3.6% / 2.8% / 2.2%); docs/modeling.md."))
     assemble_complete_margin: float = Field(default=0.0, description=(
         "`/assemble` stops (`complete`) when no eligible candidate's mixture log-likelihood "
         "exceeds the most likely placed part's by more than this: g's most wanted complement is "

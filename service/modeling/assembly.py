@@ -30,7 +30,10 @@ every step or, for a tree of possibilities, several choices per step. Each step 
        ``assemble_same_job_sigmas`` of each other, in the standard deviations g predicts for the
        candidate's mode (g would take either part for the other here: a second shade over the
        shade), or boxes overlapping with IoU above ``assemble_strong_overlap_iou`` and
-       embeddings within ``assemble_strong_overlap_sigmas``. Parts of other kinds may overlap
+       embeddings within ``assemble_strong_overlap_sigmas``, or boxes overlapping with IoU above
+       ``assemble_overlap_iou`` and the placed part within ``assemble_overlap_mode_distance`` of
+       the candidate's mode (the kind of part that mode proposes is there already: a second
+       roof shifted along the roof, of another style). Parts of other kinds may overlap
        (the data's own car bodies and wheels, sofa seats and arms overlap with IoU up to 0.5);
      - lying on placed surface: at least ``assemble_cover_share`` of its placed samples within
        ``assemble_cover_distance`` of the placed parts' samples; where the category's own
@@ -326,29 +329,32 @@ class Assembler:
         best = np.argmin(d, axis=1)
         return heavy[best], d[np.arange(n), best]
 
-    def _redundant(self, cand: _Placed, state: _State, sigma: np.ndarray | None = None) -> bool:
+    def _redundant(self, cand: _Placed, state: _State, mode: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> bool:
         """Whether the candidate does the job of a part already at its spot (see the module doc).
 
-        ``sigma``: (D,) the standard deviations of the candidate's mode (the same-job test; None
-        skips it).
+        ``mode``: (D,) mean and (D,) standard deviations of the candidate's mode (the same-job
+        test; None skips it).
         """
         s = self.settings
         if self._duplicate(cand, state.parts):
             return True
-        if sigma is not None and self._same_job(cand, state, sigma):
+        if mode is not None and self._same_job(cand, state, *mode):
             return True
         if self._cover_share >= 1:
             return False
         d, _ = state.tree().query(cand.points, k=1, distance_upper_bound=s.assemble_cover_distance)
         return bool(np.mean(np.isfinite(d)) >= self._cover_share)
 
-    def _same_job(self, cand: _Placed, state: _State, sigma: np.ndarray) -> bool:
+    def _same_job(self, cand: _Placed, state: _State, mean: np.ndarray, sigma: np.ndarray) -> bool:
         """A placed part in the same region that g cannot tell apart from the candidate here: boxes
         overlapping with IoU > ``assemble_overlap_iou`` and embeddings within
         ``assemble_same_job_sigmas`` RMS standard deviations of the candidate's mode; or centres
         within half the smaller part's size and embeddings within half that; or boxes overlapping
         with IoU > ``assemble_strong_overlap_iou`` and embeddings within
-        ``assemble_strong_overlap_sigmas``."""
+        ``assemble_strong_overlap_sigmas``; or boxes overlapping with IoU >
+        ``assemble_overlap_iou`` and the placed part within ``assemble_overlap_mode_distance`` of
+        the candidate's mode (``mean``, ``sigma``: (D,) each)."""
         s = self.settings
         if cand.row is None:
             return False
@@ -366,8 +372,13 @@ class Assembler:
         # distance: two styles of one kind of part lie further apart than g's sigmas, and parts of
         # other kinds rarely share most of a box (a car's body pieces overlap less than this).
         strong = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_strong_overlap_iou
+        # An overlapping part that the candidate's own mode already explains: the kind of part
+        # that mode proposes is there (a roof under a second, shifted roof), whatever the two
+        # parts' styles.
+        met = np.where(rows >= 0, sigma_distances(emb[np.maximum(rows, 0)], mean[None], sigma[None])[:, 0],
+                       np.inf) < s.assemble_overlap_mode_distance
         return bool(np.any((overlap & (z < same)) | (near & (z < same / 2))
-                           | (strong & (z < s.assemble_strong_overlap_sigmas))))
+                           | (strong & (z < s.assemble_strong_overlap_sigmas)) | (overlap & met)))
 
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""
@@ -416,14 +427,15 @@ class Assembler:
                   ) -> Iterator[_Candidate]:
         """The likely candidates that do no placed part's job, best first, tested lazily (each
         once per step: a step that ends in the open-mode rule walks candidates ``_choose`` tested)."""
-        assert result.mode_sigmas is not None
+        assert result.mode_means is not None and result.mode_sigmas is not None
+        means = result.mode_means.astype(np.float64)
         sigmas = result.mode_sigmas.astype(np.float64)
         for c in likely:
             if c.redundant is None:
                 sug = c.suggestion
                 c.placed = self._catalog_part(sug.part_index, np.asarray(sug.translation, dtype=np.float64),
                                               sug.scale)
-                c.redundant = self._redundant(c.placed, state, sigmas[c.near_mode])
+                c.redundant = self._redundant(c.placed, state, (means[c.near_mode], sigmas[c.near_mode]))
             if not c.redundant:
                 yield c
 

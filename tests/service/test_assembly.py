@@ -130,12 +130,13 @@ def test_same_job_rule(engine: SuggestionEngine, catalog: Catalog, settings: Set
     t = catalog.translations[i].astype(np.float64)
     size = float(np.linalg.norm(catalog.bbox_max[i] - catalog.bbox_min[i]))
     placed = _State([asm._catalog_part(i, t)], frozenset())
-    assert asm._same_job(asm._catalog_part(i, t + np.array([0.2 * size, 0, 0])), placed, sigma)
-    assert not asm._same_job(asm._catalog_part(i, t + np.array([3.0 * size, 0, 0])), placed, sigma)
+    emb = catalog.embeddings.astype(np.float64)   # each candidate at its mode's mean
+    assert asm._same_job(asm._catalog_part(i, t + np.array([0.2 * size, 0, 0])), placed, emb[i], sigma)
+    assert not asm._same_job(asm._catalog_part(i, t + np.array([3.0 * size, 0, 0])), placed, emb[i], sigma)
     z = np.sqrt(np.mean(((catalog.embeddings - catalog.embeddings[i]) / sigma) ** 2, axis=1))
     other = int(np.argmax(z))   # the part g finds least like part 0, at part 0's place
     assert z[other] > settings.assemble_same_job_sigmas
-    assert not asm._same_job(asm._catalog_part(other, t), placed, sigma)
+    assert not asm._same_job(asm._catalog_part(other, t), placed, emb[other], sigma)
 
 
 def test_a_part_filling_a_placed_part_s_box_does_its_job_further_apart(engine: SuggestionEngine,
@@ -161,14 +162,49 @@ def test_a_part_filling_a_placed_part_s_box_does_its_job_further_apart(engine: S
 
     fitted = extent(i) / extent(j)   # j scaled into i's box
     placed = _State([asm._catalog_part(i, t)], frozenset())
-    assert asm._same_job(asm._catalog_part(j, t, fitted), placed, sigma)
+    emb = catalog.embeddings.astype(np.float64)
+    assert asm._same_job(asm._catalog_part(j, t, fitted), placed, emb[j], sigma)
     axis = int(np.argmax(extent(i)))
     shift = np.zeros(3)
     shift[axis] = 0.4 * extent(i)[axis]    # IoU (1 - 0.4) / (1 + 0.4) = 0.43
     beside = asm._catalog_part(j, t + shift, fitted)
     iou = float(box_iou(beside.lo, beside.hi, placed.lo, placed.hi)[0])
     assert s.assemble_overlap_iou < iou < s.assemble_strong_overlap_iou
-    assert not asm._same_job(beside, placed, sigma)
+    assert not asm._same_job(beside, placed, emb[j], sigma)
+
+
+def test_a_part_overlapping_a_part_its_mode_explains_does_its_job(engine: SuggestionEngine,
+                                                                  catalog: Catalog,
+                                                                  settings: Settings) -> None:
+    """Another style of a part, its box shifted so it overlaps the placed part's by less than
+    ``assemble_strong_overlap_iou``: it does the placed part's job when the placed part lies
+    within ``assemble_overlap_mode_distance`` of the candidate's mode (the kind the mode
+    proposes is there: a second roof shifted along the first), and not when the mode lies as
+    far from the placed part as the candidate does."""
+    s = settings
+    asm = Assembler(engine, s)
+    emb = catalog.embeddings.astype(np.float64)
+    sigma = np.full(emb.shape[1], float(np.std(emb)) / 4)
+    i = 0
+    t = catalog.translations[i].astype(np.float64)
+    z = np.sqrt(np.mean(((emb - emb[i]) / sigma) ** 2, axis=1))
+    between = np.flatnonzero((z > s.assemble_same_job_sigmas + 0.2)
+                             & (z < s.assemble_strong_overlap_sigmas - 0.2))
+    assert len(between), "no part at that embedding distance"
+    j = int(between[0])
+    extent_i = np.maximum(catalog.bbox_max[i] - catalog.bbox_min[i], 1e-3).astype(np.float64)
+    extent_j = np.maximum(catalog.bbox_max[j] - catalog.bbox_min[j], 1e-3).astype(np.float64)
+    shift = np.zeros(3)
+    shift[int(np.argmax(extent_i))] = 0.4 * float(np.max(extent_i))
+    placed = _State([asm._catalog_part(i, t)], frozenset())
+    beside = asm._catalog_part(j, t + shift, extent_i / extent_j)
+    iou = float(box_iou(beside.lo, beside.hi, placed.lo, placed.hi)[0])
+    assert s.assemble_overlap_iou < iou < s.assemble_strong_overlap_iou
+    mode = emb[i] + 0.5 * s.assemble_overlap_mode_distance * sigma     # the placed part nearby
+    assert asm._same_job(beside, placed, mode, sigma)
+    assert not asm._same_job(beside, placed, emb[j], sigma)
+    far = _State([asm._catalog_part(i, t + 3 * shift)], frozenset())   # boxes apart
+    assert not asm._same_job(beside, far, mode, sigma)
 
 
 def test_far_floating_part_is_pulled_into_contact(engine: SuggestionEngine, catalog: Catalog,
