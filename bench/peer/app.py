@@ -12,6 +12,9 @@ What it does per request, on purpose the straightforward way:
   mixture log-likelihood in numpy, the top k kept;
 - the whole placement network h (query and part encoders and head) re-run in torch eager on
   every kept candidate, from the candidate's stored point samples (not cached part features);
+  when the artifacts give h its own point count (the manifest's ``placement_points``), h takes
+  that many of the request's points and of each part's mesh (sampled once at start-up, as the
+  export samples them for the service's cached features);
 - the answer returned as a dict through FastAPI's default JSON response.
 
 No duplicate collapse and no contact refinement: those are this project's features, and leaving
@@ -34,6 +37,7 @@ import torch
 from fastapi import FastAPI, HTTPException
 from pydantic import BaseModel, Field
 
+from service.geometry.mesh import sample_surface
 from training.from_onnx import load_exported_networks
 from training.models import PlacementNet, RetrievalNet
 
@@ -56,6 +60,7 @@ class PeerModel:
     g: RetrievalNet
     h: PlacementNet
     n_points: int
+    placement_points: int
     embeddings: np.ndarray
     part_points: torch.Tensor
     part_ids: list[str]
@@ -67,14 +72,31 @@ def load_peer(artifacts: Path, neighbours: int = 64, seed: int = 0) -> PeerModel
     """Rebuild g and h in torch from the artifact folder's graphs and read its catalog arrays."""
     pair, placement, _ = load_exported_networks(artifacts)
     manifest = json.loads((artifacts / "manifest.json").read_text())
+    n_points = int(manifest["n_points"])
+    h_points = int(manifest.get("placement_points", n_points))
     with np.load(artifacts / "catalog.npz") as data:
         embeddings = data["embeddings"].astype(np.float32)
-        points = torch.from_numpy(data["points"].astype(np.float32))
+        if h_points == n_points:
+            points = data["points"].astype(np.float32)
+        else:
+            # Each key of an npz is read from the archive on access: read the meshes once.
+            v, f = data["mesh_vertices"].astype(np.float64), data["mesh_faces"]
+            vf, ff = data["vertex_first"], data["face_first"]
+            points = np.stack([sample_surface(v[vf[i]:vf[i + 1]], f[ff[i]:ff[i + 1]], h_points, seed)
+                               for i in range(len(embeddings))])
     records = json.loads((artifacts / "catalog.json").read_text())
     records = records["parts"] if isinstance(records, dict) else records
-    return PeerModel(g=pair.g, h=placement, n_points=int(manifest["n_points"]),
-                     embeddings=embeddings, part_points=points, part_ids=[r["part_id"] for r in records],
-                     neighbours=neighbours, seed=seed)
+    return PeerModel(g=pair.g, h=placement, n_points=n_points, placement_points=h_points,
+                     embeddings=embeddings, part_points=torch.from_numpy(points),
+                     part_ids=[r["part_id"] for r in records], neighbours=neighbours, seed=seed)
+
+
+def subsample(points: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """``n`` of the points, a seeded subset (repeats when fewer): (M, 3) -> (n, 3)."""
+    rng = np.random.default_rng(seed)
+    if len(points) >= n:
+        return points[np.sort(rng.choice(len(points), size=n, replace=False))]
+    return np.concatenate([points, points[rng.integers(0, len(points), n - len(points))]])
 
 
 def mixture_log_likelihood(y: np.ndarray, w: np.ndarray, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -88,12 +110,10 @@ def mixture_log_likelihood(y: np.ndarray, w: np.ndarray, mu: np.ndarray, sigma: 
 
 def suggest(model: PeerModel, points: np.ndarray, k: int) -> list[dict[str, Any]]:
     """Ranked, placed suggestions for one partial assembly (canonical frame)."""
-    rng = np.random.default_rng(model.seed)
-    if len(points) >= model.n_points:
-        points = points[np.sort(rng.choice(len(points), size=model.n_points, replace=False))]
-    else:
-        points = np.concatenate([points, points[rng.integers(0, len(points), model.n_points - len(points))]])
-    x = torch.from_numpy(np.ascontiguousarray(points, dtype=np.float32))[None]    # (1, N, 3)
+    x = torch.from_numpy(np.ascontiguousarray(subsample(points, model.n_points, model.seed),
+                                              dtype=np.float32))[None]          # (1, N, 3)
+    xh = x if model.placement_points == model.n_points else torch.from_numpy(np.ascontiguousarray(
+        subsample(points, model.placement_points, model.seed), dtype=np.float32))[None]   # (1, N_h, 3)
     with torch.no_grad():
         w, mu, sigma = (t[0].numpy().astype(np.float64) for t in model.g(x)[:3])  # (K,), (K, D), (K, D)
     emb = model.embeddings
@@ -104,7 +124,7 @@ def suggest(model: PeerModel, points: np.ndarray, k: int) -> list[dict[str, Any]
     order = np.argsort(-ll, kind="stable")[:k]
     top, scores = cand[order], ll[order]
     with torch.no_grad():
-        placed = model.h(x.expand(len(top), -1, -1), model.part_points[top])
+        placed = model.h(xh.expand(len(top), -1, -1), model.part_points[top])
     # A model with a scale head (v3) answers (translations, log scales); the peer places only.
     translations = (placed[0] if isinstance(placed, tuple) else placed).numpy()
     return [{"rank": r + 1, "part_id": model.part_ids[i], "score": float(s), "translation": t.tolist()}
