@@ -128,6 +128,7 @@ def run_engine_bench(engine: SuggestionEngine, settings: Settings, query: BenchQ
     return {
         "query": {"source": query.source, "points": len(query.points), "k": query.k},
         "network_points": engine.artifacts.n_points,
+        "placement_points": engine.artifacts.placement_points,
         "catalog_parts": len(engine.catalog),
         "index": type(engine.index).__name__,
         "settings": _timing_settings(settings),

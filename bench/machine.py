@@ -73,7 +73,8 @@ def artifact_version(folder: Path) -> dict[str, Any]:
     except (OSError, json.JSONDecodeError) as exc:
         return {"path": str(path), "error": str(exc)}
     return {"path": str(Path(folder)), "model_version": m.get("model_version"), "created": m.get("created"),
-            "part_count": m.get("part_count"), "n_points": m.get("n_points"), "index": m.get("index")}
+            "part_count": m.get("part_count"), "n_points": m.get("n_points"),
+            "placement_points": m.get("placement_points", m.get("n_points")), "index": m.get("index")}
 
 
 def describe_machine(artifacts: Path) -> dict[str, Any]:

@@ -146,7 +146,8 @@ def _machine(res: dict[str, dict[str, Any]]) -> list[str]:
         f"numpy {pk.get('numpy')}, fastapi {pk.get('fastapi')}, uvicorn {pk.get('uvicorn')}, "
         f"torch {pk.get('torch')} (peer only)",
         f"- Artifacts: `{art.get('model_version')}` (created {art.get('created')}, "
-        f"{art.get('part_count')} parts, {art.get('n_points')} network points)",
+        f"{art.get('part_count')} parts, {art.get('n_points')} network points"
+        f"{_h_points(art.get('n_points'), art.get('placement_points'))})",
         "",
         "| Benchmark | Date (UTC) | Host (CPU, AVX flags) | Load average at start | Command |",
         "|---|---|---|---|---|",
@@ -161,13 +162,19 @@ def _machine(res: dict[str, dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _h_points(n_points: Any, placement_points: Any) -> str:
+    """", h N_h" when the artifacts give h its own point count (results before it have none)."""
+    return f", h {placement_points}" if placement_points not in (None, n_points) else ""
+
+
 def _engine(data: dict[str, Any]) -> list[str]:
     r = data["results"]
     variants = r["variants"]
     head = [f"{v['body']}, {_contact(v['refine_contact'], v.get('contact_applied', True))}" for v in variants]
     lines = [
         f"One request of {r['query']['points']} points, k = {r['query']['k']}, on the shipped catalog "
-        f"({r['catalog_parts']} parts, {r['index']}); the networks see {r['network_points']} points. "
+        f"({r['catalog_parts']} parts, {r['index']}); the networks see {r['network_points']} points"
+        f"{_h_points(r['network_points'], r.get('placement_points'))}. "
         f"p50 / p99 in ms over {variants[0]['stages']['suggest']['n']} requests per column.",
         "",
         "| Stage | " + " | ".join(head) + " |",

@@ -122,6 +122,16 @@ def test_rendered_tables_hold_the_numbers() -> None:
     assert "| Stage | json, contact default (off) |" in text
 
 
+def test_report_names_h_s_own_point_count_when_the_artifacts_give_one() -> None:
+    res = _results()
+    assert "h 512" not in render_results(res)        # n_points only: as before
+    res["engine"]["results"]["placement_points"] = 1024
+    res["engine"]["machine"] = {**MACHINE, "artifacts": {**MACHINE["artifacts"], "placement_points": 1024}}
+    text = render_results(res)
+    assert "the networks see 512 points, h 1024. " in text
+    assert "512 network points, h 1024)" in text
+
+
 def test_http_section_says_how_our_service_ran() -> None:
     res = _results()
     res["http"]["config"]["server_env"] = {"COMPLEMENTME_WORKERS": "2"}  # results from before issue 17
