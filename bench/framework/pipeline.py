@@ -10,7 +10,8 @@ so that the BentoML service (``bench.framework.bentoml_service``) and the LitSer
   owner per file format), and the service's pure maths reused: seeded resampling
   (``service.geometry.mesh``), the mixture log-likelihood (``service.suggest.mixture``) and the
   complement check (``service.suggest.complement``);
-- per batch: g and h_query once on all queries, one FAISS search per filter, the exact mixture
+- per batch: g and h_query once on all queries (h_query on its own count of each query's points
+  when the manifest gives one), one FAISS search per filter, the exact mixture
   score, near-duplicates collapsed, the service's order (``service.suggest.preferences.spread_share_order``
   by default), h_head once on every kept candidate of the batch, covered parts demoted
   (``service.suggest.complement.complement_order``) in the order of their fit keys
@@ -155,6 +156,8 @@ class PeerModel:
                                              int(self.manifest["part_count"]),
                                              int(self.manifest["embedding_dim"]))
         self.n_points = int(self.manifest["n_points"])
+        # h may take more points than f and g (the manifest's placement_points; format 2).
+        self.placement_points = int(self.manifest.get("placement_points", self.n_points))
         self.categories: list[str] = list(self.manifest.get("categories") or [])
 
     def suggest_batch(self, queries: list[Query]) -> list[list[dict[str, Any]]]:
@@ -169,7 +172,9 @@ class PeerModel:
         points = np.ascontiguousarray(points, dtype=np.float32)
         out = dict(zip(self.g_outputs, self.g.run(self.g_outputs, {"points": points}), strict=True))
         weights, means, sigmas = out["weights"], out["means"], out["sigmas"]  # (B, K), (B, K, D) x 2
-        query_features = self.h_query.run(["query_feature"], {"points": points})[0]  # (B, Fq)
+        h_points = points if self.placement_points == self.n_points else np.ascontiguousarray(np.stack(
+            [resample_points(q.points, self.placement_points, cfg.seed) for q in queries]), dtype=np.float32)
+        query_features = self.h_query.run(["query_feature"], {"points": h_points})[0]  # (B, Fq)
         filters = [self._category(out.get("category_probs"), b) for b in range(len(queries))]
         candidates = self._search(means, filters, max(q.k for q in queries))
         ranked = [self._rank(candidates[b], weights[b], means[b], sigmas[b], q.k)
