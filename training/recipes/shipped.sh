@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# The shipped model, end to end: data (if missing), training for a fixed number of steps in two
+# The shipped model, end to end: data (if missing), training for a fixed number of steps in three
 # stages (the v3 preset, 24,000 steps; its export fine-tuned by the v3-finetune preset, 8,000
-# more steps from 0.3 of the learning rate), export; then the leave-one-style-out model of the
-# benchmark (docs/benchmark.md), trained the same two-stage way on a split that holds out one
-# style per category, and exported for evaluation only.
+# more steps from 0.3 of the learning rate; that export's h alone fine-tuned on 512 points by the
+# v3-h512 preset, 6,000 steps), export (f and g take 256 points, h 512); then the
+# leave-one-style-out model of the benchmark (docs/benchmark.md), trained the same three-stage
+# way on a split that holds out one style per category, and exported for evaluation only.
 #
 #   training/recipes/shipped.sh                 # defaults below
 #   OUT=exported training/recipes/shipped.sh
@@ -12,7 +13,7 @@
 # same kind of host (CPU kernels differ between AVX2 and AVX-512). Every run trains on two
 # threads, one after the other: the shipped model's first stage took 104 min alone on a 2-core
 # AVX-512 host (0.19 s a step, against 0.45-0.6 s for one thread beside other work), its second
-# stage 20 min; the thread count is part of the recipe because torch's reductions may round
+# stage 20 min, its third 21 min beside other work; the thread count is part of the recipe because torch's reductions may round
 # differently on another count. The presets' time guards (max_minutes) only stop a run far
 # slower than planned, with a warning in the log. If one is interrupted,
 # `python -m training train --resume --run "$RUN"` continues it.
@@ -24,7 +25,7 @@ DATA=${DATA:-data/processed}
 RUN=${RUN:-runs/v3}
 LOSO_RUN=${LOSO_RUN:-runs/v3-loso}
 OUT=${OUT:-exported}
-LOSO_OUT=${LOSO_OUT:-runs/v3-loso-finetune-exported}  # the first stage exports to <run>-exported
+LOSO_OUT=${LOSO_OUT:-runs/v3-loso-h512-exported}  # earlier stages export to <stage run>-exported
 SEED=${SEED:-0}
 THREADS=${THREADS:-2}
 LOG=${LOG:-runs/recipe.log}
@@ -36,7 +37,7 @@ if [ ! -f "$DATA/dataset.json" ]; then
     "$PYTHON" -m training data preprocess --raw "$RAW" --out "$DATA" --seed "$SEED"
 fi
 
-for run in "$RUN" "$RUN-finetune" "$LOSO_RUN" "$LOSO_RUN-finetune"; do
+for run in "$RUN" "$RUN-finetune" "$RUN-h512" "$LOSO_RUN" "$LOSO_RUN-finetune" "$LOSO_RUN-h512"; do
     if [ -f "$run/checkpoint.pt" ]; then
         echo "error: $run already holds a run; resume it with --resume or choose RUN=... / LOSO_RUN=..." >&2
         exit 2
@@ -52,13 +53,15 @@ train() {  # preset, run-folder, extra options...
     echo "$run trained in $(( ($(date +%s) - start) / 60 )) min, $THREADS threads of $(nproc) cores" \
          "($(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs))" | tee -a "$LOG"
 }
-two_stages() {  # run-folder, export-folder, extra options...: v3, its export, the fine-tune, its export
+three_stages() {  # run-folder, export-folder, extra options...: each stage from the last one's export
     local run=$1 out=$2
     shift 2
     train v3 "$run" "$@"
     "$PYTHON" -m training export --run "$run" --out "$run-exported"
     train v3-finetune "$run-finetune" --init-from "$run-exported" "$@"
-    "$PYTHON" -m training export --run "$run-finetune" --out "$out"
+    "$PYTHON" -m training export --run "$run-finetune" --out "$run-finetune-exported"
+    train v3-h512 "$run-h512" --init-from "$run-finetune-exported" "$@"
+    "$PYTHON" -m training export --run "$run-h512" --out "$out" --n-points 256 --placement-points 512
 }
-two_stages "$RUN" "$OUT"
-two_stages "$LOSO_RUN" "$LOSO_OUT" --split styles
+three_stages "$RUN" "$OUT"
+three_stages "$LOSO_RUN" "$LOSO_OUT" --split styles
