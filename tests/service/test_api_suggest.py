@@ -136,7 +136,7 @@ def test_json_base64_and_mesh_inputs_agree(client: TestClient, catalog: Catalog,
     from_mesh = SuggestResponse.model_validate(response.json()).model_dump()
     # The same surface samples the service takes: same loader, same seed, the model's count.
     mesh = load_mesh_bytes(data, fmt, max_vertices=10**6, max_faces=10**6, ignore_obj_materials=True)
-    pts = sample_surface(mesh.vertices, mesh.faces, engine.artifacts.n_points, settings.seed)
+    pts = sample_surface(mesh.vertices, mesh.faces, engine.artifacts.query_points, settings.seed)
     from_json = suggest(client, points=pts.tolist(), k=8)
     from_b64 = suggest(client, points_base64=points_to_base64(pts), k=8)
     assert ranking(from_mesh) == ranking(from_json) == ranking(from_b64)

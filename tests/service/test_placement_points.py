@@ -1,7 +1,8 @@
 """Artifacts that give h its own point count (manifest ``placement_points``): h takes that many
 points of every query (suggest, place, mesh uploads, assembly) and of every added part, while f
 and g keep the manifest's ``n_points``. Checked on a copy of the shipped folder whose manifest
-asks h for twice the points; the shipped folder itself has no such key and serves as before.
+asks h for twice the networks' points (the shipped model's own count since stop 49), and on a copy
+without the key, a format-1 folder, whose h takes the networks' count as before.
 """
 
 from __future__ import annotations
@@ -24,14 +25,15 @@ from service.artifacts.loading import Artifacts, load_artifacts
 REPO = Path(__file__).resolve().parents[2]
 
 
-def copy_with_manifest(src: Path, dst: Path, **changes: Any) -> Path:
-    """The folder's files linked, its manifest rewritten with ``changes`` (fresh checksums)."""
+def copy_with_manifest(src: Path, dst: Path, drop: tuple[str, ...] = (), **changes: Any) -> Path:
+    """The folder's files linked, its manifest rewritten without ``drop`` and with ``changes``
+    (fresh checksums)."""
     dst.mkdir()
     for f in src.iterdir():
         if f.name != "manifest.json":
             (dst / f.name).symlink_to(f.resolve())
     manifest = read_manifest(src, verify_checksums=False)
-    write_manifest(dst, {**{k: v for k, v in manifest.items() if k not in ("files", "format_version")},
+    write_manifest(dst, {**{k: v for k, v in manifest.items() if k not in ("files", "format_version", *drop)},
                          **changes})
     return dst
 
@@ -69,10 +71,36 @@ def engine_of(client: TestClient) -> Any:
     return client.app.state.served.engine  # type: ignore[attr-defined]
 
 
-def test_shipped_artifacts_give_h_the_networks_count(artifacts: Path) -> None:
-    loaded = load_artifacts(artifacts, verify_checksums=False)
-    assert "placement_points" not in loaded.manifest
+@pytest.fixture(scope="module")
+def format1_client(artifacts: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    """The shipped folder without ``placement_points``: a format-1 folder."""
+    folder = copy_with_manifest(artifacts, tmp_path_factory.mktemp("f1") / "artifacts",
+                                drop=("placement_points",))
+    settings = writable_settings(folder, tmp_path_factory.mktemp("f1-data"))
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+def test_a_folder_without_the_key_gives_h_the_networks_count(artifacts: Path, tmp_path: Path) -> None:
+    folder = copy_with_manifest(artifacts, tmp_path / "one", drop=("placement_points",))
+    loaded = load_artifacts(folder)
+    assert "placement_points" not in loaded.manifest and loaded.manifest["format_version"] == 1
     assert loaded.placement_points == loaded.query_points == loaded.n_points
+    shipped = load_artifacts(artifacts, verify_checksums=False)
+    assert shipped.placement_points == int(shipped.manifest.get("placement_points", shipped.n_points))
+
+
+def test_a_format_1_folder_gives_h_the_networks_points(format1_client: TestClient,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    engine = engine_of(format1_client)
+    n = engine.artifacts.n_points
+    inputs = Inputs(monkeypatch, engine.networks)
+    mesh = (REPO / "examples" / "chair-without-legs.obj").read_bytes()
+    r = format1_client.post("/suggest/mesh", files={"file": ("chair.obj", mesh)},
+                            data={"options": json.dumps({"k": 3, "category": "chair"})})
+    assert r.status_code == 200, r.text
+    assert inputs.counts("query_features") == inputs.counts("mixture") == {(n, n)}
+    assert format1_client.get("/model").json()["placement_points"] == n
 
 
 @pytest.mark.parametrize("value", [0, -5, "many", 2.5])
@@ -90,7 +118,8 @@ def test_placement_points_come_with_format_2(artifacts: Path, tmp_path: Path) ->
     n = int(read_manifest(artifacts, verify_checksums=False)["n_points"])
     folder = copy_with_manifest(artifacts, tmp_path / "two", placement_points=2 * n)
     assert read_manifest(folder)["format_version"] == 2
-    assert read_manifest(artifacts)["format_version"] == 1
+    one = copy_with_manifest(artifacts, tmp_path / "one", drop=("placement_points",))
+    assert read_manifest(one)["format_version"] == 1
     manifest = json.loads((folder / "manifest.json").read_text())
     (folder / "manifest.json").write_text(json.dumps({**manifest, "format_version": 1}))
     with pytest.raises(ArtifactError, match="placement_points needs format_version 2"):
