@@ -13,8 +13,9 @@ What it does per request, on purpose the straightforward way:
 - the whole placement network h (query and part encoders and head) re-run in torch eager on
   every kept candidate, from the candidate's stored point samples (not cached part features);
   when the artifacts give h its own point count (the manifest's ``placement_points``), h takes
-  that many of the request's points and of each part's mesh (sampled once at start-up, as the
-  export samples them for the service's cached features);
+  that many of the request's points and of samples of each part's catalog mesh (drawn once at
+  start-up, seeded; the export drew the service's cached features from the dataset's own clouds,
+  so the peer's h sees other samples of the same surfaces, as with the stored samples before);
 - the answer returned as a dict through FastAPI's default JSON response.
 
 No duplicate collapse and no contact refinement: those are this project's features, and leaving
