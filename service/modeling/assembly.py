@@ -44,7 +44,10 @@ every step or, for a tree of possibilities, several choices per step. Each step 
    complement is one the assembly has: a chair with a seat, a back and legs asks for one more
    seat or back), unless a mode of weight at least ``assemble_open_mode_weight`` has no placed
    part near its mean (``open_modes``) and an eligible candidate: then that candidate is added
-   (in a tree, one per unmet mode, up to the branching);
+   (in a tree, one per unmet mode, up to the branching); failing that, unless most of the
+   category's training shapes nearest to the assembly have a part at a spot it leaves empty
+   (``templates.missing_spots``, ``assemble_gap_neighbours``): then the first eligible candidate
+   placed at that spot is added (``SuggestOptions.region``);
 5. picks: ``greedy`` takes the most likely eligible part; ``sample`` draws a mode with
    probability proportional to its weight (sharpened or flattened by ``temperature``) and takes
    that mode's most likely eligible part (seeded);
@@ -69,7 +72,7 @@ import weakref
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -79,11 +82,13 @@ from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
 from service.geometry.scaling import scaled_area
+from service.modeling.templates import ShapeTemplate, missing_spots, shape_templates
 from service.settings import Settings
 from service.suggest.contact import Assembly, Surface
 from service.suggest.engine import Suggestion, SuggestionEngine, SuggestOptions, SuggestResult
 from service.suggest.mixture import mixture_log_likelihood, sigma_distances
 from service.suggest.preferences import Preferences
+from service.suggest.region import Region
 from service.suggest.snapshot import CatalogSnapshot
 
 Strategy = Literal["greedy", "sample"]
@@ -380,6 +385,20 @@ class Assembler:
         return bool(np.any((overlap & (z < same)) | (near & (z < same / 2))
                            | (strong & (z < s.assemble_strong_overlap_sigmas)) | (overlap & met)))
 
+    def _like_overlapping(self, cand: _Placed, state: _State) -> bool:
+        """Whether the candidate's box overlaps a placed part's with IoU above
+        ``assemble_overlap_iou`` and about the same extents (each within
+        ``assemble_duplicate_size_ratio``), whatever the two parts' embeddings. On training
+        starts the missing-spot rule, with every nearest shape voting, gave 86.4% good runs with this
+        test, 85.6% without (a second leg through the legs) and 84.7% with any overlap forbidden (a
+        sofa's seat overlaps its cushions)."""
+        s = self.settings
+        overlap = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_overlap_iou
+        ratio = np.maximum(cand.hi - cand.lo, 1e-3) / np.maximum(state.hi - state.lo, 1e-3)     # (P, 3)
+        similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
+                         & (ratio >= 1 / s.assemble_duplicate_size_ratio), axis=1)
+        return bool(np.any(overlap & similar))
+
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""
         s = self.settings
@@ -610,12 +629,67 @@ class Assembler:
             timings["choose"] += time.perf_counter() - t
             if picks:
                 return picks, ""
+            if why == "complete":
+                return self._missing_spot_picks(query, state, options, suggest, n, rng, reached, timings)
             if why != "duplicates":
                 # After a round of duplicates, running out of (likely) candidates still means
                 # that every likely one did a placed part's job.
-                return [], why if round_ == 0 or why == "complete" else "duplicates"
+                return [], why if round_ == 0 else "duplicates"
             tested += [sug.part_id for sug in result.suggestions]
         return [], "duplicates"
+
+    def _missing_spot_picks(self, query: np.ndarray, state: _State, options: AssembleOptions,
+                            suggest: SuggestOptions, n: int, rng: np.random.Generator,
+                            reached: set[frozenset[int]], timings: dict[str, float]
+                            ) -> tuple[list[_Candidate], str]:
+        """At a step that would end ``complete``: the picks placed at a spot where most of the
+        category's training shapes nearest to the state have a part the state lacks
+        (``templates.missing_spots``), tried spot by spot, most voted first, among candidates within
+        ``assemble_gap_max_distance`` of their mode's mean; none: complete.
+
+        Why: g's mixture can want nothing more while the object lacks a part almost every shape of
+        the data has (a rifle's body between its stock and barrel, a sofa's seat under its
+        cushions); on training starts 85.0% good runs against 82.2%, held out 83.2% against 82.6%
+        (docs/modeling.md).
+        """
+        s = self.settings
+        if (s.assemble_gap_neighbours <= 0 or len(suggest.categories) != 1
+                or len(state.parts) >= self._part_counts[1]):
+            return [], "complete"
+        t = time.perf_counter()
+        templates = [tm for tm in self.templates(suggest.categories[0])
+                     if tm.shape_id not in options.exclude_shapes]
+        spots = missing_spots(np.concatenate([p.points for p in state.parts]), templates,
+                              s.assemble_gap_neighbours, s.assemble_cover_distance, s.assemble_gap_uncovered,
+                              s.assemble_gap_share, s.assemble_gap_radius, s.seed, len(state.parts))
+        timings["choose"] += time.perf_counter() - t
+        for centre, _ in spots:
+            t = time.perf_counter()
+            spot = Region.ball(centre, s.assemble_gap_radius)
+            result = self.engine.suggest(query, replace(suggest, region=spot), snapshot=self.snapshot)
+            timings["suggest"] += time.perf_counter() - t
+            t = time.perf_counter()
+            picks: list[_Candidate] = []
+            if result.suggestions:
+                weights = options.preferences.weights(result.mode_weights)
+                likely = self._likely(result, weights)
+                if n > 1:   # as in ``_step``: a branch never reaches a set another one has
+                    likely = [c for c in likely if state.groups | {
+                        int(self.catalog.group[c.suggestion.part_index])} not in reached]
+                # The spot is one the state leaves empty: a part as large as a placed one it
+                # overlaps is that part again (a second leg through the legs), not the missing one.
+                # A part g did not ask for must still be a typical draw of one of its modes (a seat
+                # block under a finished chair's seat lies 1.4-1.7 sigmas out, a sofa's missing
+                # seat 0.75-0.9).
+                likely = [c for c in likely if c.distance <= s.assemble_gap_max_distance]
+                fresh = (c for c in self._eligible(result, likely, state)
+                         if c.placed is not None and not self._like_overlapping(c.placed, state))
+                picks = self._choose(fresh, n, options.strategy, weights,
+                                     options.temperature, rng)
+            timings["choose"] += time.perf_counter() - t
+            if picks:
+                return picks, ""
+        return [], "complete"
 
     def _step(self, result: SuggestResult, state: _State, options: AssembleOptions, n: int,
               rng: np.random.Generator, reached: set[frozenset[int]]) -> tuple[list[_Candidate], str]:
@@ -699,15 +773,19 @@ class Assembler:
         s = self.settings
         if s.assemble_cover_quantile <= 0 or s.assemble_cover_share >= 1:
             return s.assemble_cover_share
-        with _COVER_LOCK:
-            share = _COVER_SHARES.setdefault(self.snapshot, {}).get(category)
-        if share is None:  # measured outside the lock: two first requests may both measure it
+        def make() -> float:
             shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance,
                                       s.assemble_cover_shapes, s.seed)
-            share = float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
-            with _COVER_LOCK:
-                _COVER_SHARES.setdefault(self.snapshot, {})[category] = share
-        return max(s.assemble_cover_share, share)
+            return float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
+        return max(s.assemble_cover_share, _per_snapshot(_COVER_SHARES, self.snapshot, category, make))
+
+    def templates(self, category: str) -> list[ShapeTemplate]:
+        """The category's training shapes as the missing-spot rule reads them
+        (``templates.shape_templates``), made once per snapshot and category."""
+        def make() -> list[ShapeTemplate]:
+            s = self.settings
+            return shape_templates(self.catalog, category, s.assemble_cover_shapes, s.seed)
+        return _per_snapshot(_TEMPLATES, self.snapshot, category, make)
 
     def _fills_frame(self, state: _State) -> bool:
         """Whether the state spans the complete object's frame: a complete object's box is centred
@@ -776,10 +854,27 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
     return np.asarray(out, dtype=np.float64)
 
 
-# The cover share of each catalog snapshot and category, made on first use (``Assembler.cover_share``).
+# What each catalog snapshot's data says per category, made on first use: the cover share
+# (``Assembler.cover_share``) and the template shapes (``Assembler.templates``).
 _COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float]] = (
     weakref.WeakKeyDictionary())
-_COVER_LOCK = threading.Lock()
+_TEMPLATES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, list[ShapeTemplate]]] = (
+    weakref.WeakKeyDictionary())
+_CACHE_LOCK = threading.Lock()
+_T = TypeVar("_T")
+
+
+def _per_snapshot(cache: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, _T]],
+                  snapshot: CatalogSnapshot, category: str | None, make: Callable[[], _T]) -> _T:
+    """``cache[snapshot][category]``, made by ``make`` on first use. Made outside the lock: two
+    first requests may both make it (the same value), but no request waits on another's."""
+    with _CACHE_LOCK:
+        value = cache.setdefault(snapshot, {}).get(category)
+    if value is None:
+        value = make()
+        with _CACHE_LOCK:
+            cache.setdefault(snapshot, {})[category] = value
+    return value
 
 
 def open_modes(placed: np.ndarray, weights: np.ndarray, means: np.ndarray, sigmas: np.ndarray,

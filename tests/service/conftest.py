@@ -29,6 +29,7 @@ from service_testkit import (  # noqa: E402
 
 from service.api.app import create_app  # noqa: E402
 from service.artifacts.catalog import Catalog  # noqa: E402
+from service.artifacts.loading import load_artifacts  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.suggest.engine import SuggestionEngine  # noqa: E402
 
@@ -44,6 +45,22 @@ def artifacts() -> Path:
 @pytest.fixture(scope="session")
 def settings(artifacts: Path) -> Settings:
     return make_settings(artifacts)
+
+
+@pytest.fixture(scope="session")
+def shipped_settings() -> Settings:
+    """The service's own defaults on the test artifact folder (``settings`` is the tests' copy)."""
+    return Settings(artifacts=artifacts_folder())
+
+
+@pytest.fixture(scope="session")
+def shipped_engine(shipped_settings: Settings) -> SuggestionEngine:
+    """An engine on the trained model with the service's defaults, for the quality tests: skipped
+    when the folder holds no model (COMPLEMENTME_TEST_ARTIFACTS, so a candidate is tested on itself)."""
+    folder = shipped_settings.artifacts
+    if not (folder / "manifest.json").is_file():
+        pytest.skip(f"no trained model in {folder}: the quality tests need the shipped artifacts")
+    return SuggestionEngine(load_artifacts(folder), shipped_settings)
 
 
 @pytest.fixture(scope="session")

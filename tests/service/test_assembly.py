@@ -16,10 +16,9 @@ import numpy as np
 import pytest
 import trimesh
 from fastapi.testclient import TestClient
-from service_testkit import artifacts_folder, make_settings
+from service_testkit import make_settings
 
 from service.artifacts.catalog import Catalog, split_shapes
-from service.artifacts.loading import load_artifacts
 from service.errors import InputError, ServiceError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
@@ -446,19 +445,6 @@ def test_api_assemble_errors(client: TestClient, catalog: Catalog, body: dict, s
 
 
 # ------------------------------------------------------------------ quality on the trained model
-
-
-@pytest.fixture(scope="module")
-def shipped_engine() -> SuggestionEngine:
-    folder = artifacts_folder()  # COMPLEMENTME_TEST_ARTIFACTS, so a candidate is tested on itself
-    if not (folder / "manifest.json").is_file():
-        pytest.skip(f"no trained model in {folder}: the assembly quality test needs the shipped artifacts")
-    return SuggestionEngine(load_artifacts(folder), Settings(artifacts=folder))
-
-
-@pytest.fixture(scope="module")
-def shipped_settings() -> Settings:
-    return Settings(artifacts=artifacts_folder())
 
 
 QualityRuns = tuple[dict[str, float], list[tuple[str, str, Strategy, str]]]
