@@ -376,7 +376,7 @@ class Settings(BaseSettings):
         "`assemble_gap_uncovered`), it asks for suggestions placed at that spot and adds the first "
         "that does no placed part's job (`service.modeling.templates`; labels are not read). 0: off. "
         "Chosen on 360 training starts (`evaluate-assembly --split train --starts 40 --no-contact`, "
-        "docs/modeling.md): 85.0% good runs against 82.2% off; with 5 or 20 shapes 84.2%, 84.7%."))
+        "docs/modeling.md): 85.3% good runs against 82.2% off; with 5 or 20 shapes 84.2%, 84.7%."))
     assemble_gap_share: float = Field(default=0.5, gt=0, le=1, description=(
         "Share of the `assemble_gap_neighbours` shapes that must have an uncovered component at a "
         "spot for the spot to count as missing (0.6 / 0.7 / 0.8: 84.7 / 83.9 / 83.1% good runs on "

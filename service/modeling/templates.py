@@ -39,8 +39,11 @@ from service.artifacts.catalog import Catalog, split_shapes
 # nearest shapes of a category (144 in the shipped catalog) takes a few milliseconds.
 TEMPLATE_SAMPLES = 64
 # Placed samples compared with the templates at most (a seeded subset beyond it): an assembly of
-# nine parts holds 2,304.
+# nine parts holds 2,304. Ranking the shapes by how closely they hold the assembly takes a mean
+# distance, which a smaller subset estimates well enough: it is the step that reads every shape
+# (144 KD-tree queries), 70 ms with every sample and about 10 ms with 256.
 PLACED_SAMPLES = 2048
+FIT_SAMPLES = 256
 
 
 @dataclass(frozen=True)
@@ -90,9 +93,11 @@ def missing_spots(placed: np.ndarray, templates: list[ShapeTemplate], neighbours
     if len(templates) == 0 or len(placed) == 0 or neighbours <= 0:
         return []
     pts = np.asarray(placed, dtype=np.float64)
+    rng = np.random.default_rng(seed)
     if len(pts) > PLACED_SAMPLES:
-        pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), PLACED_SAMPLES, replace=False))]
-    fit = np.array([float(np.mean(t.tree.query(pts, k=1)[0])) for t in templates])
+        pts = pts[np.sort(rng.choice(len(pts), PLACED_SAMPLES, replace=False))]
+    few = pts[np.sort(rng.choice(len(pts), FIT_SAMPLES, replace=False))] if len(pts) > FIT_SAMPLES else pts
+    fit = np.array([float(np.mean(t.tree.query(few, k=1)[0])) for t in templates])
     near = np.argsort(fit, kind="stable")[:neighbours]
     placed_tree = cKDTree(pts)
     owners: list[int] = []        # the neighbour of each uncovered component
