@@ -8,7 +8,7 @@ import numpy as np
 
 from service.api.render import part_links, render_frame, render_placed
 from service.artifacts.catalog import Catalog
-from service.modeling.assembly import STOP_REASONS, AssembleResult, Node
+from service.modeling.assembly import ADD_REASONS, STOP_REASONS, AssembleResult, Node
 
 
 def render_node(n: Node, cat: Catalog, result: AssembleResult) -> dict[str, Any]:
@@ -23,6 +23,7 @@ def render_node(n: Node, cat: Catalog, result: AssembleResult) -> dict[str, Any]
         "node": n.node, "parent": n.parent, "depth": n.depth, "part_id": s.part_id, "shape_id": s.shape_id,
         "category": s.category, "label": s.label, "score": s.score, "mode": s.mode,
         "mode_weight": s.mode_weight, "distance": n.distance, "stop_reason": n.stop_reason,
+        "added_by": n.added_by, "added_message": ADD_REASONS[n.added_by],
         **render_placed(s.part_id, frame.from_canonical(t)[0],
                         n.contact_offset @ frame.rotation * frame.radius, lo[0], hi[0],
                         sc @ np.abs(frame.rotation)),

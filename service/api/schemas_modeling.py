@@ -131,6 +131,12 @@ class StepOut(BaseModel):
         "Per-axis scale (the request's frame axes) that fits the part, about its centre; the box "
         "above is the scaled one."))
     stop_reason: str | None = Field(..., description="On a leaf: why its branch ended.")
+    added_by: Literal["likely", "unmet_mode", "missing_spot"] = Field(default="likely", description=(
+        "Which rule of the step chose the part: `likely`, the most likely eligible candidate; "
+        "`unmet_mode`, a heavy mode of g's mixture that no placed part explained; `missing_spot`, "
+        "a spot most of the category's shapes nearest the assembly fill and it left empty "
+        "(docs/modeling.md)."))
+    added_message: str = Field(default="", description="`added_by` in words, for a user.")
     links: PartLinks
 
 

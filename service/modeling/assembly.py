@@ -103,6 +103,13 @@ STOP_REASONS = {
     "node_budget": "the tree reached assemble_max_nodes parts",
 }
 
+# Why a part was added (``Node.added_by``): which rule of the step chose it.
+ADD_REASONS = {
+    "likely": "the most likely eligible candidate under g's mixture",
+    "unmet_mode": "a heavy mode of g's mixture that no placed part explained offered it",
+    "missing_spot": "most of the category's shapes nearest the assembly have a part at its spot",
+}
+
 
 @dataclass(frozen=True)
 class AssembleOptions:
@@ -155,6 +162,7 @@ class Node:
     contact_offset: np.ndarray
     distance: float                          # to its mode's mean, in RMS standard deviations
     stop_reason: str | None = None           # set on leaves: why this branch ended
+    added_by: str = "likely"                 # the rule that chose it (an ``ADD_REASONS`` key)
 
 
 @dataclass
@@ -232,6 +240,7 @@ class _Candidate:
     placed: _Placed | None                   # where h puts it (made when the candidate is tested)
     near_mode: int                           # that nearest heavy mode
     redundant: bool | None = None            # the step's verdict once tested (None: not yet)
+    added_by: str = "likely"                 # the rule that picks it, when picked (``ADD_REASONS``)
 
 
 def estimate_area(points: np.ndarray) -> float:
@@ -590,7 +599,8 @@ class Assembler:
                 trans, offset, placed = self._refined(c, state, options.refine_contact)
                 timings["contact"] += time.perf_counter() - t
                 node = Node(node=len(nodes), parent=parent, depth=depth + 1, suggestion=c.suggestion,
-                            translation=trans, contact_offset=offset, distance=c.distance)
+                            translation=trans, contact_offset=offset, distance=c.distance,
+                            added_by=c.added_by)
                 nodes.append(node)
                 group = int(cat.group[c.suggestion.part_index])
                 child = _State([*state.parts, placed], state.groups | {group})
@@ -688,6 +698,8 @@ class Assembler:
                                      options.temperature, rng)
             timings["choose"] += time.perf_counter() - t
             if picks:
+                for c in picks:
+                    c.added_by = "missing_spot"
                 return picks, ""
         return [], "complete"
 
@@ -749,6 +761,7 @@ class Assembler:
                                                 and c.suggestion.score >= floor], state), None)
             if pick is not None and not any(
                     _near_identical(pick, p, s.assemble_branch_min_distance) for p in picks):
+                pick.added_by = "unmet_mode"
                 picks.append(pick)
                 if len(picks) >= n:
                     break

@@ -23,6 +23,7 @@ from service.errors import InputError, ServiceError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
 from service.modeling.assembly import (
+    ADD_REASONS,
     STOP_REASONS,
     AssembleOptions,
     Assembler,
@@ -376,6 +377,7 @@ def test_api_assemble(client: TestClient, catalog: Catalog) -> None:
         box_min = np.subtract(s["bbox_min"], s["translation"])
         np.testing.assert_allclose(box_min, catalog.bbox_min[i] * np.array(s["scale"]), atol=1e-5)
         assert s["links"]["mesh"].endswith("/mesh")
+        assert s["added_message"] == ADD_REASONS[s["added_by"]]
     # A z-up, scaled frame answers the same parts at mapped translations.
     framed = client.post("/assemble", json={"part_id": pid, "max_parts": 3, "frame": {
         "center": [1, 2, 3], "radius": 2.0, "up_axis": "z"}}).json()
@@ -384,6 +386,15 @@ def test_api_assemble(client: TestClient, catalog: Catalog) -> None:
         assert a["part_id"] == b["part_id"]
         back = (np.array(b["translation"]) - [1, 2, 3]) / 2.0 @ turn.T
         np.testing.assert_allclose(back, a["translation"], atol=1e-5)
+
+
+def test_the_answer_names_every_rule_that_adds_a_part() -> None:
+    """The API's `added_by` values are the assembly's `ADD_REASONS`, no more, no fewer."""
+    from typing import get_args
+
+    from service.api.schemas_modeling import StepOut
+
+    assert set(get_args(StepOut.model_fields["added_by"].annotation)) == set(ADD_REASONS)
 
 
 def test_api_assemble_from_parts_continues(client: TestClient, catalog: Catalog) -> None:
@@ -611,19 +622,22 @@ def test_an_unmet_mode_keeps_a_rifle_going(shipped_engine: SuggestionEngine,
     shapes = rifles[:12]
     assert len(shapes) >= 8 and {"body", "magazine"} <= essential
 
-    def complete_runs(settings: Settings) -> int:
-        asm, done = Assembler(shipped_engine, settings), 0
+    def complete_runs(settings: Settings) -> tuple[int, int]:
+        """Runs with every essential label, and parts an unmet mode added."""
+        asm, done, unmet = Assembler(shipped_engine, settings), 0, 0
         for rows in shapes:
             shape = str(cat.records[rows[0]]["shape_id"])
             result = asm.assemble(Start(kind="part", part_index=rows[0]),
                                   AssembleOptions(exclude_shapes=(shape,), refine_contact=False))
             labels = {cat.records[rows[0]]["label"], *(n.suggestion.label for n in result.steps)}
             done += essential <= labels
-        return done
+            unmet += sum(n.added_by == "unmet_mode" for n in result.steps)
+        return done, unmet
 
-    on = complete_runs(shipped_settings)
-    off = complete_runs(shipped_settings.model_copy(update={"assemble_open_mode_weight": 0.0}))
+    (on, unmet), (off, none) = complete_runs(shipped_settings), complete_runs(
+        shipped_settings.model_copy(update={"assemble_open_mode_weight": 0.0}))
     assert on > off, (on, off)
+    assert unmet >= 1 and none == 0             # the answer says which parts the rule added
 
 
 def test_an_unmet_mode_adds_no_part_far_less_likely_than_the_placed_ones(

@@ -142,14 +142,17 @@ def test_a_missing_spot_keeps_an_assembly_going(shipped_engine: SuggestionEngine
     essential = {label for label, n in counts.items() if n > len(shapes) / 2}
     starts = [(row, str(cat.records[row]["shape_id"])) for rows in shapes[:12] for row in rows]
 
-    def complete_runs(settings: Settings) -> int:
-        asm, done = Assembler(shipped_engine, settings), 0
+    def complete_runs(settings: Settings) -> tuple[int, int]:
+        """Runs with every essential label, and parts the missing-spot rule added."""
+        asm, done, spotted = Assembler(shipped_engine, settings), 0, 0
         for row, shape in starts:
             result = asm.assemble(Start(kind="part", part_index=row),
                                   AssembleOptions(exclude_shapes=(shape,), refine_contact=False))
             done += essential <= {cat.records[row]["label"], *(n.suggestion.label for n in result.steps)}
-        return done
+            spotted += sum(n.added_by == "missing_spot" for n in result.steps)
+        return done, spotted
 
-    on = complete_runs(shipped_settings)
-    off = complete_runs(shipped_settings.model_copy(update={"assemble_gap_neighbours": 0}))
+    (on, spotted), (off, none) = complete_runs(shipped_settings), complete_runs(
+        shipped_settings.model_copy(update={"assemble_gap_neighbours": 0}))
     assert on > off, (on, off)
+    assert spotted >= on - off and none == 0     # the answer says which parts the rule added
