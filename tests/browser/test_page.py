@@ -28,6 +28,7 @@ PARTS = "[data-testid=placed-part]"
 CARDS = "[data-testid=suggestion-card]"
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "chair-without-legs.obj"
 LONE_SEAT = "chair-0000/1"  # a seat alone: issue 18's auto-complete that added nothing
+SOFA_BACK = "sofa-0009/1"  # a sofa's back: auto-complete adds its legs at a missing spot
 
 
 def _parts(page: Any) -> int:
@@ -334,6 +335,22 @@ def _records(page: Any, part_ids: list[str]) -> list[dict[str, Any]]:
     return [page.evaluate("id => fetch('/parts/' + id).then(r => r.json())", p) for p in part_ids]
 
 
+def test_autocomplete_says_which_parts_a_missing_spot_added(page: Any) -> None:
+    """A part the assembly added because the data's nearest shapes have one at that spot (not
+    because g asked for it) is named in the notice, in the service's own words."""
+    _start_from(page, SOFA_BACK)
+    with page.expect_response(lambda r: r.url.endswith("/assemble")) as answer:
+        page.click("#autocomplete-button")
+    page.wait_for_function(IDLE)
+    body = answer.value.json()
+    spotted = [s for s in body["steps"] if s["added_by"] == "missing_spot"]
+    assert spotted, [(s["label"], s["added_by"]) for s in body["steps"]]
+    text = page.locator("#notice").inner_text()
+    assert f"{len(spotted)} of them because {spotted[0]['added_message']}" in text, text
+    _wait_parts(page, 1 + len(body["steps"]))
+    assert not page.problems, page.problems
+
+
 def test_autocomplete_from_a_lone_part_says_what_it_did(page: Any, artifact_dir: Path) -> None:
     """issue 18: auto-complete from a lone seat added nothing and the page said nothing."""
     _start_from(page, LONE_SEAT)
@@ -363,6 +380,8 @@ def test_autocomplete_from_a_lone_part_says_what_it_did(page: Any, artifact_dir:
     if body["steps"]:
         n = len(body["steps"])
         assert f"added {n} part" in text, text
+        for step in body["steps"]:       # parts a rule other than "most likely" added say why
+            assert step["added_by"] == "likely" or step["added_message"] in text, text
         _wait_parts(page, 1 + n)
     else:
         assert "added nothing" in text, text

@@ -431,7 +431,18 @@ async function autoComplete() {
     adoptCategory(answer.category);
   });
   const n = answer.steps.length;
-  notify(`Auto-complete added ${n} part${n === 1 ? "" : "s"}; it stopped because ${stopReason(answer)}.`);
+  notify(`Auto-complete added ${n} part${n === 1 ? "" : "s"}${addedBy(answer.steps)}; ` +
+    `it stopped because ${stopReason(answer)}.`);
+}
+
+// Which parts a rule other than "the most likely" added, in the service's own words
+// (service.modeling.assembly.ADD_REASONS, sent as added_message): ", 1 of them because ...".
+function addedBy(steps) {
+  const counts = new Map();
+  for (const s of steps) {
+    if (s.added_by && s.added_by !== "likely") counts.set(s.added_message, (counts.get(s.added_message) ?? 0) + 1);
+  }
+  return [...counts].map(([why, k]) => `, ${k} of them because ${why}`).join("");
 }
 
 function clearTree() {
