@@ -171,6 +171,7 @@ def main() -> None:
         assert_close(found_lo, step["bbox_min"], tol, f"step {step['part_id']} box min")
         assert_close(found_hi, step["bbox_max"], tol, f"step {step['part_id']} box max")
         assert_upright(obj, os.environ["CM_URL"], step, radius, tol)
+        assert obj["complementme_added_by"] == step["added_by"], (obj["complementme_added_by"], step)
     result["assembled"] = [(s["part_id"], s["label"]) for s in steps]
 
     # A torus is no known kind of shape: the answer's unfamiliar_shape warning reaches the panel.

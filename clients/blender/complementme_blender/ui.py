@@ -28,6 +28,7 @@ from .service_client import Client, ServiceError
 
 ADDON = __package__ or "complementme_blender"
 PART_ID_KEY = "complementme_part_id"  # custom property on imported objects
+ADDED_BY_KEY = "complementme_added_by"  # ... and on auto-completed ones: the rule that added it
 
 
 # -- settings --------------------------------------------------------------------------------
@@ -281,8 +282,13 @@ class COMPLEMENTME_OT_autocomplete(_ServiceOperator):  # noqa: N801 - Blender\'s
         steps = answer.get("steps", [])
         # Fetch every mesh before adding anything, so that a failure leaves the scene unchanged.
         geometry = {step["part_id"]: _part_geometry(client, step["part_id"]) for step in steps}
-        names = [add_part(context, step["part_id"], step.get("label") or "", geometry[step["part_id"]],
-                          answer["frame"], step["translation"], part_scale(step)).name for step in steps]
+        names = []
+        for step in steps:
+            obj = add_part(context, step["part_id"], step.get("label") or "", geometry[step["part_id"]],
+                           answer["frame"], step["translation"], part_scale(step))
+            # Which rule of the assembly chose it (likely, unmet_mode, missing_spot: docs/api.md).
+            obj[ADDED_BY_KEY] = step.get("added_by", "likely")
+            names.append(obj.name)
         stop = answer.get("stop_reason")
         return f"added {len(names)} parts" + (f" (stopped: {stop})" if stop else "")
 
