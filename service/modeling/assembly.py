@@ -217,13 +217,20 @@ class _State:
         self.lo = np.array([p.lo for p in parts])
         self.hi = np.array([p.hi for p in parts])
         self.rows = np.array([p.row for p in parts if p.row is not None], dtype=np.int64)
+        self._points: np.ndarray | None = None
         self._tree: cKDTree | None = None
         self._assembly: Assembly | None = None
+
+    def points(self) -> np.ndarray:
+        """Every placed part's samples, (S, 3) float64 canonical."""
+        if self._points is None:
+            self._points = np.concatenate([p.points for p in self.parts])
+        return self._points
 
     def tree(self) -> cKDTree:
         """A KD-tree over every placed part's samples."""
         if self._tree is None:
-            self._tree = cKDTree(np.concatenate([p.points for p in self.parts]))
+            self._tree = cKDTree(self.points())
         return self._tree
 
     def assembly(self) -> Assembly:
@@ -403,23 +410,20 @@ class Assembler:
         sofa's seat overlaps its cushions)."""
         s = self.settings
         overlap = box_iou(cand.lo, cand.hi, state.lo, state.hi) > s.assemble_overlap_iou
-        ratio = np.maximum(cand.hi - cand.lo, 1e-3) / np.maximum(state.hi - state.lo, 1e-3)     # (P, 3)
-        similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
-                         & (ratio >= 1 / s.assemble_duplicate_size_ratio), axis=1)
+        similar = _like_sized(_extents(cand.lo, cand.hi) / _extents(state.lo, state.hi),
+                              s.assemble_duplicate_size_ratio)
         return bool(np.any(overlap & similar))
 
     def _duplicate(self, cand: _Placed, parts: list[_Placed]) -> bool:
         """Whether the candidate repeats a placed part's geometry at the same spot (see module doc)."""
         s = self.settings
-        size = np.maximum(cand.hi - cand.lo, 1e-3)
+        size = _extents(cand.lo, cand.hi)
         centre = (cand.hi + cand.lo) / 2
         margin = s.assemble_duplicate_distance
         for p in parts:
-            p_size = np.maximum(p.hi - p.lo, 1e-3)
             if np.linalg.norm(centre - (p.hi + p.lo) / 2) < s.assemble_duplicate_centre:
-                ratio = size / p_size
-                similar = np.all((ratio <= s.assemble_duplicate_size_ratio)
-                                 & (ratio >= 1 / s.assemble_duplicate_size_ratio))
+                ratio = size / _extents(p.lo, p.hi)
+                similar = bool(_like_sized(ratio, s.assemble_duplicate_size_ratio))
                 around = bool(np.all(p.lo >= cand.lo - margin) and np.all(p.hi <= cand.hi + margin))
                 # At the same spot only a much larger part of another profile that encloses the
                 # placed one is something else (a hull around its deck); a longer rod on a shorter
@@ -669,7 +673,7 @@ class Assembler:
         t = time.perf_counter()
         templates = [tm for tm in self.templates(suggest.categories[0])
                      if tm.shape_id not in options.exclude_shapes]
-        spots = missing_spots(np.concatenate([p.points for p in state.parts]), templates,
+        spots = missing_spots(state.points(), templates,
                               s.assemble_gap_neighbours, s.assemble_cover_distance, s.assemble_gap_uncovered,
                               s.assemble_gap_share, s.assemble_gap_radius, s.seed, len(state.parts))
         timings["choose"] += time.perf_counter() - t
@@ -682,10 +686,7 @@ class Assembler:
             picks: list[_Candidate] = []
             if result.suggestions:
                 weights = options.preferences.weights(result.mode_weights)
-                likely = self._likely(result, weights)
-                if n > 1:   # as in ``_step``: a branch never reaches a set another one has
-                    likely = [c for c in likely if state.groups | {
-                        int(self.catalog.group[c.suggestion.part_index])} not in reached]
+                likely = self._unreached(self._likely(result, weights), state, reached, n)
                 # The spot is one the state leaves empty: a part as large as a placed one it
                 # overlaps is that part again (a second leg through the legs), not the missing one.
                 # A part g did not ask for must still be a typical draw of one of its modes (a seat
@@ -703,6 +704,15 @@ class Assembler:
                 return picks, ""
         return [], "complete"
 
+    def _unreached(self, likely: list[_Candidate], state: _State, reached: set[frozenset[int]], n: int
+                   ) -> list[_Candidate]:
+        """``likely`` without the candidates that would take a tree's branch (``n`` >= 2) to a set
+        of parts another branch already has (A then B, B then A); a chain keeps them all."""
+        if n == 1:
+            return likely
+        group = self.catalog.group
+        return [c for c in likely if state.groups | {int(group[c.suggestion.part_index])} not in reached]
+
     def _step(self, result: SuggestResult, state: _State, options: AssembleOptions, n: int,
               rng: np.random.Generator, reached: set[frozenset[int]]) -> tuple[list[_Candidate], str]:
         """The picks of one expansion, or none and the reason (a ``STOP_REASONS`` key)."""
@@ -712,10 +722,7 @@ class Assembler:
         likely = self._likely(result, weights)
         if not likely:
             return [], "unlikely"
-        cat = self.catalog
-        # A branch never reaches a set of parts another branch already has (A then B, B then A).
-        fresh = likely if n == 1 else [
-            c for c in likely if state.groups | {int(cat.group[c.suggestion.part_index])} not in reached]
+        fresh = self._unreached(likely, state, reached, n)
         least, most = self._part_counts
         if len(state.parts) >= most:
             return [], "complete"
@@ -906,6 +913,24 @@ def open_modes(placed: np.ndarray, weights: np.ndarray, means: np.ndarray, sigma
         return heavy
     nearest = sigma_distances(placed, means[heavy], sigmas[heavy]).min(axis=0)             # (H,)
     return [m for m, d in zip(heavy, nearest, strict=True) if d > distance]
+
+
+def _extents(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Box extents, at least 1e-3 each (a flat part has a thickness to compare).
+
+    Shapes:
+        lo, hi: (..., 3) -> (..., 3).
+    """
+    return np.maximum(hi - lo, 1e-3)
+
+
+def _like_sized(ratio: np.ndarray, most: float) -> np.ndarray:
+    """Whether boxes are about the same size: every extent ratio within ``most`` either way.
+
+    Shapes:
+        ratio: (..., 3) extent ratios -> (...) bool.
+    """
+    return np.all((ratio <= most) & (ratio >= 1 / most), axis=-1)
 
 
 def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:
