@@ -105,9 +105,11 @@ def test_measure_run_knows_whether_the_start_came_from_a_complete_shape() -> Non
             {**stool, "category": "chair"}]
     summary = summarize(runs, [], ["chair"])["chair"]
     assert summary["complete_starts"] == 1 and summary["good_from_complete"] == 1.0
+    assert summary["data_complete"] == pytest.approx(1 / 3)
     assert summary["good"] == pytest.approx(2 / 3)
     lone = summarize([{**stool, "category": "chair"}], [], ["chair"])["chair"]
     assert lone["complete_starts"] == 0 and lone["good_from_complete"] is None
+    assert lone["data_complete"] == 0.0
 
 
 def test_a_part_far_from_every_training_part_of_its_label_is_misplaced() -> None:

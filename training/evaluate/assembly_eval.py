@@ -365,6 +365,9 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             # Over the starts whose own shape is complete (a stool's part can only make a stool).
             "good_from_complete": _mean([r["good"] for r in whole]),
             "complete_starts": len(whole),
+            # The same rule on the starts' own shapes: how often the data itself is "complete"
+            # (a rifle without scope or magazine, a stool, a boat without deck are not).
+            "data_complete": _share(rs, "start_shape_complete"),
             "complete": float(np.mean([r["complete"] for r in rs])),
             "good_as_data": _share(rs, "good_as_data"),
             "stacked": float(np.mean([bool(r["stacked"]) for r in rs])),
@@ -463,6 +466,9 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
              "a shotgun); measured beside the acceptance's Complete, not instead of it",
              "- From a complete shape's part = Complete, nothing stacked, over the starts whose own "
              "shape is complete (their count in brackets); also beside the acceptance's figure",
+             "- Data: complete = the share of the starts whose own shape is Complete (the rule read on "
+             "the data's shapes the starts come from); the other Data columns apply their rules to "
+             "those shapes",
              f"- Misplaced = added parts whose box centre lies farther than "
              f"{results.get('settings', {}).get('place_tolerance', AssemblyEvalSettings.place_tolerance):g}"
              " from every training part of their "
@@ -473,9 +479,10 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
         lines += [f"**{strategy}**", "",
                   "| Category | Runs | Complete, nothing stacked | Some shape's labels, nothing stacked "
                   "| From a complete shape's part | Complete | Stacked | Empty | Parts added "
-                  "| Floating | Interpenetrating | Misplaced | Too many | Data: interpenetrating "
-                  "| Data: stacked | Data: misplaced | Data: too many | Stop reasons |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| Floating | Interpenetrating | Misplaced | Too many | Data: complete "
+                  "| Data: interpenetrating | Data: stacked | Data: misplaced | Data: too many "
+                  "| Stop reasons |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for c, row in summary.items():
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(row["stop_reasons"].items()))
             whole = (f"{_pct(row.get('good_from_complete'))} ({row['complete_starts']})"
@@ -486,7 +493,8 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
                          f"{_pct(row['stacked'])} | {_pct(row['empty'])} | {row['parts']:.1f} | "
                          f"{_pct(row['floating'])} | {_pct(row['interpenetrating'])} | "
                          f"{_pct(row.get('misplaced'))} | {_pct(row.get('too_many'))} | "
-                         f"{_pct(row['data_interpenetrating'])} | {_pct(row.get('data_stacked'))} | "
+                         f"{_pct(row.get('data_complete'))} | {_pct(row['data_interpenetrating'])} | "
+                         f"{_pct(row.get('data_stacked'))} | "
                          f"{_pct(row.get('data_misplaced'))} | {_pct(row.get('data_too_many'))} | "
                          f"{reasons} |")
         lines.append("")
