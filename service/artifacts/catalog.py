@@ -248,6 +248,21 @@ def split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
     return shapes_with(lambda rec: rec.get("split", split) == split) or shapes_with(lambda rec: True)
 
 
+def drawn_training_shapes(catalog: Catalog, category: str | None, max_shapes: int, seed: int = 0
+                          ) -> list[tuple[str, list[int]]]:
+    """The catalog's training shapes of ``category`` (every category: None) as (shape id, rows),
+    sorted by id, at most ``max_shapes`` of them (a seeded draw, kept in id order): what the
+    assembly reads of the data, bounded so that a catalog grown by writes costs no more than the
+    shipped one."""
+    code = None if category is None else catalog.category_codes([category])[0]
+    shapes = [(sid, rows) for sid, rows in sorted(split_shapes(catalog, "train").items())
+              if code is None or catalog.category_of[rows[0]] == code]
+    if len(shapes) > max_shapes:
+        pick = np.random.default_rng(seed).choice(len(shapes), size=max_shapes, replace=False)
+        shapes = [shapes[j] for j in np.sort(pick)]
+    return shapes
+
+
 def _assembly_cloud(catalog: Catalog, rows: list[int], n_points: int, rng: np.random.Generator) -> np.ndarray:
     """The stored samples of ``rows`` placed with their translations, resampled to ``n_points``."""
     pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows])

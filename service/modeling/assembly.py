@@ -77,7 +77,7 @@ from typing import Literal, TypeVar
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.artifacts.catalog import Catalog, split_shapes
+from service.artifacts.catalog import Catalog, drawn_training_shapes
 from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
@@ -858,14 +858,8 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
     Shapes:
         returns (parts,) float64.
     """
-    code = None if category is None else catalog.category_codes([category])[0]
-    shapes = [rows for _, rows in sorted(split_shapes(catalog, "train").items())
-              if code is None or catalog.category_of[rows[0]] == code]
-    if len(shapes) > max_shapes:
-        pick = np.random.default_rng(seed).choice(len(shapes), size=max_shapes, replace=False)
-        shapes = [shapes[j] for j in np.sort(pick)]
     out: list[float] = []
-    for rows in shapes:
+    for _, rows in drawn_training_shapes(catalog, category, max_shapes, seed):
         clouds = [catalog.part_points(i).astype(np.float64) + catalog.translations[i] for i in rows]
         for j, pts in enumerate(clouds):
             rest = cKDTree(np.concatenate(clouds[:j] + clouds[j + 1:]))

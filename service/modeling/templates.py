@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.artifacts.catalog import Catalog, split_shapes
+from service.artifacts.catalog import Catalog, drawn_training_shapes
 
 # Samples kept per component of a template shape: enough to tell a covered component from an
 # uncovered one (256 gave the same spots on the training starts), few enough that finding the
@@ -64,14 +64,8 @@ class ShapeTemplate:
 def shape_templates(catalog: Catalog, category: str, max_shapes: int, seed: int = 0) -> list[ShapeTemplate]:
     """The catalog's training shapes of ``category`` (every multi-part shape when the catalog has
     no split), at most ``max_shapes`` of them (a seeded draw), as ``ShapeTemplate``s."""
-    code = catalog.category_codes([category])[0]
-    shapes = [(sid, rows) for sid, rows in sorted(split_shapes(catalog, "train").items())
-              if catalog.category_of[rows[0]] == code]
-    if len(shapes) > max_shapes:
-        pick = np.random.default_rng(seed).choice(len(shapes), size=max_shapes, replace=False)
-        shapes = [shapes[j] for j in np.sort(pick)]
     out: list[ShapeTemplate] = []
-    for sid, rows in shapes:
+    for sid, rows in drawn_training_shapes(catalog, category, max_shapes, seed):
         clouds = [catalog.part_points(i)[:TEMPLATE_SAMPLES].astype(np.float64) + catalog.translations[i]
                   for i in rows]
         points = np.concatenate(clouds)
