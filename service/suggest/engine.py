@@ -718,7 +718,7 @@ class SuggestionEngine:
                                 "placements were refined")
         if not (self._refines(q.options) and len(placed.rows)):
             return np.zeros((len(placed.rows), 3))
-        return self.contact_offsets(q.full, placed.rows, placed.translations, snap.catalog)
+        return self.contact_offsets(q.full, placed.rows, placed.translations, snap.catalog, placed.scales)
 
     def answer(self, q: Query, placed: Placed, offsets: np.ndarray, mix: QueryMixture, ranked: Ranked,
                snap: CatalogSnapshot, timings: dict[str, float]) -> SuggestResult:
@@ -758,7 +758,8 @@ class SuggestionEngine:
                                                         cat.part_features[idx])
             scale = self._fitted(raw_scale, fit_scale)
         with timer.stage("contact"):
-            off = self.contact_offsets(full, idx, tr, cat) if refine_contact else np.zeros((len(idx), 3))
+            off = (self.contact_offsets(full, idx, tr, cat, scale) if refine_contact
+                   else np.zeros((len(idx), 3)))
         trans, lo, hi = _placed_boxes(cat, idx, tr + off, frame, scale)
         off_caller = off @ frame.rotation * frame.radius
         scale_caller = _caller_scale(scale, frame)
@@ -780,14 +781,18 @@ class SuggestionEngine:
         return result
 
     def contact_offsets(self, full: np.ndarray, rows: np.ndarray, translations: np.ndarray,
-                        catalog: Catalog | None = None) -> np.ndarray:
-        """Contact refinement offsets (canonical) of parts placed next to canonical points.
+                        catalog: Catalog | None = None, scales: np.ndarray | None = None) -> np.ndarray:
+        """Contact refinement offsets (canonical) of parts placed next to canonical points, each
+        measured at the size it is answered with (``scales``, fitted; None: the catalog's): a leg
+        fitted 1.3 times longer and refined at its catalog length would be moved to touch where
+        its answered length sinks into the seat.
 
         Shapes:
-            full: (M, 3) canonical query points; rows: (n,); translations: (n, 3) -> (n, 3) float64.
+            full: (M, 3) canonical query points; rows: (n,); translations: (n, 3); scales: (n, 3)
+            canonical axes -> (n, 3) float64.
         """
         assembly = self.contacts.assembly_from_points(full)
-        return self.refine_against(assembly, rows, translations, catalog=catalog)
+        return self.refine_against(assembly, rows, translations, scales, catalog=catalog)
 
     def refine_against(self, assembly: Assembly, rows: np.ndarray, translations: np.ndarray,
                        scales: np.ndarray | None = None, catalog: Catalog | None = None) -> np.ndarray:

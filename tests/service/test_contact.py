@@ -270,16 +270,25 @@ def test_engine_offsets_are_bounded_and_added(engine: SuggestionEngine, query: A
         np.testing.assert_allclose(a.bbox_min - b.bbox_min, a.contact_offset, atol=1e-5)
 
 
-def test_engine_refined_parts_touch_the_query(engine: SuggestionEngine, query: AssemblyQuery) -> None:
-    """Every refined placement touches the query by the service's own sampled measure."""
-    result = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True))
+@pytest.mark.parametrize("fit_scale", [True, False])
+def test_engine_refined_parts_touch_the_query(engine: SuggestionEngine, query: AssemblyQuery,
+                                              fit_scale: bool) -> None:
+    """Every refined placement touches the query by the service's own sampled measure, at the size
+    it is answered with (fitted or not), in /suggest and in /place alike."""
+    result = engine.suggest(query.points, SuggestOptions(k=8, refine_contact=True, fit_scale=fit_scale))
+    assert any(np.any(s.contact_offset != 0) for s in result.suggestions)
+    if fit_scale:  # the case that tells a part refined at its catalog size from one refined as served
+        assert any(np.max(np.abs(np.log(s.scale))) > 0.05 for s in result.suggestions)
     asm = engine.contacts.assembly_from_points(query.points)
     tol = engine.config.contact_tolerance
-    for s in result.suggestions:
-        if np.any(s.contact_offset != 0):
-            part = engine.contacts.part_surface(engine.catalog, s.part_index)
-            state = measure_contact(part.moved(s.translation), asm)
-            assert state.touching(tol + 1e-9), (s.part_id, state)
+    placed = engine.place(query.points, [s.part_id for s in result.suggestions], fit_scale=fit_scale)
+    for s, p in zip(result.suggestions, placed.placements, strict=True):
+        part = engine.contacts.part_surface(engine.catalog, s.part_index)
+        for scale, translation, offset in ((s.scale, s.translation, s.contact_offset),
+                                           (p.scale, p.translation, p.contact_offset)):
+            if np.any(offset != 0):
+                state = measure_contact(part.scaled(scale).moved(translation), asm)
+                assert state.touching(tol + 1e-9), (s.part_id, scale, state)
 
 
 def test_engine_offsets_follow_the_frame(engine: SuggestionEngine, query: AssemblyQuery) -> None:
