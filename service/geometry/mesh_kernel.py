@@ -36,42 +36,9 @@ _POW10 = np.array([10.0 ** k for k in range(23)])
 _NL, _CR, _BLANK, _SLASH, _DOT, _MINUS, _PLUS = 10, 13, 32, 47, 46, 45, 43
 
 
-@njit(cache=True, nogil=True)
-def _line_end(a: np.ndarray, i: int, end: int) -> int:
-    """Past the end of the line at ``i`` (``\\n``, ``\\r\\n`` or the run's end); -1 for anything else."""
-    if i == end:
-        return i
-    if a[i] == _NL:
-        return i + 1
-    if a[i] == _CR and i + 1 < end and a[i + 1] == _NL:
-        return i + 2
-    return -1
-
-
-@njit(cache=True, nogil=True)
-def _digits(a: np.ndarray, i: int, end: int, value: int, limit: int) -> tuple[int, int, int]:
-    """The decimal digits from ``i`` appended to ``value``: the new value, how many digits, and
-    past them; -1 digits once the value reaches ``limit``."""
-    digits = 0
-    while i < end and 48 <= a[i] <= 57:
-        value = value * 10 + (a[i] - 48)
-        digits += 1
-        i += 1
-        if value >= limit:
-            return value, -1, i
-    return value, digits, i
-
-
-@njit(cache=True, nogil=True)
-def _word_start(a: np.ndarray, i: int, end: int, signs: bool) -> tuple[int, bool]:
-    """Past the blank before a word and its sign (``-``; also ``+`` if ``signs``), and whether it was
-    ``-``; -1 if there is no blank."""
-    if i >= end or a[i] != _BLANK:
-        return -1, False
-    i += 1
-    if i < end and (a[i] == _MINUS or (signs and a[i] == _PLUS)):
-        return i + 1, a[i] == _MINUS
-    return i, False
+# Why the loops below are written out byte by byte, with no helper returning a tuple: the same
+# reader built from small helpers (a word's blank and sign, a run of digits, a line end) took 5.5
+# and 6.3 ms for the bench file's vertex and face runs against 1.6 and 1.9 ms written out.
 
 
 @njit(cache=True, nogil=True)
@@ -88,22 +55,49 @@ def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
             return False
         i += 1
         for c in range(3):
-            i, neg = _word_start(a, i, end, True)
-            if i < 0:
+            if i >= end or a[i] != _BLANK:
                 return False
-            mant, digits, i = _digits(a, i, end, 0, _MAX_MANTISSA)
-            if digits <= 0:
+            i += 1
+            neg = False
+            if i < end and (a[i] == _MINUS or a[i] == _PLUS):
+                neg = a[i] == _MINUS
+                i += 1
+            mant = 0
+            digits = 0
+            while i < end:
+                d = np.int64(a[i]) - 48
+                if d < 0 or d > 9:
+                    break
+                mant = mant * 10 + d
+                digits += 1
+                i += 1
+                if mant >= _MAX_MANTISSA:
+                    return False
+            if digits == 0:
                 return False
             frac = 0
             if i < end and a[i] == _DOT:
-                mant, frac, i = _digits(a, i + 1, end, mant, _MAX_MANTISSA)
-                if frac <= 0 or frac >= len(_POW10):
+                i += 1
+                while i < end:
+                    d = np.int64(a[i]) - 48
+                    if d < 0 or d > 9:
+                        break
+                    mant = mant * 10 + d
+                    frac += 1
+                    i += 1
+                    if mant >= _MAX_MANTISSA:
+                        return False
+                if frac == 0 or frac >= len(_POW10):
                     return False
             value = mant / _POW10[frac]
             out[r, c] = -value if neg else value
-        i = _line_end(a, i, end)
-        if i < 0:
-            return False
+        if i < end:   # the line end: \n or \r\n (the run's last line may have none)
+            if a[i] == _NL:
+                i += 1
+            elif a[i] == _CR and i + 1 < end and a[i + 1] == _NL:
+                i += 2
+            else:
+                return False
     return i == end
 
 
@@ -121,20 +115,47 @@ def read_faces(a: np.ndarray, start: int, end: int, slashes: int, out: np.ndarra
             return False
         i += 1
         for c in range(out.shape[1]):
-            i, neg = _word_start(a, i, end, False)
-            if i < 0:
+            if i >= end or a[i] != _BLANK:
                 return False
-            ref, digits, i = _digits(a, i, end, 0, _MAX_REFERENCE)
-            if digits <= 0:
+            i += 1
+            neg = False
+            if i < end and a[i] == _MINUS:
+                neg = True
+                i += 1
+            ref = 0
+            digits = 0
+            while i < end:
+                d = np.int64(a[i]) - 48
+                if d < 0 or d > 9:
+                    break
+                ref = ref * 10 + d
+                digits += 1
+                i += 1
+                if ref >= _MAX_REFERENCE:
+                    return False
+            if digits == 0:
                 return False
             for _ in range(slashes):   # texture and normal references: skipped
                 if i >= end or a[i] != _SLASH:
                     return False
-                _, _, i = _digits(a, i + 1, end, 0, _MAX_REFERENCE)
+                i += 1
+                skipped = 0
+                while i < end:
+                    d = np.int64(a[i]) - 48
+                    if d < 0 or d > 9:
+                        break
+                    skipped = skipped * 10 + d
+                    i += 1
+                    if skipped >= _MAX_REFERENCE:
+                        break   # the digits left make the word's end fail below
             out[r, c] = -ref if neg else ref
-        i = _line_end(a, i, end)
-        if i < 0:
-            return False
+        if i < end:
+            if a[i] == _NL:
+                i += 1
+            elif a[i] == _CR and i + 1 < end and a[i + 1] == _NL:
+                i += 2
+            else:
+                return False
     return i == end
 
 
