@@ -65,7 +65,7 @@ def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
             mant = 0
             digits = 0
             while i < end:
-                d = np.int64(a[i]) - 48
+                d = int(a[i]) - 48
                 if d < 0 or d > 9:
                     break
                 mant = mant * 10 + d
@@ -79,7 +79,7 @@ def read_vertices(a: np.ndarray, start: int, end: int, out: np.ndarray) -> bool:
             if i < end and a[i] == _DOT:
                 i += 1
                 while i < end:
-                    d = np.int64(a[i]) - 48
+                    d = int(a[i]) - 48
                     if d < 0 or d > 9:
                         break
                     mant = mant * 10 + d
@@ -125,7 +125,7 @@ def read_faces(a: np.ndarray, start: int, end: int, slashes: int, out: np.ndarra
             ref = 0
             digits = 0
             while i < end:
-                d = np.int64(a[i]) - 48
+                d = int(a[i]) - 48
                 if d < 0 or d > 9:
                     break
                 ref = ref * 10 + d
@@ -141,7 +141,7 @@ def read_faces(a: np.ndarray, start: int, end: int, slashes: int, out: np.ndarra
                 i += 1
                 skipped = 0
                 while i < end:
-                    d = np.int64(a[i]) - 48
+                    d = int(a[i]) - 48
                     if d < 0 or d > 9:
                         break
                     skipped = skipped * 10 + d
