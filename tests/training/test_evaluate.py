@@ -510,6 +510,9 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     like, on = fit["placed-box IoU, fitting on, like with like"], fit["placed-box IoU, fitting on"]
     assert all(like["n"][c] <= on["n"][c] for c in on["n"]) and sum(like["n"].values()) > 0
     assert all(0.0 <= like[c] <= 1.0 for c in like["n"] if like["n"][c])
+    # As /place answers by default (fitted, contact-refined): every query of the fitted row.
+    served = fit["placed-box IoU, fitting on, contact-refined (as /place answers)"]
+    assert served["n"] == on["n"] and all(0.0 <= served[c] <= 1.0 for c in on["n"] if on["n"][c])
     # Where like with like loses IoU: the same queries, the box at the true centre or with the true
     # extents (IoUs), and the placed centre's distances to the true one and to its own shape's.
     for row, upper in (("like with like, at the true centre", 1.0),

@@ -169,11 +169,15 @@ class ContactSettings:
     candidates: int = 32      # samples per side measured exactly (see contact.contact)
 
 
-def _placed_mesh(index: ShapeIndex, row: int, translation: np.ndarray, samples: int) -> Mesh:
+def _placed_mesh(index: ShapeIndex, row: int, translation: np.ndarray, samples: int,
+                 scale: np.ndarray | None = None) -> Mesh:
+    """Catalog part ``row`` scaled per axis about its centre (``scale``; None: its catalog size,
+    as the service fits a part) and moved to ``translation``."""
     v, f = index.catalog.mesh(row)
     t = np.asarray(translation, dtype=np.float64).reshape(1, 3)
+    s = np.ones((1, 3)) if scale is None else np.asarray(scale, dtype=np.float64).reshape(1, 3)
     pts = index.samples[row][:samples].astype(np.float64)
-    return Mesh(v.astype(np.float64) + t, f.astype(np.int64), pts + t)
+    return Mesh(v.astype(np.float64) * s + t, f.astype(np.int64), pts * s + t)
 
 
 def _union(meshes: list[Mesh]) -> Mesh:
@@ -191,7 +195,8 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
     """Gap and penetration of placed parts against the query's assembly (see ``contact``).
 
     Cases per query:
-      * ``top1``: Ours' top-1 suggestion (all-but-one queries), placed by h;
+      * ``top1``: Ours' top-1 suggestion (all-but-one queries), placed by h at the size the
+        service answers it with (h's fitted scale; ``EngineMethod.place_served``);
       * ``true_h``: the true missing component placed by h (the test-split placement queries),
         also compared with the same component at its true place: ``worse_than_truth`` when h's
         gap or depth exceeds the true placement's by more than the tolerance (the data's own
@@ -225,10 +230,10 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
         top = by_qid[q.qid]["top"]
         if top:
             row = cat.lookup(top[0])
-            t = ours.place(q.points, [row])[0]
-            record("top1", q, _placed_mesh(index, row, t, settings.samples), q.present)
-            t = ours.refine(row, t, q.present)
-            record("top1_refined", q, _placed_mesh(index, row, t, settings.samples), q.present)
+            t, scale = ours.place_served(q.points, row)
+            record("top1", q, _placed_mesh(index, row, t, settings.samples, scale), q.present)
+            t = ours.refine(row, t, q.present, scale)
+            record("top1_refined", q, _placed_mesh(index, row, t, settings.samples, scale), q.present)
         record("true_gt", q, _union(assembly(q.removed)), q.present)
     pred = {r["qid"]: r for r in placement}
     for pq in placement_queries:
@@ -341,7 +346,8 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
     """Size fitting of the top suggestion of each all-but-one query, on and off.
 
     The top-ranked part is placed next to the query by the engine (``place``, contact
-    refinement off) with and without the fitting scale; its placed box is compared with the
+    refinement off) with and without the fitting scale, and as ``/place`` answers by default
+    (fitted, then contact-refined: ``iou_refined``); its placed box is compared with the
     removed part's true box (the union of its components' boxes at their catalog translations):
     box IoU, and the scale error ``mean |log(placed extents / true extents)|`` over the axes.
     ``iou_like`` repeats the IoU with fitting on only where the two boxes are of one kind: the
@@ -373,6 +379,9 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
             rec[f"iou_{name}"] = float(box_iou(p.bbox_min, p.bbox_max, true_lo, true_hi)[0])
             ext = np.maximum(np.asarray(p.bbox_max) - np.asarray(p.bbox_min), 1e-6)
             rec[f"scale_error_{name}"] = float(np.mean(np.abs(np.log(ext / true_ext))))
+        # As /place answers by default: fitted, then refined into contact with the query's points.
+        served = ours.engine.place(q.points, [top[0]]).placements[0]
+        rec["iou_refined"] = float(box_iou(served.bbox_min, served.bbox_max, true_lo, true_hi)[0])
         rec["iou_like"] = rec["iou_on"] if like else None
         if like:
             rec.update(_like_diagnostics(placed["on"], true_lo, true_hi,

@@ -97,14 +97,28 @@ class EngineMethod:
         result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows], refine_contact=False)
         return np.stack([p.translation for p in result.placements]).astype(np.float64)
 
-    def refine(self, row: int, translation: np.ndarray, present: np.ndarray) -> np.ndarray:
-        """A translation of catalog part ``row`` after the service's contact refinement against the
-        present catalog parts (at their catalog translations), as ``POST /assemble`` refines.
+    def place_served(self, points: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where h places catalog part ``row`` next to a query and the size it is answered with
+        (fitted by h's scale head when the service fits, as it does by default), unrefined.
 
         Shapes:
-            translation (3,), present (r,) catalog rows -> (3,) float64.
+            points (N, 3) -> translation (3,), scale (3,) float64, canonical axes.
+        """
+        p = self.engine.place(points, [self.catalog.part_ids[row]], refine_contact=False).placements[0]
+        return np.asarray(p.translation, dtype=np.float64), np.asarray(p.scale, dtype=np.float64)
+
+    def refine(self, row: int, translation: np.ndarray, present: np.ndarray,
+               scale: np.ndarray | None = None) -> np.ndarray:
+        """A translation of catalog part ``row`` (at ``scale``, per axis; None: its catalog size)
+        after the service's contact refinement against the present catalog parts (at their
+        catalog translations), as ``POST /assemble`` refines.
+
+        Shapes:
+            translation (3,), present (r,) catalog rows, scale (3,) -> (3,) float64.
         """
         contacts, cat = self.engine.contacts, self.catalog
         surfaces = [contacts.part_surface(cat, int(r)).moved(cat.translations[r]) for r in present.tolist()]
         t = np.asarray(translation, dtype=np.float64)
-        return t + self.engine.refine_against(Assembly(Surface.union(surfaces)), np.array([row]), t[None])[0]
+        scales = None if scale is None else np.asarray(scale, dtype=np.float64).reshape(1, 3)
+        return t + self.engine.refine_against(Assembly(Surface.union(surfaces)), np.array([row]), t[None],
+                                              scales)[0]

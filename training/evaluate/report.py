@@ -76,8 +76,8 @@ a seat) do not count against h.
 
 CASE_SHORT = {"top1": "Ours top-1 (h)", "top1_refined": "Ours top-1 (h + contact)", "true_h": "true part (h)",
               "true_h_refined": "true part (h + contact)", "true_gt": "true part at its true place"}
-CASE_NAMES = {"top1": "Ours top-1 suggestion, placed by h",
-              "top1_refined": "Ours top-1 suggestion, placed by h, contact-refined",
+CASE_NAMES = {"top1": "Ours top-1 suggestion, placed and fitted in size by h",
+              "top1_refined": "Ours top-1 suggestion, placed and fitted in size by h, contact-refined",
               "true_h": "True missing component, placed by h",
               "true_h_refined": "True missing component, placed by h, contact-refined",
               "true_gt": "True missing part at its true place (the data's own rate)"}
@@ -168,6 +168,7 @@ SUMMARY_METRICS = (("functional_map", "Functional mAP@5 (Table 1)", True),
 # shown (JSON files sort their keys, so the order is kept here, not in the results).
 SIZE_FIT_ROWS = (("placed-box IoU, fitting on", "iou_on"),
                  ("placed-box IoU, fitting off", "iou_off"),
+                 ("placed-box IoU, fitting on, contact-refined (as /place answers)", "iou_refined"),
                  ("scale error, fitting on", "scale_error_on"),
                  ("scale error, fitting off", "scale_error_off"),
                  ("placed-box IoU, fitting on, like with like", "iou_like"),

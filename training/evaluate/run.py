@@ -26,7 +26,8 @@ Layout of ``results.json`` (undefined values are null)::
       query's category), missing_label_coverage_top10, distinct_labels_top10, live_modes (one-part
       queries with two or more labels missing):
                  {method: {category: value, ..., "mean": mean of categories, "n": {category: count}}}
-      size_fit: {"placed-box IoU, fitting on" | ... off | "scale error, fitting on" | ... off |
+      size_fit: {"placed-box IoU, fitting on" | ... off | ... "fitting on, contact-refined (as /place
+                 answers)" | "scale error, fitting on" | ... off |
                  "placed-box IoU, fitting on, like with like" (top part of the removed label, one component):
                  {category: value, ...}} (the top suggestion of each all-but-one query, placed)
       placement_error, placement_error_refined (after contact refinement):
