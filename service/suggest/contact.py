@@ -36,6 +36,7 @@ Everything is in the canonical frame; callers map offsets to their frame like tr
 from __future__ import annotations
 
 import hashlib
+import itertools
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -74,10 +75,7 @@ class Surface:
         s = np.asarray(scale, dtype=np.float64).reshape(1, 3)
         if np.all(s == 1.0):
             return self
-        normals = None
-        if self.normals is not None:
-            n = self.normals / s
-            normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        normals = None if self.normals is None else _scaled_normals(self.normals, s)
         return Surface(self.points * s, normals)
 
     @staticmethod
@@ -226,21 +224,28 @@ def _search(parts: list[Surface], assembly: Assembly, params: ContactParams, rea
             ) -> list[Refinement]:
     """Each part's line search, measuring within ``reach`` of the assembly (the module docstring).
 
-    With ``params.threads`` > 1 the parts are dealt to that many threads (every n-th part to one):
-    each part's search is independent of the others', so the answers are the same.
+    With ``params.threads`` > 1 that many threads take the parts one at a time: each part's
+    search is independent of the others', so the answers are the same.
     """
-    groups = [list(range(t, len(parts), max(1, params.threads))) for t in range(max(1, params.threads))]
-    groups = [g for g in groups if g]
-    if len(groups) <= 1:
+    workers = min(max(1, params.threads), len(parts))
+    if workers <= 1:
         return _search_parts(parts, assembly, params, reach)
-    pool = _pool(len(groups) - 1)
-    futures = [pool.submit(_search_parts, [parts[j] for j in g], assembly, params, reach) for g in groups[1:]]
-    found = [_search_parts([parts[j] for j in groups[0]], assembly, params, reach)]
-    found += [f.result() for f in futures]
+    # Each thread takes the next part not yet taken: one part's search can cost ten times
+    # another's (0.1 to 0.8 ms for the bench query's ten), and dealing every n-th part to a thread
+    # left one thread with twice the other's work.
     out: list[Refinement | None] = [None] * len(parts)
-    for g, refs in zip(groups, found, strict=True):
-        for j, r in zip(g, refs, strict=True):
-            out[j] = r
+    taken = itertools.count()   # next() on a count is atomic under the GIL
+
+    def work() -> None:
+        for j in iter(taken.__next__, None):
+            if j >= len(parts):
+                return
+            out[j] = _search_parts([parts[j]], assembly, params, reach)[0]
+
+    futures = [_pool(workers - 1).submit(work) for _ in range(workers - 1)]
+    work()
+    for f in futures:
+        f.result()
     return [r for r in out if r is not None]
 
 
@@ -288,6 +293,16 @@ def _search_parts(parts: list[Surface], assembly: Assembly, params: ContactParam
     return out
 
 
+def _scaled_normals(normals: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Unit normals of a surface scaled per axis by ``scale``: transformed by the inverse scale.
+
+    Shapes:
+        normals (n, 3); scale (1, 3) or (n, 3) -> (n, 3).
+    """
+    n = normals / scale
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
 def _normals(surface: Surface) -> np.ndarray:
     return surface.normals if surface.normals is not None else np.full_like(surface.points, np.nan)
 
@@ -329,6 +344,24 @@ class PartContacts:
             rows: (n,) catalog rows; translations: (n, 3) canonical; scales: (n, 3) or None.
         """
         tr = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
-        sc = None if scales is None else np.asarray(scales, dtype=np.float64).reshape(-1, 3)
-        return [self.part_surface(catalog, int(i)).scaled(None if sc is None else sc[j]).moved(tr[j])
-                for j, i in enumerate(np.asarray(rows).tolist())]
+        base = [self.part_surface(catalog, int(i)) for i in np.asarray(rows).tolist()]
+        if not base:
+            return []
+        # All parts at once (``Surface.scaled`` then ``moved``, the same arithmetic row by row):
+        # ten fitted parts of 512 samples took 0.40 ms one by one against 0.24, mostly numpy's
+        # per-call overhead.
+        counts = [len(b.points) for b in base]
+        sc = (np.ones((len(base), 3)) if scales is None
+              else np.asarray(scales, dtype=np.float64).reshape(-1, 3))
+        per_row = np.repeat(sc, counts, axis=0)
+        points = np.concatenate([b.points for b in base]) * per_row + np.repeat(tr, counts, axis=0)
+        normals = np.concatenate([_normals(b) for b in base])
+        fitted = np.any(sc != 1.0, axis=1)   # a part of scale ones keeps its normals
+        if fitted.all():
+            normals = _scaled_normals(normals, per_row)
+        elif fitted.any():
+            rows_fitted = np.repeat(fitted, counts)
+            normals[rows_fitted] = _scaled_normals(normals[rows_fitted], per_row[rows_fitted])
+        ends = np.cumsum(counts)[:-1]
+        return [Surface(p, None if b.normals is None else nm)
+                for b, p, nm in zip(base, np.split(points, ends), np.split(normals, ends), strict=True)]
