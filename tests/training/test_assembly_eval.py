@@ -257,6 +257,11 @@ def test_evaluate_assembly_command_on_the_shipped_model(tmp_path: Path) -> None:
         assert f"![{category}](out/{name})" in report.read_text()
     run = res["runs"][0]
     assert len(run["translations"]) == len(run["scales"]) == len(run["parts"])
+    # Run times live beside the results (they differ on every re-run), one per run, in run order.
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())["runs"]
+    order = [(r["start"], r["strategy"]) for r in res["runs"]]
+    assert [(t["start"], t["strategy"]) for t in timings] == order
+    assert all(t["seconds"] > 0 for t in timings) and not any("seconds" in r for r in res["runs"])
     runs = res["runs"]
     assert len(runs) == len(res["essential_labels"])  # one start per category
     assert all(len(r["parts"]) <= 3 for r in runs)
