@@ -119,8 +119,8 @@ class Settings(BaseSettings):
         "in the air (`/place`, `/assemble`, refined suggestions). At most `contact_max_offset`: off."))
     suggest_refine_contact: bool = Field(default=False, description=(
         "Contact refinement of suggestions (`/suggest`, `/suggest/mesh`, `/suggest/batch`) when a "
-        "request does not send `refine_contact`. Off by default: for k = 10 it adds about 3 ms of "
-        "CPU to a suggestion of about 2.5 (2 ms of wall time on two threads, `contact_threads`), "
+        "request does not send `refine_contact`. Off by default: for k = 10 it adds about 4 ms of "
+        "CPU to a suggestion of about 2.5 (2.7 ms of wall time on two threads, `contact_threads`), "
         "which would cost the service about half its throughput and its c = 1 latency target "
         "(docs/performance.md); `/place` and `/assemble` refine unless told not to."))
     suggest_complement_check: bool = Field(default=True, description=(
@@ -162,7 +162,8 @@ class Settings(BaseSettings):
     contact_threads: int = Field(default=2, ge=1, le=64, description=(
         "Threads one refinement spreads its parts over (each part's search is independent, so "
         "the answers do not depend on it). 2, the cores of the machines it was measured on, took "
-        "the benchmark query's k = 10 refinement from 3.2 to 2.0 ms; a server already busy on "
+        "the benchmark query's k = 10 refinement from 3.9 to 2.3 ms (its parts at their fitted "
+        "size, on the Intel host of docs/performance.md's section e); a server already busy on "
         "every core gains nothing from more than 1 (docs/performance.md)."))
     suggest_order: Literal["share", "likelihood"] = Field(default="share", description=(
         "Order of suggestions. `share` (the default): the first `share_order_head` slots in "
