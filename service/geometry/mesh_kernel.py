@@ -36,9 +36,11 @@ _POW10 = np.array([10.0 ** k for k in range(23)])
 _NL, _CR, _BLANK, _SLASH, _DOT, _MINUS, _PLUS = 10, 13, 32, 47, 46, 45, 43
 
 
-# Why the loops below are written out byte by byte, with no helper returning a tuple: the same
-# reader built from small helpers (a word's blank and sign, a run of digits, a line end) took 5.5
-# and 6.3 ms for the bench file's vertex and face runs against 1.6 and 1.9 ms written out.
+# Why the loops below are written out byte by byte, the digit loop and the line end repeated in
+# both readers: the same reader built from small helpers (a word's blank and sign, a run of
+# digits, a line end) took 5.5 and 6.3 ms for the bench file's vertex and face runs against 1.6
+# and 1.9 ms written out; numba did not inline them (inline="always" did not help), and even the
+# line end alone as a helper cost a quarter more (2.1 and 2.5 ms).
 
 
 @njit(cache=True, nogil=True)

@@ -72,11 +72,7 @@ class Surface:
         """
         if scale is None:
             return self
-        s = np.asarray(scale, dtype=np.float64).reshape(1, 3)
-        if np.all(s == 1.0):
-            return self
-        normals = None if self.normals is None else _scaled_normals(self.normals, s)
-        return Surface(self.points * s, normals)
+        return fitted_surfaces([self], np.asarray(scale, dtype=np.float64).reshape(1, 3), np.zeros((1, 3)))[0]
 
     @staticmethod
     def union(surfaces: list[Surface]) -> Surface:
@@ -293,14 +289,31 @@ def _search_parts(parts: list[Surface], assembly: Assembly, params: ContactParam
     return out
 
 
-def _scaled_normals(normals: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Unit normals of a surface scaled per axis by ``scale``: transformed by the inverse scale.
+def fitted_surfaces(surfaces: list[Surface], scales: np.ndarray, offsets: np.ndarray) -> list[Surface]:
+    """Centred parts' samples scaled per axis about their centres, then moved: ``surfaces[j]``
+    scaled by ``scales[j]`` (normals transformed by the inverse scale and renormalised; a part of
+    scale ones keeps its normals) and moved by ``offsets[j]``, all parts in one pass (ten parts of
+    512 samples took 0.40 ms one by one against 0.24, mostly numpy's per-call overhead).
 
     Shapes:
-        normals (n, 3); scale (1, 3) or (n, 3) -> (n, 3).
+        scales, offsets: (n, 3) -> n Surfaces.
     """
-    n = normals / scale
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    if not surfaces:
+        return []
+    counts = [len(b.points) for b in surfaces]
+    sc = np.asarray(scales, dtype=np.float64).reshape(-1, 3)
+    per_row = np.repeat(sc, counts, axis=0)
+    points = (np.concatenate([b.points for b in surfaces]) * per_row
+              + np.repeat(np.asarray(offsets, dtype=np.float64).reshape(-1, 3), counts, axis=0))
+    normals = np.concatenate([_normals(b) for b in surfaces])
+    fitted = np.repeat(np.any(sc != 1.0, axis=1), counts)
+    if fitted.any():
+        rows = slice(None) if fitted.all() else fitted   # all of them (usual): no gather and scatter
+        n = normals[rows] / per_row[rows]
+        normals[rows] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    ends = np.cumsum(counts)[:-1]
+    return [Surface(p, None if b.normals is None else nm)
+            for b, p, nm in zip(surfaces, np.split(points, ends), np.split(normals, ends), strict=True)]
 
 
 def _normals(surface: Surface) -> np.ndarray:
@@ -343,25 +356,5 @@ class PartContacts:
         Shapes:
             rows: (n,) catalog rows; translations: (n, 3) canonical; scales: (n, 3) or None.
         """
-        tr = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
         base = [self.part_surface(catalog, int(i)) for i in np.asarray(rows).tolist()]
-        if not base:
-            return []
-        # All parts at once (``Surface.scaled`` then ``moved``, the same arithmetic row by row):
-        # ten fitted parts of 512 samples took 0.40 ms one by one against 0.24, mostly numpy's
-        # per-call overhead.
-        counts = [len(b.points) for b in base]
-        sc = (np.ones((len(base), 3)) if scales is None
-              else np.asarray(scales, dtype=np.float64).reshape(-1, 3))
-        per_row = np.repeat(sc, counts, axis=0)
-        points = np.concatenate([b.points for b in base]) * per_row + np.repeat(tr, counts, axis=0)
-        normals = np.concatenate([_normals(b) for b in base])
-        fitted = np.any(sc != 1.0, axis=1)   # a part of scale ones keeps its normals
-        if fitted.all():
-            normals = _scaled_normals(normals, per_row)
-        elif fitted.any():
-            rows_fitted = np.repeat(fitted, counts)
-            normals[rows_fitted] = _scaled_normals(normals[rows_fitted], per_row[rows_fitted])
-        ends = np.cumsum(counts)[:-1]
-        return [Surface(p, None if b.normals is None else nm)
-                for b, p, nm in zip(base, np.split(points, ends), np.split(normals, ends), strict=True)]
+        return fitted_surfaces(base, np.ones((len(base), 3)) if scales is None else scales, translations)

@@ -151,7 +151,7 @@ def evaluate_placement(ours: EngineMethod, queries: list[PlacementQuery],
     the service's contact refinement (``error``, ``error_refined``)."""
     out = []
     for q in tqdm(queries, desc="placement", disable=not progress, leave=False):
-        pred = ours.place(q.points, [q.target])[0]
+        pred = ours.place(q.points, [q.target])[0][0]
         refined = ours.refine(q.target, pred, q.present)
         out.append({"qid": q.qid, "category": q.category, "shape_id": q.shape_id, "split": q.split,
                     "part_id": ours.catalog.part_ids[q.target],
@@ -196,7 +196,7 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
 
     Cases per query:
       * ``top1``: Ours' top-1 suggestion (all-but-one queries), placed by h at the size the
-        service answers it with (h's fitted scale; ``EngineMethod.place_served``);
+        service answers it with (h's fitted scale; ``EngineMethod.place``);
       * ``true_h``: the true missing component placed by h (the test-split placement queries),
         also compared with the same component at its true place: ``worse_than_truth`` when h's
         gap or depth exceeds the true placement's by more than the tolerance (the data's own
@@ -230,7 +230,8 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
         top = by_qid[q.qid]["top"]
         if top:
             row = cat.lookup(top[0])
-            t, scale = ours.place_served(q.points, row)
+            where, scales = ours.place(q.points, [row])
+            t, scale = where[0], scales[0]
             record("top1", q, _placed_mesh(index, row, t, settings.samples, scale), q.present)
             t = ours.refine(row, t, q.present, scale)
             record("top1_refined", q, _placed_mesh(index, row, t, settings.samples, scale), q.present)

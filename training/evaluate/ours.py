@@ -88,24 +88,16 @@ class EngineMethod:
         ll, _ = mixture_log_likelihood(self.catalog.embeddings[np.asarray(rows, np.int64)], w, mu, sd)
         return ll
 
-    def place(self, points: np.ndarray, rows: list[int]) -> np.ndarray:
-        """Translations h predicts for catalog parts next to a query (shape frame), unrefined.
+    def place(self, points: np.ndarray, rows: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Where h places catalog parts next to a query (shape frame), unrefined, and the size each
+        is answered with (fitted by h's scale head when the service fits, as it does by default).
 
         Shapes:
-            points (N, 3) -> (len(rows), 3) float64.
+            points (N, 3) -> translations (len(rows), 3), scales (len(rows), 3) float64, canonical axes.
         """
         result = self.engine.place(points, [self.catalog.part_ids[r] for r in rows], refine_contact=False)
-        return np.stack([p.translation for p in result.placements]).astype(np.float64)
-
-    def place_served(self, points: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
-        """Where h places catalog part ``row`` next to a query and the size it is answered with
-        (fitted by h's scale head when the service fits, as it does by default), unrefined.
-
-        Shapes:
-            points (N, 3) -> translation (3,), scale (3,) float64, canonical axes.
-        """
-        p = self.engine.place(points, [self.catalog.part_ids[row]], refine_contact=False).placements[0]
-        return np.asarray(p.translation, dtype=np.float64), np.asarray(p.scale, dtype=np.float64)
+        return (np.stack([p.translation for p in result.placements]).astype(np.float64),
+                np.stack([p.scale for p in result.placements]).astype(np.float64))
 
     def refine(self, row: int, translation: np.ndarray, present: np.ndarray,
                scale: np.ndarray | None = None) -> np.ndarray:
