@@ -171,6 +171,8 @@ SIZE_FIT_ROWS = (("placed-box IoU, fitting on", "iou_on"),
                  ("placed-box IoU, fitting on, contact-refined (as /place answers)", "iou_refined"),
                  ("scale error, fitting on", "scale_error_on"),
                  ("scale error, fitting off", "scale_error_off"),
+                 ("Hausdorff of the top 5, fitting on (as the service answers them)", "hausdorff_on"),
+                 ("Hausdorff of the top 5, fitting off (Table 2)", "hausdorff_off"),
                  ("placed-box IoU, fitting on, like with like", "iou_like"),
                  ("like with like, at the true centre", "iou_like_true_centre"),
                  ("like with like, at the true extents", "iou_like_true_extents"),
@@ -353,7 +355,7 @@ class _Report:
             return []
         return ["## Size fitting: the top suggestion of each all-but-one query placed by the service, its "
                 "box against the removed part's (IoU higher is better; scale error mean |log extent "
-                "ratio|, lower is better)", "",
+                "ratio|, lower is better; Hausdorff: Table 2's distance for the top 5, lower is better)", "",
                 *method_table(self._size_fit_rows(), self.cats, None, first="Measure"), "",
                 *(["\"Like with like\": only the queries whose top part has the removed label and whose "
                    "removed label is one component (a label of several components, such as a pair of "
