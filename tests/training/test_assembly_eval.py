@@ -17,6 +17,7 @@ from service.modeling.assembly import AssembleResult, Node, Start
 from service.suggest.engine import Suggestion
 from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
+    data_good,
     data_stacked,
     measure_run,
     misplaced,
@@ -158,6 +159,16 @@ def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
     settings = AssemblyEvalSettings(contact=False)
     assert data_stacked(index, 2, settings)  # type: ignore[arg-type]
     assert not data_stacked(index, 3, settings)  # type: ignore[arg-type]
+    # Counted as a run is: complete and nothing stacked (the car is stacked, the other shape
+    # lacks a body, and holds every label asked of it only when that is its roof alone).
+    assert not data_good(index, {"wheel", "body"}, 2, settings)  # type: ignore[arg-type]
+    assert not data_good(index, {"body", "roof"}, 3, settings)  # type: ignore[arg-type]
+    assert data_good(index, {"roof"}, 3, settings)  # type: ignore[arg-type]
+    run = {"category": "car", "good": True, "complete": True, "stacked": [], "empty": False, "parts": ["a"],
+           "stop_reason": "complete", "seconds": 0.1}
+    data = [{"category": "car", "stacked": True, "good": False},
+            {"category": "car", "stacked": False, "good": True}]
+    assert summarize([run], data, ["car"])["car"]["data_good"] == 0.5
 
 
 def test_summary_and_report_block(tmp_path: Path) -> None:

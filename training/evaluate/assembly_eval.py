@@ -248,6 +248,13 @@ def data_stacked(index: ShapeIndex, start: int, settings: AssemblyEvalSettings) 
     return bool(stacked_pairs([index.labels[r] for r in rows], lo, hi, settings.stack_iou))
 
 
+def data_good(index: ShapeIndex, essentials: set[str], start: int, settings: AssemblyEvalSettings) -> bool:
+    """Whether the start's own shape, its parts at their true places, is what a run must be to
+    count: *complete* and not *stacked* (the acceptance's rule read on the data's own shapes)."""
+    own = {index.labels[r] for r in _start_shape(index, start)}
+    return essentials <= own and not data_stacked(index, start, settings)
+
+
 def measure_run(index: ShapeIndex, essentials: set[str], start: int, result: AssembleResult,
                 settings: AssemblyEvalSettings, label_sets: list[frozenset[str]] | None = None,
                 places: dict[str, np.ndarray] | None = None, most: Counter[str] | None = None
@@ -370,6 +377,8 @@ def summarize(runs: list[dict[str, Any]], data: list[dict[str, Any]], categories
             # The same rule on the starts' own shapes: how often the data itself is "complete"
             # (a rifle without scope or magazine, a stool, a boat without deck are not).
             "data_complete": _share(rs, "start_shape_complete"),
+            # ... and complete with nothing stacked: the rule a run is counted good by.
+            "data_good": _share(ds, "good"),
             "complete": float(np.mean([r["complete"] for r in rs])),
             "good_as_data": _share(rs, "good_as_data"),
             "stacked": float(np.mean([bool(r["stacked"]) for r in rs])),
@@ -421,7 +430,8 @@ def run_assembly_evaluation(s: AssemblyEvalSettings) -> dict[str, Any]:
     for category, row in starts:
         d = {**(data_contact(index, row, s.seed, s) if s.contact else {}),
              **data_place(index, row, s.seed, places.get(category, {}), most.get(category, Counter()), s)}
-        data.append({"category": category, "stacked": data_stacked(index, row, s), **d})
+        data.append({"category": category, "stacked": data_stacked(index, row, s),
+                     "good": data_good(index, essentials[category], row, s), **d})
     categories = index.categories()
     results: dict[str, Any] = {
         "command": s.command,
@@ -473,8 +483,9 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
              "- From a complete shape's part = Complete, nothing stacked, over the starts whose own "
              "shape is complete (their count in brackets); also beside the acceptance's figure",
              "- Data: complete = the share of the starts whose own shape is Complete (the rule read on "
-             "the data's shapes the starts come from); the other Data columns apply their rules to "
-             "those shapes",
+             "the data's shapes the starts come from); Data: complete, nothing stacked = the same "
+             "shapes by the rule a run is counted by (the first column's); the other Data columns "
+             "apply their rules to those shapes",
              f"- Misplaced = added parts whose box centre lies farther than "
              f"{results.get('settings', {}).get('place_tolerance', AssemblyEvalSettings.place_tolerance):g}"
              " from every training part of their "
@@ -486,9 +497,10 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
                   "| Category | Runs | Complete, nothing stacked | Some shape's labels, nothing stacked "
                   "| From a complete shape's part | Complete | Stacked | Empty | Parts added "
                   "| Floating | Interpenetrating | Misplaced | Too many | Data: complete "
+                  "| Data: complete, nothing stacked "
                   "| Data: interpenetrating | Data: stacked | Data: misplaced | Data: too many "
                   "| Stop reasons |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for c, row in summary.items():
             reasons = ", ".join(f"{k} {v}" for k, v in sorted(row["stop_reasons"].items()))
             whole = (f"{_pct(row.get('good_from_complete'))} ({row['complete_starts']})"
@@ -499,7 +511,8 @@ def render_summary(results: dict[str, Any], pictures_dir: str | None = None) -> 
                          f"{_pct(row['stacked'])} | {_pct(row['empty'])} | {row['parts']:.1f} | "
                          f"{_pct(row['floating'])} | {_pct(row['interpenetrating'])} | "
                          f"{_pct(row.get('misplaced'))} | {_pct(row.get('too_many'))} | "
-                         f"{_pct(row.get('data_complete'))} | {_pct(row['data_interpenetrating'])} | "
+                         f"{_pct(row.get('data_complete'))} | {_pct(row.get('data_good'))} | "
+                         f"{_pct(row['data_interpenetrating'])} | "
                          f"{_pct(row.get('data_stacked'))} | "
                          f"{_pct(row.get('data_misplaced'))} | {_pct(row.get('data_too_many'))} | "
                          f"{reasons} |")
