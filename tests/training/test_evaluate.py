@@ -20,7 +20,13 @@ from training.data.processed import ProcessedDataset
 from training.evaluate.baselines import CK10Method, Method, RandomMethod, rank_by_scores
 from training.evaluate.contact import Mesh, contact, distance_to_mesh, winding_number
 from training.evaluate.descriptors import DESCRIPTOR_DIM, PCAProjection, point_descriptor
-from training.evaluate.evaluation import RetrievalSettings, evaluate_retrieval, table
+from training.evaluate.evaluation import (
+    RetrievalSettings,
+    evaluate_retrieval,
+    hausdorff_bound,
+    table,
+    top_hausdorff,
+)
 from training.evaluate.metrics import (
     average_precision_at_k,
     bbox_centred,
@@ -250,6 +256,32 @@ class OwnShapeFirst:
     def rank(self, query: Query, pool: np.ndarray, k: int) -> np.ndarray:
         own = self.index.rows[query.shape_id]
         return np.concatenate([own, pool])
+
+
+def test_the_hausdorff_bound_is_the_best_any_parts_of_the_removed_label_reach(toy_index: ShapeIndex) -> None:
+    """Table 2's bound: no choice of k parts of the removed label from the query's pool (other
+    shapes of its category, one per near-duplicate group) has a smaller mean distance; with k = 1
+    it is the nearest such part; the query's own shape is never a candidate."""
+    cat = toy_index.catalog
+    queries = make_queries(toy_index, "all_but_one", 100, 64, seed=0)
+    checked = 0
+    for q in queries:
+        pool = candidate_pool(toy_index, q.shape_id, q.category)
+        same = np.array([r for r in pool.tolist() if toy_index.labels[r] == q.label], np.int64)
+        if len(np.unique(cat.group[same])) < 3:
+            continue
+        dists = np.array([top_hausdorff(toy_index, q.removed, same[j:j + 1]) for j in range(len(same))])
+        assert hausdorff_bound(toy_index, q, 1) == pytest.approx(dists.min())
+        two = hausdorff_bound(toy_index, q, 2)
+        rng = np.random.default_rng(len(same))
+        for _ in range(20):   # any two parts of distinct groups do no better
+            a, b = rng.choice(len(same), size=2, replace=False)
+            if cat.group[same[a]] != cat.group[same[b]]:
+                assert two <= top_hausdorff(toy_index, q.removed, same[[a, b]]) + 1e-12
+        own = toy_index.rows[q.shape_id]
+        assert not np.isin(own, pool).any()
+        checked += 1
+    assert checked >= 3
 
 
 def test_no_method_retrieves_its_own_shape(toy_index: ShapeIndex) -> None:
@@ -528,6 +560,8 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert off["n"] == table2["n"] == fitted["n"]
     assert all(off[c] == pytest.approx(table2[c], abs=1e-9) for c in off["n"] if off["n"][c])
     assert all(0.0 < fitted[c] < 2.0 for c in off["n"] if off["n"][c])
+    bound = fit["Hausdorff bound: the 5 parts of the removed label nearest to it"]
+    assert bound["n"] == off["n"] and all(0.0 < bound[c] < 2.0 for c in off["n"] if off["n"][c])
     assert "Table 1" in (tmp_path / "b.md").read_text()
     assert "Like with like" in (tmp_path / "b.md").read_text()
     one = res["tables"]["hausdorff_one_component"]["Ours"]
