@@ -568,6 +568,11 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(one["n"][c] <= res["tables"]["hausdorff"]["Ours"]["n"][c] for c in one["n"])
     assert sum(one["n"].values()) > 0 and one["mean"] > 0.0
     assert "removed labels of one component" in (tmp_path / "b.md").read_text()
+    # Over the top 5's parts of the removed label: the queries with at least one such part.
+    right = res["tables"]["hausdorff_right_label"]["Ours"]
+    assert all(right["n"][c] <= res["tables"]["hausdorff"]["Ours"]["n"][c] for c in right["n"])
+    assert sum(right["n"].values()) > 0 and right["mean"] > 0.0
+    assert "top 5's parts of the removed label" in (tmp_path / "b.md").read_text()
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:

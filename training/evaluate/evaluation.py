@@ -159,8 +159,12 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
                                   if len(top) else math.nan)
             rec["hausdorff"] = top_hausdorff(index, q.removed, top)
             # The same where the removed label is one component: a label of several (a pair of
-            # engines, a set of legs) is one point set that no single catalog part is near.
+            # engines, a set of legs) is one point set, farther from any single catalog part.
             rec["hausdorff_one_component"] = rec["hausdorff"] if len(q.removed) == 1 else None
+            # The same over the top parts of the removed label only: how close the right parts the
+            # method picks are (against ``hausdorff_bound``, the closest the pool holds).
+            rec["hausdorff_right_label"] = (top_hausdorff(index, q.removed, top[top_func]) if top_func.any()
+                                            else None)
             rec.update(_exact_recall(method, q, pool, index, settings))
         out.append(rec)
     return out

@@ -21,6 +21,7 @@ Layout of ``results.json`` (undefined values are null)::
     pool:      {category: catalog parts of that category}
     tables:
       functional_map, hausdorff, hausdorff_one_component (removed labels of one component),
+      hausdorff_right_label (the top 5's parts of the removed label only),
       style_map_all_but_one, style_map_single,
       recall@1, recall@10, median_percentile_rank, in_category_top5 (share of the top 5 from the
       query's category), missing_label_coverage_top10, distinct_labels_top10, live_modes (one-part
@@ -226,6 +227,7 @@ def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
 _RETRIEVAL_METRICS = (("functional_map", "functional_ap", False),
                       ("hausdorff", "hausdorff", False),
                       ("hausdorff_one_component", "hausdorff_one_component", False),
+                      ("hausdorff_right_label", "hausdorff_right_label", False),
                       ("style_map_all_but_one", "style_ap", False),
                       ("median_percentile_rank", "percentile", True),
                       ("in_category_top5", "in_category", False))
