@@ -15,6 +15,7 @@ import trimesh
 from conftest import make_toy_dataset
 
 from service.artifacts.catalog import Catalog
+from service.geometry.boxes import box_iou
 from training.catalog import concat_meshes, part_records, sample_parts
 from training.data.processed import ProcessedDataset
 from training.evaluate.baselines import CK10Method, Method, RandomMethod, rank_by_scores
@@ -24,6 +25,7 @@ from training.evaluate.evaluation import (
     RetrievalSettings,
     evaluate_retrieval,
     hausdorff_bound,
+    iou_bound,
     table,
     top_hausdorff,
 )
@@ -280,6 +282,12 @@ def test_the_hausdorff_bound_is_the_best_any_parts_of_the_removed_label_reach(to
                 assert two <= top_hausdorff(toy_index, q.removed, same[[a, b]]) + 1e-12
         own = toy_index.rows[q.shape_id]
         assert not np.isin(own, pool).any()
+        # The IoU bound: the best of those parts' catalog-size boxes at the removed part's centre.
+        lo = np.min(cat.translations[q.removed] + cat.bbox_min[q.removed], axis=0).astype(np.float64)
+        hi = np.max(cat.translations[q.removed] + cat.bbox_max[q.removed], axis=0).astype(np.float64)
+        half = (cat.bbox_max[same] - cat.bbox_min[same]).astype(np.float64) / 2
+        each = [float(box_iou((lo + hi) / 2 - h, (lo + hi) / 2 + h, lo, hi)[0]) for h in half]
+        assert iou_bound(toy_index, q, lo, hi) == pytest.approx(max(each)) and 0.0 < max(each) <= 1.0
         checked += 1
     assert checked >= 3
 
@@ -562,6 +570,9 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(0.0 < fitted[c] < 2.0 for c in off["n"] if off["n"][c])
     bound = fit["Hausdorff bound: the 5 parts of the removed label nearest to it"]
     assert bound["n"] == off["n"] and all(0.0 < bound[c] < 2.0 for c in off["n"] if off["n"][c])
+    box = fit["IoU bound: the part of the removed label whose box fits best, at the true centre, "
+              "catalog size"]
+    assert box["n"] == off["n"] and all(0.0 < box[c] <= 1.0 for c in off["n"] if off["n"][c])
     assert "Table 1" in (tmp_path / "b.md").read_text()
     assert "Like with like" in (tmp_path / "b.md").read_text()
     one = res["tables"]["hausdorff_one_component"]["Ours"]

@@ -90,27 +90,49 @@ def top_hausdorff(index: ShapeIndex, removed: np.ndarray, rows: np.ndarray,
                           for r, s in zip(np.asarray(rows).tolist(), sc, strict=True)]))
 
 
+def _label_pool(index: ShapeIndex, query: Query) -> np.ndarray:
+    """The query's pool rows (other shapes of its category) that hold the removed label: what a
+    method that always found the label could choose from (labels read to measure only)."""
+    pool = candidate_pool(index, query.shape_id, query.category)
+    return np.array([r for r in pool.tolist() if index.labels[r] == query.label], np.int64)
+
+
 def hausdorff_bound(index: ShapeIndex, query: Query, k: int) -> float:
     """What Table 2 could reach with the right label: the mean Hausdorff distance (as
     ``top_hausdorff`` measures it) of the ``k`` pool parts of the removed label nearest to the
-    removed part, one per near-duplicate group. Labels are read here to measure only. NaN when
-    the pool holds no part of that label.
+    removed part, one per near-duplicate group. NaN when the pool holds no part of that label.
 
     Shapes:
         query.removed (r,) catalog rows.
     """
     cat = index.catalog
-    pool = candidate_pool(index, query.shape_id, query.category)
-    rows = [r for r in pool.tolist() if index.labels[r] == query.label]
-    if not rows:
+    rows = _label_pool(index, query)
+    if len(rows) == 0:
         return math.nan
     removed_pts = removed_part_points(index, query.removed)
     nearest: dict[int, float] = {}   # near-duplicate group -> its member nearest the removed part
-    for r in rows:
+    for r in rows.tolist():
         d = hausdorff_distance(removed_pts, index.samples[r])
         g = int(cat.group[r])
         nearest[g] = min(d, nearest.get(g, math.inf))
     return float(np.mean(np.sort(list(nearest.values()))[:k]))
+
+
+def iou_bound(index: ShapeIndex, query: Query, true_lo: np.ndarray, true_hi: np.ndarray) -> float:
+    """What the placed-box IoU could reach unfitted with the right label and the right centre: the
+    best IoU with the removed part's box of any pool part of the removed label, its catalog-size
+    box centred on the true one. NaN when the pool holds no part of that label.
+
+    Shapes:
+        true_lo, true_hi (3,): the removed part's box.
+    """
+    rows = _label_pool(index, query)
+    if len(rows) == 0:
+        return math.nan
+    cat = index.catalog
+    centre = (true_lo + true_hi) / 2
+    half = (cat.bbox_max[rows] - cat.bbox_min[rows]).astype(np.float64) / 2
+    return float(np.nanmax(box_iou(true_lo, true_hi, centre - half, centre + half)))
 
 
 def _target_hit(catalog: Catalog, rows: np.ndarray, removed: np.ndarray, collapse: bool) -> np.ndarray:
@@ -406,7 +428,8 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
     the query's top parts (all of them, not only the first) at the size the service answers each
     with (h's fitting scale), ``hausdorff_off`` the same at catalog size (Table 2's own figure),
     ``hausdorff_bound`` what the same number of parts of the removed label could reach
-    (the function ``hausdorff_bound``).
+    (the function ``hausdorff_bound``), ``iou_bound`` the best box of such a part at the true
+    centre and catalog size (``iou_bound``).
     """
     cat = index.catalog
     tops = {r["qid"]: r["top"] for r in per_query}
@@ -438,6 +461,7 @@ def evaluate_size_fit(ours: Any, queries: list[Query], per_query: list[dict[str,
         rec["hausdorff_on"] = top_hausdorff(index, rows, top_rows, np.stack([f.scale for f in fitted]))
         rec["hausdorff_off"] = top_hausdorff(index, rows, top_rows)
         rec["hausdorff_bound"] = hausdorff_bound(index, q, len(top))
+        rec["iou_bound"] = iou_bound(index, q, true_lo, true_hi)
         if like:
             rec.update(_like_diagnostics(placed["on"], true_lo, true_hi,
                                          cat.translations[cat.lookup(top[0])].astype(np.float64)))

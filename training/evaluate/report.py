@@ -174,6 +174,8 @@ SIZE_FIT_ROWS = (("placed-box IoU, fitting on", "iou_on"),
                  ("Hausdorff of the top 5, fitting on (as the service answers them)", "hausdorff_on"),
                  ("Hausdorff of the top 5, fitting off (Table 2)", "hausdorff_off"),
                  ("Hausdorff bound: the 5 parts of the removed label nearest to it", "hausdorff_bound"),
+                 ("IoU bound: the part of the removed label whose box fits best, at the true centre, "
+                  "catalog size", "iou_bound"),
                  ("placed-box IoU, fitting on, like with like", "iou_like"),
                  ("like with like, at the true centre", "iou_like_true_centre"),
                  ("like with like, at the true extents", "iou_like_true_extents"),
