@@ -163,6 +163,12 @@ class TrainConfig:
         default=0.0, metadata=_help("Share of negatives drawn from the query's own components."))
     lookalike_negative_fraction: float = field(
         default=0.0, metadata=_help("Share of negatives that look like a query component (other shapes)."))
+    # Not in the paper: the share of negatives that do the positive's job in another shape of the
+    # category but differ from it in shape (data.sampling.shape_lookalikes): which style of the
+    # missing part this assembly wants, not only which part is missing.
+    shape_negative_fraction: float = field(
+        default=0.0,
+        metadata=_help("Share of negatives that do the positive's job in another shape but differ in shape."))
     # Not in the paper: the share of queries drawn as "the shape minus a connected group" (X may
     # then be disconnected, as in the benchmark's all-but-one-part queries).
     removal_query_fraction: float = field(
@@ -257,10 +263,11 @@ class TrainConfig:
             raise ValueError("train config: nll_weight and wta_weight must be >= 0 and wta_epsilon in [0, 1)")
         if not 0.0 <= self.wta_anneal <= 1.0:
             raise ValueError(f"train config: wta_anneal must be in [0, 1], got {self.wta_anneal}")
-        shares = (self.query_negative_fraction, self.lookalike_negative_fraction)
+        shares = (self.query_negative_fraction, self.lookalike_negative_fraction,
+                  self.shape_negative_fraction)
         if min(shares) < 0 or sum(shares) > 1:
-            raise ValueError("train config: query_negative_fraction and lookalike_negative_fraction must be "
-                             f">= 0 and sum to at most 1, got {shares}")
+            raise ValueError("train config: query_negative_fraction, lookalike_negative_fraction and "
+                             f"shape_negative_fraction must be >= 0 and sum to at most 1, got {shares}")
         if not 0.0 <= self.substitute_fraction <= 1.0:
             raise ValueError("train config: substitute_fraction must be in [0, 1], "
                              f"got {self.substitute_fraction}")

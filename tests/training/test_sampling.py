@@ -19,6 +19,7 @@ from training.data.sampling import (
     lookalike_components,
     sample_assembly,
     sample_part,
+    shape_lookalikes,
     warp_boxes,
 )
 from training.data.shapes import RawPiece, RawShape
@@ -141,6 +142,41 @@ def test_lookalike_negatives_come_from_other_shapes_of_the_category(dataset: Pro
         assert any(t.negative in sampler.lookalikes[q] for q in t.query)
 
 
+def test_shape_negatives_skip_copies_of_the_part_in_other_shapes() -> None:
+    """Two chairs of one geometry (sampled apart) and a third: each twin's parts are the other's
+    nearest look-alikes, yet never its shape negatives, which ask for another shape."""
+    config = PreprocessConfig(points_per_component=2048)
+    shapes = [chair(np.random.default_rng(5), 0), chair(np.random.default_rng(5), 2),
+              chair(np.random.default_rng(6), 4)]
+    results = []
+    for shape in shapes:
+        r = preprocess_shape(shape, config)
+        assert isinstance(r, Kept), r
+        results.append(ShapeRecord(shape.shape_id, shape.category, None, "test", r))
+    twins = assemble(results, config)
+    near = lookalike_components(twins, 2)
+    strict = shape_lookalikes(twins, k=2)
+    np.testing.assert_array_equal(shape_lookalikes(twins, k=2, min_distance=0.0), near)
+    first, second = (twins.components_of(s) for s in (0, 1))
+    for a, b in zip(first.tolist(), second.tolist(), strict=True):
+        assert b in near[a].tolist() and a in near[b].tolist()   # each twin's part is the other's look-alike
+        assert b not in strict[a].tolist() and a not in strict[b].tolist()
+    assert (strict == -1).any() and (strict >= 0).all(axis=1).sum() < len(strict)
+
+
+def test_shape_negatives_do_the_positive_s_job_in_another_shape(dataset: ProcessedDataset) -> None:
+    sampler = TripletSampler(dataset, n_points=32, shape_negative_fraction=1.0)
+    assert sampler.shape_negatives is not None
+    drawn = 0
+    for t in _triplets(sampler, 200, seed=9):
+        assert t.negative not in t.query and t.negative != t.positive
+        if (sampler.shape_negatives[t.positive] >= 0).any():
+            assert t.negative in sampler.shape_negatives[t.positive].tolist()
+            assert int(dataset.shape_of[t.negative]) != t.shape
+            drawn += 1
+    assert drawn > 50
+
+
 def test_h_sees_the_positive_undone_by_its_log_scale(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=64, scale_augment=0.3)
     batch = sampler.batch(16, np.random.default_rng(7))
@@ -231,6 +267,9 @@ def test_warped_layouts_move_parts_with_their_boxes(dataset: ProcessedDataset) -
 def test_negative_shares_summing_past_one_are_refused(dataset: ProcessedDataset) -> None:
     with pytest.raises(ValueError, match="at most 1"):
         TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.6)
+    with pytest.raises(ValueError, match="at most 1"):
+        TripletSampler(dataset, query_negative_fraction=0.5, lookalike_negative_fraction=0.25,
+                       shape_negative_fraction=0.5)
 
 
 def test_removal_queries_are_a_shape_minus_a_connected_group(dataset: ProcessedDataset) -> None:

@@ -139,6 +139,46 @@ def lookalike_components(ds: ProcessedDataset, k: int) -> np.ndarray:
     return out
 
 
+# Look-alikes whose samples lie closer than this to a component's (mean symmetric chamfer
+# distance of the centred parts, unit radius) count as the same geometry in another shape: as
+# negatives of that component they would ask f to pull apart two copies of one part. The
+# median look-alike (below) lies 0.027 away, a quarter of them 0.044 or more.
+SHAPE_NEGATIVE_MIN_DISTANCE = 0.05
+# Samples per part the distance is measured on. Two samplings of one part lie apart by sampling
+# noise alone: 0.039 at the median (0.098 at the 0.9 quantile) with 64, 0.020 (0.052) with 256,
+# about half that with 512, the first count at which 0.05 is mostly shape and not noise.
+SHAPE_DISTANCE_SAMPLES = 512
+# Look-alikes searched for those of another shape: with 8, half the components have none (the
+# nearest boxes are mostly copies of the same style).
+SHAPE_NEGATIVE_NEIGHBOURS = 16
+
+
+def shape_lookalikes(ds: ProcessedDataset, k: int = SHAPE_NEGATIVE_NEIGHBOURS,
+                     min_distance: float = SHAPE_NEGATIVE_MIN_DISTANCE) -> np.ndarray:
+    """Each component's ``k`` look-alikes (``lookalike_components``) less those whose geometry is
+    its own: kept when the mean symmetric chamfer distance of the centred parts is at least
+    ``min_distance``.
+
+    Shapes:
+        returns (n_components, k) int64, padded with -1.
+    """
+    from scipy.spatial import cKDTree
+
+    lookalikes = lookalike_components(ds, k)
+    # A fixed subsample (the same samples of every part), so the table depends on the data alone.
+    pick = np.random.default_rng(0).choice(ds.points.shape[1], min(SHAPE_DISTANCE_SAMPLES, ds.points.shape[1]),
+                                           replace=False)
+    sub = ds.points[:, np.sort(pick)].astype(np.float64)
+    trees = [cKDTree(p) for p in sub]
+    out = np.full_like(lookalikes, -1)
+    for comp, row in enumerate(lookalikes):
+        kept = [int(o) for o in row[row >= 0]
+                if 0.5 * (trees[o].query(sub[comp])[0].mean() + trees[comp].query(sub[o])[0].mean())
+                >= min_distance]
+        out[comp, :len(kept)] = kept
+    return out
+
+
 @dataclass
 class Triplet:
     """One training example: query components X, a positive complement Y and a negative Z.
@@ -267,6 +307,12 @@ class TripletSampler:
     by position and box extent in the shared canonical frame (``component_descriptors``). It
     carries the same lesson to parts of other styles, still without part labels.
 
+    With probability ``shape_negative_fraction`` Z is a look-alike of the positive Y itself (a
+    component of another shape of the category at Y's place and size) whose geometry differs
+    from Y's (``shape_lookalikes``): the part that does Y's job in another style. Retrieval
+    otherwise only learns which job is missing, not which shape of it this assembly wants, and
+    ranks the right kind of part by chance among its styles (Table 2's Hausdorff distance).
+
     With probability ``removal_query_fraction`` X is drawn the other way round: the shape minus a
     random connected group of components. The paper's X is always connected, so a chair without
     its seat (legs and back, which do not touch) never occurs in training; a modeller's "all but
@@ -285,22 +331,25 @@ class TripletSampler:
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
                  scale_augment: float = 0.0, substitute_fraction: float = 0.0,
                  mixed_query_fraction: float = 0.0, layout_warp: float = 0.0,
-                 categories: list[str] | None = None):
+                 shape_negative_fraction: float = 0.0, categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
+                            ("shape_negative_fraction", shape_negative_fraction),
                             ("removal_query_fraction", removal_query_fraction),
                             ("substitute_fraction", substitute_fraction),
                             ("mixed_query_fraction", mixed_query_fraction),
                             ("layout_warp", layout_warp)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
-        if query_negative_fraction + lookalike_negative_fraction > 1.0:
-            raise ValueError("query_negative_fraction + lookalike_negative_fraction must be at most 1, got "
-                             f"{query_negative_fraction + lookalike_negative_fraction}")
+        shares = query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction
+        if shares > 1.0:
+            raise ValueError("query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction "
+                             f"must be at most 1, got {shares}")
         self.ds = ds
         self.n_points = n_points
         self.query_negative_fraction = query_negative_fraction
         self.lookalike_negative_fraction = lookalike_negative_fraction
+        self.shape_negative_fraction = shape_negative_fraction
         self.removal_query_fraction = removal_query_fraction
         self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
         self.substitute_fraction = substitute_fraction
@@ -315,8 +364,10 @@ class TripletSampler:
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
                                           np.int64)
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
-                           if max(lookalike_negative_fraction, substitute_fraction, mixed_query_fraction) > 0
+                           if max(lookalike_negative_fraction, substitute_fraction, mixed_query_fraction,
+                                  shape_negative_fraction) > 0
                            else None)
+        self.shape_negatives = shape_lookalikes(ds) if shape_negative_fraction > 0 else None
         self.adj = ds.adjacency()
         self.eligible = [s for s in range(ds.n_shapes) if ds.first_comp[s + 1] - ds.first_comp[s] >= 2]
         assert self.eligible, "no shape has two or more components"
@@ -338,12 +389,17 @@ class TripletSampler:
         if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
             return self.sample_triplet(rng)
         positive = neighbours[int(rng.integers(len(neighbours)))]
-        u = rng.random() if self.query_negative_fraction + self.lookalike_negative_fraction > 0 else 1.0
+        hard = self.query_negative_fraction + self.lookalike_negative_fraction + self.shape_negative_fraction
+        u = rng.random() if hard > 0 else 1.0
         if u < self.query_negative_fraction:
             negative = query[int(rng.integers(len(query)))]
         elif u < self.query_negative_fraction + self.lookalike_negative_fraction:
             lookalike = self._lookalike_of(query[int(rng.integers(len(query)))], rng)
             negative = lookalike if lookalike is not None else self._negative(qset | set(neighbours), rng)
+        elif u < hard:
+            assert self.shape_negatives is not None
+            other = _draw(self.shape_negatives[positive], rng)
+            negative = other if other is not None else self._negative(qset | set(neighbours), rng)
         else:
             negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative,
@@ -513,6 +569,10 @@ class TripletSampler:
     def _lookalike_of(self, component: int, rng: np.random.Generator) -> int | None:
         """One of ``component``'s look-alikes, drawn uniformly; None when it has none."""
         assert self.lookalikes is not None
-        candidates = self.lookalikes[component]
-        candidates = candidates[candidates >= 0]
-        return int(candidates[int(rng.integers(len(candidates)))]) if len(candidates) else None
+        return _draw(self.lookalikes[component], rng)
+
+
+def _draw(candidates: np.ndarray, rng: np.random.Generator) -> int | None:
+    """One of the row's components (-1 is padding), drawn uniformly; None when it has none."""
+    candidates = candidates[candidates >= 0]
+    return int(candidates[int(rng.integers(len(candidates)))]) if len(candidates) else None
