@@ -169,6 +169,10 @@ class TrainConfig:
     shape_negative_fraction: float = field(
         default=0.0,
         metadata=_help("Share of negatives that do the positive's job in another shape but differ in shape."))
+    # Equation 2's margin for those: the full margin asks the part of another style to rank below
+    # parts of other jobs too, where a smaller one only asks it to rank below the right style.
+    shape_negative_margin: float = field(
+        default=-1.0, metadata=_help("Margin of Equation 2 for shape negatives (-1 = --margin)."))
     # Not in the paper: the share of queries drawn as "the shape minus a connected group" (X may
     # then be disconnected, as in the benchmark's all-but-one-part queries).
     removal_query_fraction: float = field(
@@ -268,6 +272,9 @@ class TrainConfig:
         if min(shares) < 0 or sum(shares) > 1:
             raise ValueError("train config: query_negative_fraction, lookalike_negative_fraction and "
                              f"shape_negative_fraction must be >= 0 and sum to at most 1, got {shares}")
+        if self.shape_negative_margin < 0 and self.shape_negative_margin != -1:
+            raise ValueError("train config: shape_negative_margin must be >= 0 or -1 (the margin), "
+                             f"got {self.shape_negative_margin}")
         if not 0.0 <= self.substitute_fraction <= 1.0:
             raise ValueError("train config: substitute_fraction must be in [0, 1], "
                              f"got {self.substitute_fraction}")

@@ -74,21 +74,23 @@ def wta_winners(step: int, steps: int, n_modes: int, anneal: float) -> int:
     return max(1, round(n_modes - (n_modes - 1) * progress))
 
 
-def triplet_hinge(e_pos: torch.Tensor, e_neg: torch.Tensor, margin: float) -> torch.Tensor:
+def triplet_hinge(e_pos: torch.Tensor, e_neg: torch.Tensor, margin: float | torch.Tensor) -> torch.Tensor:
     """Equation 2 per triplet: ``max(m + E(X, Y) - E(X, Z), 0)``.
 
     Shapes:
-        e_pos (B,), e_neg (B,) -> (B,).
+        e_pos (B,), e_neg (B,), margin () or (B,) -> (B,).
     """
     return torch.clamp(margin + e_pos - e_neg, min=0.0)
 
 
 def triplet_loss(y_emb: torch.Tensor, z_emb: torch.Tensor, log_weights: torch.Tensor, means: torch.Tensor,
-                 log_sigmas: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 log_sigmas: torch.Tensor, margin: float | torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mean triplet hinge over a batch, plus the per-triplet energies (for logging and accuracy).
 
     Shapes:
-        y_emb (B, D), z_emb (B, D), mixture as in ``mixture_nll`` -> loss (), e_pos (B,), e_neg (B,).
+        y_emb (B, D), z_emb (B, D), mixture as in ``mixture_nll``, margin () or (B,)
+        -> loss (), e_pos (B,), e_neg (B,).
     """
     e_pos = mixture_nll(y_emb, log_weights, means, log_sigmas)
     e_neg = mixture_nll(z_emb, log_weights, means, log_sigmas)

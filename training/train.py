@@ -123,7 +123,8 @@ def lr_factor(cfg: TrainConfig, step: int, progress: float) -> float:
 
 def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Tensor, first: torch.Tensor,
                         z_emb: torch.Tensor, log_w: torch.Tensor, means: torch.Tensor, log_s: torch.Tensor,
-                        step: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                        step: int = 0, z_shape: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The loss of f and g: Equation 2, plus the optional fits of the mixture to the positives.
 
     ``pos_emb`` holds every drawn complement of every query (``owner`` says whose; ``first``
@@ -132,13 +133,17 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
     the same however many parts it lacks; the relaxed winner-takes-all pull pulls the nearest
     mode onto each of them. Returns (loss, mean hinge, e_pos, e_neg). Unless
     ``cfg.pull_moves_embedding``, the fits see the embeddings detached: they move g's mixture,
-    and f is shaped by Equation 2 alone.
+    and f is shaped by Equation 2 alone. ``z_shape`` marks the triplets whose Z is a shape
+    look-alike of Y: their margin is ``cfg.shape_negative_margin`` when that is set.
 
     Shapes:
         pos_emb (M, D), owner (M,) int64, first (B,) int64, z_emb (B, D); log_w (B, K);
-        means, log_s (B, K, D).
+        means, log_s (B, K, D); z_shape (B,) bool.
     """
-    hinge, e_pos, e_neg = triplet_loss(pos_emb[first], z_emb, log_w, means, log_s, cfg.margin)
+    margin: float | torch.Tensor = cfg.margin
+    if z_shape is not None and cfg.shape_negative_margin >= 0:
+        margin = torch.where(z_shape, cfg.shape_negative_margin, cfg.margin).to(z_emb.dtype)
+    hinge, e_pos, e_neg = triplet_loss(pos_emb[first], z_emb, log_w, means, log_s, margin)
     loss = hinge
     y_fit = pos_emb if cfg.pull_moves_embedding else pos_emb.detach()
     b = len(first)
@@ -428,7 +433,7 @@ class _Run:
         emb, log_w, means, log_s, logits = self.pair_run(X, torch.cat([pos, Z]))
         m = len(pos)
         loss, hinge, e_pos, e_neg = retrieval_objective(cfg, emb[:m], owner, first, emb[m:], log_w, means,
-                                                        log_s, self.step)
+                                                        log_s, self.step, batch.get("Z_shape"))
         if cfg.category_weight and logits is not None:
             closs = F.cross_entropy(logits, batch["category"])
             loss = loss + cfg.category_weight * closs

@@ -170,11 +170,14 @@ def test_shape_negatives_do_the_positive_s_job_in_another_shape(dataset: Process
     drawn = 0
     for t in _triplets(sampler, 200, seed=9):
         assert t.negative not in t.query and t.negative != t.positive
-        if (sampler.shape_negatives[t.positive] >= 0).any():
+        assert t.shape_negative == bool((sampler.shape_negatives[t.positive] >= 0).any())
+        if t.shape_negative:
             assert t.negative in sampler.shape_negatives[t.positive].tolist()
             assert int(dataset.shape_of[t.negative]) != t.shape
             drawn += 1
     assert drawn > 50
+    batch = sampler.batch(16, np.random.default_rng(10))
+    assert batch["Z_shape"].dtype == bool and batch["Z_shape"].any()
 
 
 def test_h_sees_the_positive_undone_by_its_log_scale(dataset: ProcessedDataset) -> None:

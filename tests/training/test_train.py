@@ -233,6 +233,26 @@ def test_pulls_reach_the_embedding_only_when_asked(moves: bool):
     assert (y.grad is not None and y.grad.abs().sum() > 0) == moves
 
 
+def test_shape_negatives_take_their_own_margin():
+    """Triplets whose Z is a shape look-alike of Y are held to ``shape_negative_margin``; the
+    others keep Equation 2's margin, and -1 leaves every triplet at that margin."""
+    torch.manual_seed(0)
+    y, z = torch.zeros(2, 3), torch.full((2, 3), 0.1)
+    log_w = torch.zeros(2, 1)
+    means, log_s = torch.zeros(2, 1, 3), torch.log(torch.full((2, 1, 3), 0.05))
+    owner, first = torch.arange(2), torch.arange(2)
+    z_shape = torch.tensor([True, False])
+    cfg = resolve_config(overrides={"margin": 50.0, "shape_negative_margin": 1.0})
+    _, _, e_pos, e_neg = retrieval_objective(cfg, y, owner, first, z, log_w, means, log_s)
+    gap = float((e_neg - e_pos)[0])
+    assert 1.0 < gap < 50.0                         # inside the full margin, outside the small one
+    _, hinge, _, _ = retrieval_objective(cfg, y, owner, first, z, log_w, means, log_s, z_shape=z_shape)
+    assert hinge.item() == pytest.approx((50.0 - gap) / 2, rel=1e-5)   # only the plain triplet counts
+    off = resolve_config(overrides={"margin": 50.0})
+    _, full, _, _ = retrieval_objective(off, y, owner, first, z, log_w, means, log_s, z_shape=z_shape)
+    assert full.item() == pytest.approx(50.0 - gap, rel=1e-5)
+
+
 def test_set_nll_spreads_the_modes_over_a_query_s_complements():
     """Two distinct complements of one query: fitting the set puts a live mode on each.
 

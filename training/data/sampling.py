@@ -192,6 +192,8 @@ class Triplet:
     positive: int
     negative: int
     missing: list[int]
+    # The negative is one of the positive's shape look-alikes (TripletSampler.shape_negatives).
+    shape_negative: bool = False
 
 
 @dataclass(frozen=True)
@@ -400,6 +402,8 @@ class TripletSampler:
             assert self.shape_negatives is not None
             other = _draw(self.shape_negatives[positive], rng)
             negative = other if other is not None else self._negative(qset | set(neighbours), rng)
+            return Triplet(shape=shape, query=query, positive=positive, negative=negative,
+                           missing=[c for c in nodes if c not in qset], shape_negative=other is not None)
         else:
             negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative,
@@ -434,7 +438,7 @@ class TripletSampler:
         Shapes:
             X (B, N, 3), Y (B, N, 3), Z (B, N, 3), Y_h (B, N, 3) float32; Y_translation (B, 3),
             Y_log_scale (B, 3) float32; P (B, P, N, 3) float32, P_mask (B, P) bool;
-            category (B,) int64.
+            category (B,) int64; Z_shape (B,) bool: Z is a shape look-alike of Y.
         """
         n, npos = self.n_points, self.positives
         X = np.empty((batch_size, n, 3), np.float32)
@@ -446,6 +450,7 @@ class TripletSampler:
         S = np.empty_like(X)                               # the part h sees, before its rescale
         fit = np.zeros((batch_size, 3), np.float32)        # log scale from S to Y's size
         category = np.empty(batch_size, np.int64)
+        z_shape = np.zeros(batch_size, bool)
         ranges = self.ranges
         for b in range(batch_size):
             t = self.sample_triplet(rng)
@@ -459,6 +464,7 @@ class TripletSampler:
             others = [c for c in t.missing if c != t.positive]
             extra = rng.permutation(others)[:npos - 1].tolist() if npos > 1 else []
             category[b] = self.category_of_shape[t.shape]
+            z_shape[b] = t.shape_negative
             substitute = self.substitute(t.positive, rng)
             S[b] = Y[b] if substitute is None else sample_part(self.ds, substitute, n, rng)
             first = int(self.ds.first_comp[t.shape])   # warp_of's arrays start at the shape's first
@@ -492,7 +498,8 @@ class TripletSampler:
         # look-alike to the positive's size).
         Y_h = S * np.exp(log_scale)[:, None, :]
         return {"X": X, "Y": Y, "Z": Z, "Y_translation": T, "Y_h": Y_h.astype(np.float32),
-                "Y_log_scale": fit - log_scale, "P": P, "P_mask": mask, "category": category}
+                "Y_log_scale": fit - log_scale, "P": P, "P_mask": mask, "category": category,
+                "Z_shape": z_shape}
 
     def warp_of(self, shape: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
         """For a share ``layout_warp`` of the triplets, the shape's components under a random
