@@ -366,8 +366,7 @@ class TripletSampler:
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
                                           np.int64)
         self.lookalikes = (lookalike_components(ds, lookalike_neighbours)
-                           if max(lookalike_negative_fraction, substitute_fraction, mixed_query_fraction,
-                                  shape_negative_fraction) > 0
+                           if max(lookalike_negative_fraction, substitute_fraction, mixed_query_fraction) > 0
                            else None)
         self.shape_negatives = shape_lookalikes(ds) if shape_negative_fraction > 0 else None
         self.adj = ds.adjacency()
@@ -393,6 +392,7 @@ class TripletSampler:
         positive = neighbours[int(rng.integers(len(neighbours)))]
         hard = self.query_negative_fraction + self.lookalike_negative_fraction + self.shape_negative_fraction
         u = rng.random() if hard > 0 else 1.0
+        shape_negative = False
         if u < self.query_negative_fraction:
             negative = query[int(rng.integers(len(query)))]
         elif u < self.query_negative_fraction + self.lookalike_negative_fraction:
@@ -402,12 +402,11 @@ class TripletSampler:
             assert self.shape_negatives is not None
             other = _draw(self.shape_negatives[positive], rng)
             negative = other if other is not None else self._negative(qset | set(neighbours), rng)
-            return Triplet(shape=shape, query=query, positive=positive, negative=negative,
-                           missing=[c for c in nodes if c not in qset], shape_negative=other is not None)
+            shape_negative = other is not None
         else:
             negative = self._negative(qset | set(neighbours), rng)
         return Triplet(shape=shape, query=query, positive=positive, negative=negative,
-                       missing=[c for c in nodes if c not in qset])
+                       missing=[c for c in nodes if c not in qset], shape_negative=shape_negative)
 
     def _negative(self, blocked: set[int], rng: np.random.Generator, tries: int = 64) -> int:
         """A random component outside ``blocked``: rejection sampling, then an explicit draw."""
