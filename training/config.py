@@ -153,6 +153,11 @@ class TrainConfig:
     # explains instead of which mode Equation 2 prefers for this triplet.
     wta_weight_ce: float = field(default=0.0,
                                  metadata=_help("Weight of g's weights' cross-entropy on the WTA winner."))
+    # Not in the paper: the pull's Gaussian with this sigma instead of g's, so the pull is a plain
+    # squared distance of the winning mean: a mode that cannot reach its positives cannot widen
+    # its sigma to lower the pull (the tenfold pull took the sigmas from 0.05 to 0.11).
+    wta_sigma: float = field(default=0.0,
+                             metadata=_help("Sigma of the WTA pull's Gaussians (0 = g's own sigmas)."))
     # The pulls fit g's mixture to the embedded positives; letting their gradient reach f as
     # well shrinks the whole embedding towards the modes (measured: catalog spread below sigma).
     pull_moves_embedding: bool = field(default=False,
@@ -235,6 +240,11 @@ class TrainConfig:
         "Artifact folder whose f, g and h start the run (fine-tuning, batch norm frozen); '' = random."))
     train_retrieval: bool = field(default=True, metadata=_help("Train f and g."))
     train_placement: bool = field(default=True, metadata=_help("Train h (same batches, own optimiser)."))
+    # Not in the paper: a stage that trains g alone on a fixed f. Equation 2 and the pulls are
+    # then a fit of g's mixture to the embedded parts as they are: a stronger pull cannot be met
+    # by f spreading the embedding instead (docs/training.md, the tenfold pull).
+    train_embedding: bool = field(default=True, metadata=_help(
+        "With train_retrieval: train f too (off = g alone on a fixed f, in eval mode)."))
     val_every: int = field(default=500, metadata=_help("Steps between validations (0 = only at the end)."))
     val_triplets: int = field(default=512, metadata=_help("Fixed held-out triplets used by validation."))
     val_precision_k: int = field(default=5, metadata=_help("k of label precision@k."))
@@ -253,7 +263,7 @@ class TrainConfig:
                 raise ValueError(f"train config: {name} must be positive, got {getattr(self, name)}")
         for name in ("minutes", "max_minutes", "val_every", "num_workers", "threads", "set_nll_weight",
                      "category_weight", "scale_augment", "scale_weight", "augment", "match_weight",
-                     "match_weight_ce", "wta_weight_ce"):
+                     "match_weight_ce", "wta_weight_ce", "wta_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.test_fraction < 1.0:

@@ -156,7 +156,10 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
         loss = loss + cfg.set_nll_weight * (share * nll).sum()
     if cfg.wta_weight:
         winners = wta_winners(step, cfg.steps, means.shape[1], cfg.wta_anneal)
-        pull = relaxed_wta_pull(y_fit, means[owner], log_s[owner], cfg.wta_epsilon, winners)
+        pull_log_s = log_s[owner]
+        if cfg.wta_sigma:
+            pull_log_s = torch.full_like(pull_log_s, math.log(cfg.wta_sigma))
+        pull = relaxed_wta_pull(y_fit, means[owner], pull_log_s, cfg.wta_epsilon, winners)
         loss = loss + cfg.wta_weight * (share * pull).sum()
     if cfg.wta_weight_ce:
         per_mode = -component_log_density(y_fit, means[owner], log_s[owner]).detach()  # (M, K)
@@ -313,7 +316,10 @@ class _Run:
         self.ckpt = checkpoint_path(run_dir)
         torch.manual_seed(cfg.seed)
         self.pair, self.placement = build_models(cfg.model)
-        self.opt_r = torch.optim.Adam(self.pair.parameters(), lr=cfg.lr)
+        if not cfg.train_embedding:
+            self.pair.f.requires_grad_(False)
+        trained = self.pair.parameters() if cfg.train_embedding else self.pair.g.parameters()
+        self.opt_r = torch.optim.Adam(trained, lr=cfg.lr)
         self.opt_p = torch.optim.Adam(self.placement.parameters(), lr=cfg.placement_lr)
         self.step, self.elapsed_before = 0, 0.0
         self.last_validation: dict[str, float] = {}
@@ -345,13 +351,16 @@ class _Run:
         log.info("starting from the networks of %s (batch norm frozen)", artifacts)
 
     def train_mode(self) -> None:
-        """Training mode for f, g and h; batch norm stays in eval mode when fine-tuning."""
+        """Training mode for f, g and h; batch norm stays in eval mode when fine-tuning, and a
+        fixed f (``train_embedding`` off) is in eval mode throughout (no dropout, no statistics)."""
         for net in (self.pair, self.placement):
             net.train()
             if self.cfg.init_from:
                 for m in net.modules():
                     if isinstance(m, nn.modules.batchnorm._BatchNorm):
                         m.eval()
+        if not self.cfg.train_embedding:
+            self.pair.f.eval()
 
     def restore(self) -> None:
         """Continue from the checkpoint: weights, optimisers, step, time, last validation."""

@@ -134,6 +134,24 @@ def test_a_run_started_from_an_export_starts_from_its_function_with_batch_norm_f
     assert manifest["training"]["started_from"] == source
 
 
+def test_a_stage_without_the_embedding_trains_g_alone(exported: Path, toy_dataset_dir: Path,
+                                                     tmp_path: Path) -> None:
+    """``train_embedding`` off: f's weights leave the run as they came in, g's move."""
+    from training.config import resolve_config
+    from training.train import train
+
+    cfg = resolve_config("tiny", overrides={
+        "data": str(toy_dataset_dir), "run": str(tmp_path / "g"), "steps": 4, "val_triplets": 16,
+        "init_from": str(exported), "train_placement": False, "train_embedding": False})
+    train(cfg, show_progress=False)
+    before = load_exported_networks(exported)[0]
+    after = load_trained(tmp_path / "g").pair
+    f_before, f_after = before.f.state_dict(), after.f.state_dict()
+    g_before, g_after = before.g.state_dict(), after.g.state_dict()
+    assert all(torch.equal(f_before[k], f_after[k]) for k in f_before)
+    assert any(not torch.allclose(g_before[k], g_after[k]) for k in g_before)
+
+
 def test_a_run_started_from_an_export_of_another_model_is_refused(
         exported: Path, toy_dataset_dir: Path, tmp_path: Path) -> None:
     from training.config import resolve_config

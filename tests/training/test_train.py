@@ -233,6 +233,30 @@ def test_pulls_reach_the_embedding_only_when_asked(moves: bool):
     assert (y.grad is not None and y.grad.abs().sum() > 0) == moves
 
 
+def test_a_fixed_pull_sigma_leaves_g_s_sigmas_out_of_the_pull():
+    """With ``wta_sigma`` the pull is the winning mean's squared distance at that sigma: it gives
+    g's sigmas no gradient (a mode cannot widen to lower it) and grows with the distance alone."""
+    y = torch.tensor([[0.3, 0.0, 0.0]])
+    z = torch.full((1, 3), 5.0)                       # a far negative: the hinge is inactive
+    log_w = torch.zeros(1, 1)
+    means = torch.zeros(1, 1, 3, requires_grad=True)
+    owner, first = torch.arange(1), torch.arange(1)
+    for wta_sigma, expect_sigma_grad in ((0.0, True), (0.1, False)):
+        log_s = torch.log(torch.full((1, 1, 3), 0.05)).requires_grad_(True)
+        cfg = resolve_config(overrides={"wta_weight": 1.0, "wta_sigma": wta_sigma, "margin": 0.001})
+        loss, hinge, _, _ = retrieval_objective(cfg, y, owner, first, z, log_w, means, log_s)
+        assert hinge.item() == 0.0
+        loss.backward()
+        assert (log_s.grad is not None and log_s.grad.abs().sum().item() > 0) == expect_sigma_grad
+    # 0.5 * |y - mu|^2 / sigma^2 plus the Gaussian's constant: the distance term is 0.09 / 0.02 = 4.5
+    cfg = resolve_config(overrides={"wta_weight": 1.0, "wta_sigma": 0.1, "margin": 0.001})
+    near, _, _, _ = retrieval_objective(cfg, y * 0, owner, first, z, log_w, means.detach(), log_s.detach())
+    far, _, _, _ = retrieval_objective(cfg, y, owner, first, z, log_w, means.detach(), log_s.detach())
+    assert (far - near).item() == pytest.approx(4.5, rel=1e-4)
+    with pytest.raises(ValueError, match="wta_sigma"):
+        resolve_config(overrides={"wta_sigma": -0.1}).validate()
+
+
 def test_shape_negatives_take_their_own_margin():
     """Triplets whose Z is a shape look-alike of Y are held to ``shape_negative_margin``; the
     others keep Equation 2's margin, and -1 leaves every triplet at that margin."""
