@@ -14,9 +14,9 @@ from typing import Any
 
 import faiss
 import numpy as np
-from scipy.spatial import cKDTree
 
 from service.artifacts.layout import CATALOG_FIELDS, format_part_id
+from service.geometry.pointsets import chamfer_distance
 from training.data.processed import ProcessedDataset
 from training.data.sampling import sample_part
 
@@ -57,17 +57,6 @@ def sample_parts(ds: ProcessedDataset, n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return np.stack([sample_part(ds, c, n, rng) for c in range(ds.n_components)]) if ds.n_components \
         else np.zeros((0, n, 3), np.float32)
-
-
-def chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """Symmetric mean nearest-neighbour distance between two point sets.
-
-    Shapes:
-        a (n, 3), b (m, 3).
-    """
-    da, _ = cKDTree(b).query(a)
-    db, _ = cKDTree(a).query(b)
-    return float(0.5 * (da.mean() + db.mean()))
 
 
 def find_duplicates(embeddings: np.ndarray, points: np.ndarray, area: np.ndarray, extents: np.ndarray,
@@ -111,7 +100,7 @@ def find_duplicates(embeddings: np.ndarray, points: np.ndarray, area: np.ndarray
                 continue
             if np.abs(extents[i] - extents[j]).max() > size_tolerance * max(diag[i], diag[j]):
                 continue
-            if chamfer(pts[i], pts[j]) < chamfer_factor * max(spacing[i], spacing[j]):
+            if chamfer_distance(pts[i], pts[j]) < chamfer_factor * max(spacing[i], spacing[j]):
                 out[j] = i
     return out
 

@@ -81,6 +81,7 @@ from service.artifacts.catalog import Catalog, drawn_training_shapes
 from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
+from service.geometry.pointsets import chamfer_below
 from service.geometry.scaling import scaled_area
 from service.modeling.templates import ShapeTemplate, missing_spots, shape_templates
 from service.settings import Settings
@@ -437,7 +438,7 @@ class Assembler:
                 box_gap = np.maximum(0, np.maximum(p.lo - cand.hi, cand.lo - p.hi))
                 if np.linalg.norm(box_gap) >= s.assemble_duplicate_distance:
                     continue  # boxes apart: the Chamfer distance cannot be small
-                if _chamfer_below(cand, p, s.assemble_duplicate_distance):
+                if chamfer_below(cand.points, p.points, s.assemble_duplicate_distance, cand.kdtree, p.kdtree):
                     return True
         return False
 
@@ -927,31 +928,6 @@ def _like_sized(ratio: np.ndarray, most: float) -> np.ndarray:
     return np.all((ratio <= most) & (ratio >= 1 / most), axis=-1)
 
 
-def _chamfer_below(a: _Placed, b: _Placed, distance: float) -> bool:
-    """Whether the symmetric mean nearest-neighbour distance between two placed parts' samples is
-    below ``distance``.
-
-    ``a`` is the candidate (a fresh object each step), ``b`` a placed part (its tree kept): half of
-    the one-sided mean from ``a`` to ``b`` already bounds the symmetric mean from below, and
-    settles most pairs without building ``a``'s tree (two thirds of an assembly's time went to
-    these trees and queries).
-    """
-    # First with the search cut at 4 x distance (a pruned search is fast): a far point then
-    # counts as the cut, which only lowers the mean, so the bound stays a bound.
-    cut = 4.0 * distance
-    d1, _ = b.kdtree().query(a.points, k=1, distance_upper_bound=cut)
-    if 0.5 * float(np.minimum(d1, cut).mean()) >= distance:
-        return False
-    far = ~np.isfinite(d1)
-    if np.any(far):  # only the points past the cut need the full search
-        d1[far] = b.kdtree().query(a.points[far], k=1)[0]
-    half = 0.5 * float(d1.mean())
-    if half >= distance:
-        return False
-    d2, _ = a.kdtree().query(b.points, k=1)
-    return half + 0.5 * float(d2.mean()) < distance
-
-
 def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
     """The same part, or parts whose placed samples lie within ``distance`` Chamfer distance."""
     if a.suggestion.part_index == b.suggestion.part_index:
@@ -961,4 +937,4 @@ def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
     gap = np.maximum(0, np.maximum(pa.lo - pb.hi, pb.lo - pa.hi))
     if np.linalg.norm(gap) >= distance:
         return False
-    return _chamfer_below(pa, pb, distance)
+    return chamfer_below(pa.points, pb.points, distance, pa.kdtree, pb.kdtree)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.geometry.pointsets import chamfer_distance
 from service.geometry.scaling import scaled_area
 from service.settings import Settings
 from training.data.processed import ProcessedDataset
@@ -173,8 +174,7 @@ def shape_lookalikes(ds: ProcessedDataset, k: int = SHAPE_NEGATIVE_NEIGHBOURS,
     out = np.full_like(lookalikes, -1)
     for comp, row in enumerate(lookalikes):
         kept = [int(o) for o in row[row >= 0]
-                if 0.5 * (trees[o].query(sub[comp])[0].mean() + trees[comp].query(sub[o])[0].mean())
-                >= min_distance]
+                if chamfer_distance(sub[comp], sub[o], trees[comp], trees[o]) >= min_distance]
         out[comp, :len(kept)] = kept
     return out
 
