@@ -178,6 +178,11 @@ class TrainConfig:
     # parts of other jobs too, where a smaller one only asks it to rank below the right style.
     shape_negative_margin: float = field(
         default=-1.0, metadata=_help("Margin of Equation 2 for shape negatives (-1 = --margin)."))
+    # Not in the paper: Y drawn among X's adjacent components with probability proportional to
+    # its box diagonal to this power (0: uniformly, as the paper); see data.sampling.TripletSampler.
+    positive_size_power: float = field(
+        default=0.0,
+        metadata=_help("Draw Y with probability ~ (box diagonal)^p among X's neighbours (0 = uniform)."))
     # Not in the paper: the share of queries drawn as "the shape minus a connected group" (X may
     # then be disconnected, as in the benchmark's all-but-one-part queries).
     removal_query_fraction: float = field(
@@ -263,7 +268,7 @@ class TrainConfig:
                 raise ValueError(f"train config: {name} must be positive, got {getattr(self, name)}")
         for name in ("minutes", "max_minutes", "val_every", "num_workers", "threads", "set_nll_weight",
                      "category_weight", "scale_augment", "scale_weight", "augment", "match_weight",
-                     "match_weight_ce", "wta_weight_ce", "wta_sigma"):
+                     "match_weight_ce", "wta_weight_ce", "wta_sigma", "positive_size_power"):
             if getattr(self, name) < 0:
                 raise ValueError(f"train config: {name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.test_fraction < 1.0:

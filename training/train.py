@@ -232,6 +232,7 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
                               "query_negative_fraction": cfg.query_negative_fraction,
                               "lookalike_negative_fraction": cfg.lookalike_negative_fraction,
                               "shape_negative_fraction": cfg.shape_negative_fraction,
+                              "positive_size_power": cfg.positive_size_power,
                               "removal_query_fraction": cfg.removal_query_fraction,
                               "positives": cfg.positives, "augment": cfg.augment,
                               "scale_augment": cfg.scale_augment,

@@ -289,6 +289,34 @@ def test_removal_queries_are_a_shape_minus_a_connected_group(dataset: ProcessedD
     assert disconnected > 0  # a chair without its seat: legs and back do not touch
 
 
+def test_positives_drawn_by_size_favour_the_larger_neighbours(dataset: ProcessedDataset) -> None:
+    """``positive_size_power``: Y is still one of X's neighbours, but the larger ones win more
+    often than a uniform draw gives them; power 0 is the paper's draw, batch for batch."""
+    adj = dataset.adjacency()
+
+    def share_of_larger(sampler: TripletSampler) -> float:
+        """Mean share of Y's other neighbours that are larger than Y (0: Y is always the largest)."""
+        diag = np.linalg.norm(component_descriptors(dataset)[:, 3:], axis=1)
+        shares = []
+        for t in _triplets(sampler, 1000, seed=11):
+            neighbours = sorted(set().union(*(adj[q] for q in t.query)) - set(t.query))
+            assert t.positive in neighbours
+            if len(neighbours) > 1:
+                shares.append(sum(diag[n] > diag[t.positive] for n in neighbours) / (len(neighbours) - 1))
+        assert len(shares) > 200
+        return float(np.mean(shares))
+
+    uniform = share_of_larger(TripletSampler(dataset, n_points=32))
+    sized = share_of_larger(TripletSampler(dataset, n_points=32, positive_size_power=4.0))
+    assert sized < uniform - 0.1, (sized, uniform)
+    plain = TripletSampler(dataset, n_points=32).batch(8, np.random.default_rng(3))
+    zero = TripletSampler(dataset, n_points=32, positive_size_power=0.0).batch(8, np.random.default_rng(3))
+    for key in plain:
+        np.testing.assert_array_equal(plain[key], zero[key])
+    with pytest.raises(ValueError, match="positive_size_power"):
+        TripletSampler(dataset, positive_size_power=-1.0)
+
+
 def test_sampled_points_lie_on_the_components(dataset: ProcessedDataset) -> None:
     sampler = TripletSampler(dataset, n_points=128)
     rng = np.random.default_rng(2)

@@ -320,6 +320,11 @@ class TripletSampler:
     its seat (legs and back, which do not touch) never occurs in training; a modeller's "all but
     one part" query often looks like that.
 
+    With ``positive_size_power`` p > 0, Y is drawn among X's adjacent components with
+    probability proportional to (box diagonal)^p instead of uniformly: a modeller adds the main
+    missing piece (a boat's hull, a rifle's body) before its trims, and uniform positives teach
+    g that the many small trims of a kind are as likely as the one large piece.
+
     With probability ``mixed_query_fraction`` X is a mix of shapes, as an assembly a modeller or
     ``/assemble`` builds from catalog parts is: each of its components is, with probability 1/2,
     swapped for one of its look-alikes from another shape of the category, centred where the
@@ -333,7 +338,8 @@ class TripletSampler:
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
                  scale_augment: float = 0.0, substitute_fraction: float = 0.0,
                  mixed_query_fraction: float = 0.0, layout_warp: float = 0.0,
-                 shape_negative_fraction: float = 0.0, categories: list[str] | None = None):
+                 shape_negative_fraction: float = 0.0, positive_size_power: float = 0.0,
+                 categories: list[str] | None = None):
         for name, value in (("query_negative_fraction", query_negative_fraction),
                             ("lookalike_negative_fraction", lookalike_negative_fraction),
                             ("shape_negative_fraction", shape_negative_fraction),
@@ -344,6 +350,8 @@ class TripletSampler:
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
         shares = query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction
+        if positive_size_power < 0:
+            raise ValueError(f"positive_size_power must be >= 0, got {positive_size_power}")
         if shares > 1.0:
             raise ValueError("query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction "
                              f"must be at most 1, got {shares}")
@@ -358,6 +366,10 @@ class TripletSampler:
         self.mixed_query_fraction = mixed_query_fraction
         self.layout_warp = layout_warp
         self.ranges = Augmentation()
+        # Each component's box diagonal (component_descriptors owns the box), only when
+        # positives are drawn by size.
+        self.size_weight = (np.linalg.norm(component_descriptors(ds)[:, 3:].astype(np.float64), axis=1)
+                            ** positive_size_power if positive_size_power > 0 else None)
         # Half extents of each component's box (component_descriptors owns the box), only when
         # the warp needs them.
         self.half = component_descriptors(ds)[:, 3:] / 2 if layout_warp > 0 else None
@@ -389,7 +401,11 @@ class TripletSampler:
         neighbours = sorted(set().union(*(self.adj[c] for c in query)) - qset)
         if not neighbours:  # disconnected leftovers cannot happen after preprocessing; resample
             return self.sample_triplet(rng)
-        positive = neighbours[int(rng.integers(len(neighbours)))]
+        if self.size_weight is None:
+            positive = neighbours[int(rng.integers(len(neighbours)))]
+        else:
+            w = self.size_weight[neighbours]
+            positive = neighbours[int(rng.choice(len(neighbours), p=w / w.sum()))]
         hard = self.query_negative_fraction + self.lookalike_negative_fraction + self.shape_negative_fraction
         u = rng.random() if hard > 0 else 1.0
         shape_negative = False
