@@ -432,7 +432,8 @@ class _Run:
             group["lr"] = self.cfg.placement_lr * factor
 
     def retrieval_step(self, batch: dict[str, torch.Tensor]) -> None:
-        """One optimiser step of f and g on a batch (and of g's category head, when trained)."""
+        """One optimiser step of f (unless ``train_embedding`` is off) and g on a batch (and of g's
+        category head, when trained)."""
         cfg, window = self.cfg, self.window
         X, Z = batch["X"], batch["Z"]
         mask = batch["P_mask"]
