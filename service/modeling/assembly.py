@@ -434,12 +434,8 @@ class Assembler:
                 enclosing = around and not profile and np.prod(ratio) >= s.assemble_duplicate_contain_ratio
                 if similar or not enclosing:
                     return True
-            if s.assemble_duplicate_distance > 0:
-                box_gap = np.maximum(0, np.maximum(p.lo - cand.hi, cand.lo - p.hi))
-                if np.linalg.norm(box_gap) >= s.assemble_duplicate_distance:
-                    continue  # boxes apart: the Chamfer distance cannot be small
-                if chamfer_below(cand.points, p.points, s.assemble_duplicate_distance, cand.kdtree, p.kdtree):
-                    return True
+            if s.assemble_duplicate_distance > 0 and _samples_within(cand, p, s.assemble_duplicate_distance):
+                return True
         return False
 
     def _likely(self, result: SuggestResult, weights: np.ndarray) -> list[_Candidate]:
@@ -934,7 +930,13 @@ def _near_identical(a: _Candidate, b: _Candidate, distance: float) -> bool:
         return True
     pa, pb = a.placed, b.placed
     assert pa is not None and pb is not None, "candidates are placed when they are tested"
-    gap = np.maximum(0, np.maximum(pa.lo - pb.hi, pb.lo - pa.hi))
+    return _samples_within(pa, pb, distance)
+
+
+def _samples_within(a: _Placed, b: _Placed, distance: float) -> bool:
+    """Whether two placed parts' samples lie within ``distance`` Chamfer distance; ``a`` is the
+    one whose KD-tree is asked for last (``chamfer_below``)."""
+    gap = np.maximum(0, np.maximum(a.lo - b.hi, b.lo - a.hi))
     if np.linalg.norm(gap) >= distance:
-        return False
-    return chamfer_below(pa.points, pb.points, distance, pa.kdtree, pb.kdtree)
+        return False  # boxes apart: every nearest neighbour is at least that far
+    return chamfer_below(a.points, b.points, distance, a.kdtree, b.kdtree)

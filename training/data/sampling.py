@@ -366,13 +366,12 @@ class TripletSampler:
         self.mixed_query_fraction = mixed_query_fraction
         self.layout_warp = layout_warp
         self.ranges = Augmentation()
-        # Each component's box diagonal (component_descriptors owns the box), only when
-        # positives are drawn by size.
-        self.size_weight = (np.linalg.norm(component_descriptors(ds)[:, 3:].astype(np.float64), axis=1)
-                            ** positive_size_power if positive_size_power > 0 else None)
-        # Half extents of each component's box (component_descriptors owns the box), only when
-        # the warp needs them.
-        self.half = component_descriptors(ds)[:, 3:] / 2 if layout_warp > 0 else None
+        # Each component's box extents (component_descriptors owns the box), only for the options
+        # that read them: the warp's half extents, and the size-drawn positives' diagonals.
+        extents = component_descriptors(ds)[:, 3:] if max(layout_warp, positive_size_power) > 0 else None
+        self.half = extents / 2 if extents is not None and layout_warp > 0 else None
+        self.size_weight = (np.linalg.norm(extents.astype(np.float64), axis=1) ** positive_size_power
+                            if extents is not None and positive_size_power > 0 else None)
         # The full collection's list, so that a subset (the train split) keeps the same indices.
         categories = categories if categories is not None else ds.categories()
         self.category_of_shape = np.array([categories.index(str(m.get("category", ""))) for m in ds.shapes],
