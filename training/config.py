@@ -195,6 +195,11 @@ class TrainConfig:
     positives: int = field(default=1, metadata=_help("Valid complements drawn per query (1 = the paper)."))
     set_nll_weight: float = field(
         default=0.0, metadata=_help("Weight of the mean mixture NLL of the query's complement set."))
+    # Not in the paper: with positives > 1, the WTA pull sees only Y and the weights' fit
+    # (wta_weight_ce) only the other positives, so a size-drawn Y (positive_size_power) moves the
+    # modes towards a kind's main piece while the weights keep the kinds' shares of uniform draws.
+    split_positive_fits: bool = field(default=False, metadata=_help(
+        "Pull the modes onto Y alone and fit the weights to the other positives (needs positives > 1)."))
     # Not in the paper: a query's complements matched one-to-one to modes (Hungarian, per-mode
     # NLL as cost; losses.matched_modes); each matched mode pulled onto its complement, and the
     # weights fitted to the shares of the matching. Measured: the set NLL with the relaxed WTA
@@ -309,6 +314,9 @@ class TrainConfig:
         if self.positives < 1 or self.split not in ("random", "styles"):
             raise ValueError(f"train config: positives must be >= 1 (got {self.positives}) and split "
                              f"random or styles (got {self.split!r})")
+        if self.split_positive_fits and self.positives < 2:
+            raise ValueError("train config: split_positive_fits needs positives >= 2 (the weights' fit "
+                             f"sees the positives after Y), got {self.positives}")
         if not (self.train_retrieval or self.train_placement):
             raise ValueError("train config: nothing to train "
                              "(train_retrieval and train_placement are both off)")

@@ -147,8 +147,17 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
     loss = hinge
     y_fit = pos_emb if cfg.pull_moves_embedding else pos_emb.detach()
     b = len(first)
-    per_query = torch.bincount(owner, minlength=b).clamp(min=1).to(y_fit.dtype)   # (B,)
-    share = 1.0 / (per_query[owner] * b)                                            # (M,) sums to 1
+    share = _shares(owner, torch.ones(len(owner), dtype=torch.bool), b)            # (M,) sums to 1
+    pull_share = ce_share = share
+    if cfg.split_positive_fits:
+        # The pull moves the modes onto each query's first positive Y, the weights' fit counts
+        # the others (the first too where a query has no other): Y's draw may favour the main
+        # piece of a kind without g's weights learning to favour its kind.
+        is_first = torch.zeros(len(owner), dtype=torch.bool)
+        is_first[first] = True
+        has_other = torch.bincount(owner[~is_first], minlength=b) > 0                  # (B,)
+        pull_share = _shares(owner, is_first, b)
+        ce_share = _shares(owner, ~is_first | ~has_other[owner], b)
     if cfg.nll_weight:
         loss = loss + cfg.nll_weight * mixture_nll(y_fit[first], log_w, means, log_s).mean()
     if cfg.set_nll_weight:
@@ -160,11 +169,11 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
         if cfg.wta_sigma:
             pull_log_s = torch.full_like(pull_log_s, math.log(cfg.wta_sigma))
         pull = relaxed_wta_pull(y_fit, means[owner], pull_log_s, cfg.wta_epsilon, winners)
-        loss = loss + cfg.wta_weight * (share * pull).sum()
+        loss = loss + cfg.wta_weight * (pull_share * pull).sum()
     if cfg.wta_weight_ce:
         per_mode = -component_log_density(y_fit, means[owner], log_s[owner]).detach()  # (M, K)
         winner = per_mode.argmin(dim=1)                                                 # (M,)
-        loss = loss - cfg.wta_weight_ce * (share * log_w[owner, winner]).sum()
+        loss = loss - cfg.wta_weight_ce * (ce_share * log_w[owner, winner]).sum()
     if cfg.match_weight or cfg.match_weight_ce:
         per_mode = -component_log_density(y_fit, means[owner], log_s[owner])        # (M, K)
         mode = matched_modes(per_mode, owner, b)                                      # (M,)
@@ -174,6 +183,17 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
         loss = loss + cfg.match_weight * (share * per_mode[rows, mode]).sum()
         loss = loss - cfg.match_weight_ce * (share * log_w[owner, mode]).sum()
     return loss, hinge, e_pos, e_neg
+
+
+def _shares(owner: torch.Tensor, keep: torch.Tensor, b: int) -> torch.Tensor:
+    """Each kept positive's share of a fit in which every query weighs the same (kept rows of a
+    query split its 1/B evenly; dropped rows get 0).
+
+    Shapes:
+        owner (M,) int64, keep (M,) bool -> (M,) float32, summing to 1 over the queries with a kept row.
+    """
+    per_query = torch.bincount(owner[keep], minlength=b).clamp(min=1).to(torch.float32)   # (B,)
+    return keep.to(torch.float32) / (per_query[owner] * b)
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any]) -> TrainConfig:

@@ -257,6 +257,40 @@ def test_a_fixed_pull_sigma_leaves_g_s_sigmas_out_of_the_pull():
         resolve_config(overrides={"wta_sigma": -0.1}).validate()
 
 
+def test_split_positive_fits_pull_onto_y_and_fit_the_weights_to_the_others():
+    """With ``split_positive_fits`` the pull moves only the mode nearest Y (the first positive) and
+    the weights' fit raises only the weight of the mode nearest the other positive; without it both
+    fits see both. A query with no other positive keeps its Y in the weights' fit. It needs two
+    positives."""
+    # Query 0: Y at +x next to mode 0, its other positive at -x next to mode 1. Query 1: Y alone.
+    pos = torch.tensor([[0.3, 0.0, 0.0], [-0.3, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    owner, first = torch.tensor([0, 0, 1]), torch.tensor([0, 2])
+    z = torch.full((2, 3), 5.0)                       # far negatives: the hinge is inactive
+    centres = torch.tensor([[0.25, 0.0, 0.0], [-0.25, 0.0, 0.0]]).expand(2, 2, 3)
+    log_s = torch.log(torch.full((2, 2, 3), 0.05))
+    base = {"wta_weight": 1.0, "wta_weight_ce": 1.0, "wta_epsilon": 0.0, "wta_anneal": 0.0,
+            "margin": 0.001, "positives": 2}
+    grads = {}
+    for split in (False, True):
+        means = centres.clone().requires_grad_(True)
+        log_w = torch.log(torch.full((2, 2), 0.5)).requires_grad_(True)
+        cfg = resolve_config(overrides={**base, "split_positive_fits": split})
+        cfg.validate()
+        loss, hinge, _, _ = retrieval_objective(cfg, pos, owner, first, z, log_w, means, log_s)
+        assert hinge.item() == 0.0
+        loss.backward()
+        assert means.grad is not None and log_w.grad is not None
+        grads[split] = (means.grad[0].abs().sum(dim=1), -log_w.grad[0], -log_w.grad[1])
+    pull, fit, alone = grads[False]
+    assert (pull > 0).all() and (fit > 0).all()       # both modes pulled, both weights raised
+    pull, fit, alone = grads[True]
+    assert pull[0] > 0 and pull[1] == 0               # only Y's mode is pulled
+    assert fit[0] == 0 and fit[1] > 0                 # only the other positive's mode is fitted
+    assert alone[0] > 0                               # Y counts where there is no other
+    with pytest.raises(ValueError, match="split_positive_fits"):
+        resolve_config(overrides={"split_positive_fits": True, "positives": 1}).validate()
+
+
 def test_shape_negatives_take_their_own_margin():
     """Triplets whose Z is a shape look-alike of Y are held to ``shape_negative_margin``; the
     others keep Equation 2's margin, and -1 leaves every triplet at that margin."""
