@@ -56,3 +56,20 @@ def test_architecture_names_code() -> None:
 @pytest.mark.parametrize(("doc", "name"), _dotted())
 def test_named_code_resolves(doc: str, name: str) -> None:
     assert _resolves(name), f"{doc} names {name}, which does not import"
+
+
+def test_docs_name_the_shipped_model_version() -> None:
+    """The model the docs say `exported/` holds, and the one the committed benchmark measured, are
+    the model that `exported/manifest.json` names (a re-export changes the version's hash)."""
+    import json
+
+    shipped = json.loads((REPO / "exported" / "manifest.json").read_text(encoding="utf-8"))["model_version"]
+    claims = {
+        "docs/training.md": re.search(r"`exported/` holds \*\*`([\w.-]+)`\*\*",
+                                      (REPO / "docs" / "training.md").read_text(encoding="utf-8")),
+        "docs/benchmark.md": re.search(r"^- Artifact: `([\w.-]+)`",
+                                       (REPO / "docs" / "benchmark.md").read_text(encoding="utf-8"), re.M),
+    }
+    for doc, match in claims.items():
+        assert match, f"{doc} no longer says which model it is about: the pattern needs updating"
+        assert match.group(1) == shipped, f"{doc} names {match.group(1)}; exported/ holds {shipped}"

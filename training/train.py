@@ -147,7 +147,7 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
     loss = hinge
     y_fit = pos_emb if cfg.pull_moves_embedding else pos_emb.detach()
     b = len(first)
-    share = _shares(owner, torch.ones(len(owner), dtype=torch.bool), b)            # (M,) sums to 1
+    share = _shares(owner, torch.ones(len(owner), dtype=torch.bool), b, y_fit.dtype)  # (M,) sums to 1
     pull_share = ce_share = share
     if cfg.split_positive_fits:
         # The pull moves the modes onto each query's first positive Y, the weights' fit counts
@@ -156,8 +156,8 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
         is_first = torch.zeros(len(owner), dtype=torch.bool)
         is_first[first] = True
         has_other = torch.bincount(owner[~is_first], minlength=b) > 0                  # (B,)
-        pull_share = _shares(owner, is_first, b)
-        ce_share = _shares(owner, ~is_first | ~has_other[owner], b)
+        pull_share = _shares(owner, is_first, b, y_fit.dtype)
+        ce_share = _shares(owner, ~is_first | ~has_other[owner], b, y_fit.dtype)
     if cfg.nll_weight:
         loss = loss + cfg.nll_weight * mixture_nll(y_fit[first], log_w, means, log_s).mean()
     if cfg.set_nll_weight:
@@ -185,15 +185,16 @@ def retrieval_objective(cfg: TrainConfig, pos_emb: torch.Tensor, owner: torch.Te
     return loss, hinge, e_pos, e_neg
 
 
-def _shares(owner: torch.Tensor, keep: torch.Tensor, b: int) -> torch.Tensor:
+def _shares(owner: torch.Tensor, keep: torch.Tensor, b: int, dtype: torch.dtype) -> torch.Tensor:
     """Each kept positive's share of a fit in which every query weighs the same (kept rows of a
     query split its 1/B evenly; dropped rows get 0).
 
     Shapes:
-        owner (M,) int64, keep (M,) bool -> (M,) float32, summing to 1 over the queries with a kept row.
+        owner (M,) int64, keep (M,) bool -> (M,) ``dtype``, summing to 1 over the queries with a
+        kept row.
     """
-    per_query = torch.bincount(owner[keep], minlength=b).clamp(min=1).to(torch.float32)   # (B,)
-    return keep.to(torch.float32) / (per_query[owner] * b)
+    per_query = torch.bincount(owner[keep], minlength=b).clamp(min=1).to(dtype)   # (B,)
+    return keep.to(dtype) / (per_query[owner] * b)
 
 
 def config_for_resume(run_dir: Path, overrides: dict[str, Any]) -> TrainConfig:
