@@ -174,6 +174,47 @@ def test_batched_search_matches_the_reference_on_synthetic_contacts(seat: Assemb
     assert refine_offsets([], seat, params) == []
 
 
+def test_few_assembly_samples_within_reach_match_the_reference(leg: Surface) -> None:
+    """When fewer assembly samples than are measured lie within reach of the part, the search
+    takes the rest nearest first (``contact_kernel._nearest_rest``, pruned by a lower bound):
+    the same samples, hence the same refinements, as the reference, which measures every one."""
+    m = _seat()
+    sparse = sample_oriented(m.vertices, m.faces, 600, 2)
+    params = ContactParams()
+    base = np.array([0.3, -SEAT_TOP - LEG_HALF, 0.3])
+    parts = [leg.moved(base + np.array([0.0, -h, 0.0])) for h in (0.02, 0.06, 0.09, 0.11)]
+    reach = params.max_offset + 2 * params.tolerance
+    within = [int(np.sum(cKDTree(p.points).query(sparse.points, distance_upper_bound=reach)[0] < reach))
+              for p in parts]
+    assert all(0 < w < params.search_points for w in within), within  # the case this test is about
+    for assembly in (Assembly(sparse), Assembly(Surface(sparse.points))):
+        _same(refine_offsets(parts, assembly, params),
+              [contact_reference.refine_offset(p, assembly, params) for p in parts])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_rest_chooses_the_nearest_samples(leg: Surface, seed: int) -> None:
+    """The assembly samples the search measures when few lie within reach: exactly the m nearest
+    the part, ties to the lower row, with their exact distances (brute force by cKDTree)."""
+    rng = np.random.default_rng(seed)
+    a_pts = np.ascontiguousarray(rng.uniform(-0.6, 0.6, size=(700, 3)))
+    a_pts[::50] = a_pts[1::50]  # exact ties between rows
+    part = np.ascontiguousarray(leg.points)
+    m, reach, ub = 128, 0.12, 0.22
+    true_d, true_i = cKDTree(part).query(a_pts)
+    d2 = np.where(true_d < reach, true_d, np.inf)
+    i2 = np.where(true_d < reach, true_i, -1).astype(np.int64)
+    known = np.flatnonzero(i2 >= 0)
+    assert 0 < len(known) < m
+    grid = contact_kernel.build_grid(part, 1.0)
+    bd, bi = np.empty(4), np.empty(4, np.int64)
+    rows = contact_kernel._nearest_rest(a_pts, part, grid, d2, i2, known, m, ub, bd, bi)
+    chosen = contact_kernel._closest(rows, d2[rows], m)
+    expected = np.sort(np.argsort(true_d, kind="mergesort")[:m])
+    np.testing.assert_array_equal(chosen, expected)
+    np.testing.assert_allclose(d2[chosen], true_d[chosen], rtol=0, atol=1e-12)
+
+
 def test_threads_give_the_same_answers(seat: Assembly, leg: Surface) -> None:
     """The parts dealt to 1, 2 or 3 threads (more than parts too): the same refinements, in order."""
     base = np.array([0.3, -SEAT_TOP - LEG_HALF, 0.3])
