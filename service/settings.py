@@ -119,8 +119,8 @@ class Settings(BaseSettings):
         "in the air (`/place`, `/assemble`, refined suggestions). At most `contact_max_offset`: off."))
     suggest_refine_contact: bool = Field(default=False, description=(
         "Contact refinement of suggestions (`/suggest`, `/suggest/mesh`, `/suggest/batch`) when a "
-        "request does not send `refine_contact`. Off by default: for k = 10 it adds about 3 ms of "
-        "CPU to a suggestion of about 2.5-3 (2.4-2.5 ms of wall time on two threads, "
+        "request does not send `refine_contact`. Off by default: for k = 10 it adds about 2.5 ms "
+        "of CPU to a suggestion of about 2.5-3 (2.1 ms of wall time on two threads, "
         "`contact_threads`), which would cost the service about half its throughput and its c = 1 "
         "latency target "
         "(docs/performance.md); `/place` and `/assemble` refine unless told not to."))

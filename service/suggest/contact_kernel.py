@@ -20,10 +20,13 @@ What makes it fast, without changing an answer:
   sample can be within the tolerance there (a sample's nearest distance moves at most as far as
   the part does), or when a sample last seen inside by more than the tolerance is still that
   deep there (it is measured first): either way the offset cannot touch;
-* a measurement first finds the nearest distance alone, searching each sample only within the
-  nearest found so far and skipping those whose distance at h's placement, less the offset's
-  length, already rules them out; only where that distance is within the tolerance does it
-  classify the samples inside or not, stopping at the first inside by more than the tolerance.
+* a side whose other side has no normals (a caller's points: nothing can be inside them) gives
+  only its nearest distance, each sample searched within the nearest found so far and skipped
+  when its distance at h's placement, less the offset's length, already rules it out; the other
+  side is measured in full, skipping samples that bound puts beyond every search, and a
+  measurement stops at its first sample inside by more than the tolerance;
+* the per-sample helpers are inlined: called, each passed the sides' arrays with their reference
+  counts (the kernel on the refinements of 12 ``/assemble`` runs: 40 against 49 ms).
 
 Everything is in the canonical frame (unit radius), float64.
 """
@@ -180,7 +183,7 @@ def nearest(x0: float, x1: float, x2: float, grid: Grid, k: int, ub: float, out_
         out_d[j] = math.sqrt(out_d[j]) if out_i[j] >= 0 else np.inf
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _inside(x0: float, x1: float, x2: float, d: np.ndarray, idx: np.ndarray, k: int,
             pts: np.ndarray, nrm: np.ndarray) -> bool:
     """Whether x lies behind every one of its ``k`` nearest samples (all present) of an oriented surface."""
@@ -194,7 +197,7 @@ def _inside(x0: float, x1: float, x2: float, d: np.ndarray, idx: np.ndarray, k: 
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _classify(x0: float, x1: float, x2: float, pts: np.ndarray, nrm: np.ndarray, has_nrm: bool, grid: Grid,
               nk: int, ub: float, bd: np.ndarray, bi: np.ndarray) -> bool:
     """Whether x, whose nearest sample is in bd[0], bi[0], is inside the other side's surface: its
@@ -210,7 +213,7 @@ def _classify(x0: float, x1: float, x2: float, pts: np.ndarray, nrm: np.ndarray,
     return inside
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _measure(side: Side, o: np.ndarray, nk: int, ub: float, s: int, bd: np.ndarray, bi: np.ndarray
              ) -> tuple[float, bool]:
     """Sample ``s`` of one side (moved with the part by o) against the other side: its nearest
@@ -493,7 +496,12 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     wit_side = np.full(2 * _WITNESSES, -1, np.int64)   # newest first
     wit_row = np.zeros(2 * _WITNESSES, np.int64)
     slack = 1e-9 * tol
-    by_ref = np.argsort(ref, kind="mergesort")
+    # The distance-only sides' samples (measured in full below otherwise), in the order of their bound.
+    dist_only = np.ones(len(ref), np.bool_)
+    dist_only[:n0] = not has_an
+    dist_only[n0:] = not has_pn
+    by_ref = np.flatnonzero(dist_only)
+    by_ref = by_ref[np.argsort(ref[by_ref], kind="mergesort")]
     o = np.empty(3)
     for pas in range(2):
         directions = dirs[:nd] if pas == 0 else CORNERS
@@ -518,36 +526,31 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
                 if ruled_out:
                     continue
                 shift = math.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2])
-                # The nearest distance, exactly (at most ub): samples in the order of their bound,
-                # each searched only within the nearest found so far, until the bound of those left
-                # says none can be nearer.
+                # A side whose other side has no normals (a caller's points) only gives the nearest
+                # distance: its samples in the order of their bound, each searched only within the
+                # nearest found so far, until the bound of those left says none can be nearer.
                 near = ub
-                for e in by_ref:
+                for j in range(len(by_ref)):
+                    e = int(by_ref[j])
                     if ref[e] - shift > near + slack:
                         break
                     side, s = (0, e) if e < n0 else (1, e - n0)
-                    q, sign, pts, nrm, has_nrm, grid = sides[side]
+                    q, sign, _, _, _, grid = sides[side]
                     nearest(q[s, 0] + sign * o[0], q[s, 1] + sign * o[1], q[s, 2] + sign * o[2], grid, 1,
                             near, bd, bi)
                     if bi[0] >= 0:
                         near = bd[0]
-                hist_o[nh] = o
-                hist_g[nh] = near
-                nh += 1
-                # Touching needs a sample within the tolerance: a part inside the other deeper than
-                # the tolerance has its nearest sample there too (depth >= near).
-                if near > tol:
-                    continue
-                # The depth: every sample that can be inside (the other side oriented, a sample within
-                # ub), stopping at the first inside by more than the tolerance.
+                # The other side's samples in full (inside or not), stopping at the first inside by
+                # more than the tolerance; a sample its bound puts beyond ub is neither.
                 depth = 0.0
                 for side in range(2):
                     if not sides[side][4]:
                         continue
                     for s in range(len(sides[side][0])):
                         if ref[side * n0 + s] - shift >= ub + slack:
-                            continue  # nothing of the other side within ub: cannot be inside
+                            continue
                         dd, inside = _measure(sides[side], o, nk, ub, s, bd, bi)
+                        near = min(near, dd)
                         if inside:
                             depth = max(depth, dd)
                             if dd > tol:
@@ -560,6 +563,9 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
                         break
                 if ruled_out:
                     continue
+                hist_o[nh] = o
+                hist_g[nh] = near
+                nh += 1
                 gap = 0.0 if depth > 0 else near
                 if gap <= tol and depth <= tol:
                     out_off[:] = o
