@@ -429,8 +429,8 @@ class Settings(BaseSettings):
     max_request_cost_ms: float = Field(default=2000.0, gt=0, description=(
         "Budget of one suggestion request (`/suggest`, `/suggest/mesh`, `/suggest/batch`) in "
         "estimated CPU milliseconds, checked before any work starts (413 `over_budget`). Each query "
-        "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 0.5 ms per suggestion (k) when "
-        "`refine_contact` is on (measured on the shipped artifacts: 38 ms of CPU for k = 100 "
+        "is estimated at 4 ms, plus 0.05 ms per 1000 points, plus 0.35 ms per suggestion (k) when "
+        "`refine_contact` is on (measured on the shipped artifacts: 30 ms of CPU for k = 100 "
         "refined), "
         "plus 5 ms per 256 `region_candidates` when the query gives a `region`. The default "
         "admits one query of any k with refinement, and a batch of 64 without."))

@@ -72,11 +72,12 @@ log = logging.getLogger(__name__)
 # batch_max_cost_ms). Measured in process on the shipped artifacts (engine.suggest_batch, one
 # core, training running on the other): a query cost 3.7 ms in a batch of 32 and 6-8 ms alone;
 # 100k points against 1.5k added about 5 ms (frame, resampling). Contact refinement, compiled
-# (contact_kernel), cost 38 ms of CPU for k = 100 on one thread (22.6 ms of wall time on two),
-# 3.3 ms for k = 10: about 0.4 ms per refined part (12 ms before it was compiled).
+# (contact_kernel), cost 30 ms of CPU for k = 100 on one thread, 3.4 ms for k = 10 (the benchmark
+# query, contact_threads 1, 2026-12-07; 38 ms for k = 100 before that day's kernel changes, 12 ms
+# a part before it was compiled): about 0.3 ms per refined part, rounded up as the rest are.
 QUERY_COST_MS = 4.0
 POINT_COST_MS = 0.05 / 1000
-REFINED_PART_COST_MS = 0.5
+REFINED_PART_COST_MS = 0.35
 # A region query searches 256 neighbours per mode, and places and checks 256 candidates: it cost
 # about 5 ms more than the same query without a region (13 ms against 7.7 ms, best of 5, a chair
 # seat with a category filter, trainings running on both cores), most of it in the wider search.

@@ -62,7 +62,8 @@ def _request(path: str, body: dict[str, Any]) -> bytes:
 
 def test_the_heavy_batch_of_the_issue_is_refused_before_any_work(artifacts: Path,
                                                                  query: AssemblyQuery) -> None:
-    """64 items of 1,500 points, k 100, refined: about 77 s of CPU by the estimate; 413 at once."""
+    """64 items of 1,500 points, k 100, refined: about 2.5 s of CPU by the estimate (the budget is 2 s);
+    413 at once."""
     settings = make_settings(artifacts, verify_checksums=False, warmup=False, max_batch_items=64, max_k=100,
                              max_body_bytes=4 * 1024 * 1024)
     points = points_to_base64(query.points[:1500] if len(query.points) >= 1500 else query.points)
@@ -78,7 +79,7 @@ def test_the_heavy_batch_of_the_issue_is_refused_before_any_work(artifacts: Path
         assert re.search(r"^complementme_batch_size_count 0\.0$", metrics, re.M), \
             [line for line in metrics.splitlines() if line.startswith("complementme_batch_size")]
         # A single query over the budget is refused the same way; within it, answered.
-        # k = 10 refined: about 4 + 10 x 0.5 ms by the estimate; plain: about 4 ms.
+        # k = 10 refined: about 4 + 10 x 0.35 ms by the estimate; plain: about 4 ms.
         small = make_settings(artifacts, verify_checksums=False, warmup=False, max_request_cost_ms=6.0)
     with TestClient(create_app(small)) as client:
         over = client.post("/suggest", json=_suggest(query, k=10, refine_contact=True))
