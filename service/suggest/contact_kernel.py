@@ -244,6 +244,23 @@ def _ball(pts: np.ndarray, rows: np.ndarray) -> tuple[float, float, float, float
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _clusters(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clusters of points (the cells of a coarse grid) and a ball holding each (``_ball``).
+
+    Shapes:
+        pts (n, 3) -> order (n,) point indices cluster by cluster, start (c + 1,) each cluster's
+        first entry of order, balls (c, 4) centre and radius (empty clusters: radius -1).
+    """
+    _, _, _, order, start, _ = build_grid(pts, _CLUSTER_PER_ROOT)
+    balls = np.full((len(start) - 1, 4), -1.0)
+    for c in range(len(start) - 1):
+        if start[c] < start[c + 1]:
+            c0, c1, c2, rad = _ball(pts, order[start[c]:start[c + 1]])
+            balls[c, 0], balls[c, 1], balls[c, 2], balls[c, 3] = c0, c1, c2, rad
+    return order, start, balls
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _pairs(src: np.ndarray, grid: Grid, bound: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every pair of a ``src`` and a ``dst`` sample strictly within ``bound`` of each other, folded
@@ -266,12 +283,11 @@ def _pairs(src: np.ndarray, grid: Grid, bound: float
     bd = np.empty(1)
     bi = np.empty(1, np.int64)
     b2 = bound * bound
-    _, _, _, corder, cstart, _ = build_grid(src, _CLUSTER_PER_ROOT)
-    for c in range(len(cstart) - 1):
+    corder, cstart, balls = _clusters(src)
+    for c in range(len(balls)):
         if cstart[c] == cstart[c + 1]:
             continue
-        cx0, cx1, cx2, rad = _ball(src, corder[cstart[c]:cstart[c + 1]])
-        nearest(cx0, cx1, cx2, grid, 1, bound + rad, bd, bi)
+        nearest(balls[c, 0], balls[c, 1], balls[c, 2], grid, 1, bound + balls[c, 3], bd, bi)
         if bi[0] < 0:
             continue
         for e in range(cstart[c], cstart[c + 1]):
@@ -349,31 +365,26 @@ def _nearest_rest(a_pts: np.ndarray, part: np.ndarray, pgrid: Grid, d2: np.ndarr
         return np.arange(t)
     # Balls around clusters of the part's samples: a sample is at least its distance to the
     # nearest ball's surface from the part.
-    _, _, _, corder, cstart, _ = build_grid(part, _CLUSTER_PER_ROOT)
-    balls = np.empty((len(cstart) - 1, 4))
-    nb = 0
-    for c in range(len(cstart) - 1):
-        if cstart[c] < cstart[c + 1]:
-            c0, c1, c2, rad = _ball(part, corder[cstart[c]:cstart[c + 1]])
-            balls[nb, 0], balls[nb, 1], balls[nb, 2], balls[nb, 3] = c0, c1, c2, rad
-            nb += 1
+    _, _, balls = _clusters(part)
     rest = np.flatnonzero(i2 < 0)
-    box = np.empty(len(rest))
+    lower = np.empty(len(rest))
     for j in range(len(rest)):
         s = rest[j]
         g = np.inf
-        for b in range(nb):
+        for b in range(len(balls)):
+            if balls[b, 3] < 0:
+                continue  # an empty cluster
             e0, e1, e2 = a_pts[s, 0] - balls[b, 0], a_pts[s, 1] - balls[b, 1], a_pts[s, 2] - balls[b, 2]
             g = min(g, math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - balls[b, 3])
-        box[j] = max(g, 0.0)
+        lower[j] = max(g, 0.0)
     need = m - len(known)
     best = np.full(need, np.inf)   # the smallest distances measured so far, ascending
     chosen = np.zeros(t, np.bool_)
     for j in range(len(known)):
         chosen[known[j]] = True
-    for j in np.argsort(box, kind="mergesort"):
+    for j in np.argsort(lower, kind="mergesort"):
         worst = best[need - 1]
-        if box[j] > worst:  # every sample left is farther than the need-th nearest measured
+        if lower[j] > worst:  # every sample left is farther than the need-th nearest measured
             break
         s = rest[j]
         # Strictly within the bound, so a tie with the need-th is measured too (the lower row wins).
@@ -500,8 +511,8 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     slack = 1e-9 * tol
     # The distance-only sides' samples (measured in full below otherwise), in the order of their bound.
     dist_only = np.ones(len(ref), np.bool_)
-    dist_only[:n0] = not has_an
-    dist_only[n0:] = not has_pn
+    dist_only[:n0] = not sides[0][4]
+    dist_only[n0:] = not sides[1][4]
     by_ref = np.flatnonzero(dist_only)
     by_ref = by_ref[np.argsort(ref[by_ref], kind="mergesort")]
     o = np.empty(3)
