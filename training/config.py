@@ -93,6 +93,16 @@ class ModelConfig:
             raise ValueError(f"model config: n_categories must be >= 0, got {self.n_categories}")
 
 
+
+def check_negative_shares(query: float, lookalike: float, shape: float, owner: str) -> None:
+    """The one rule on the hard negatives' shares (the rest of the negatives are random parts):
+    each share >= 0 and together at most 1. ``owner`` starts the error (who was given them)."""
+    shares = (query, lookalike, shape)
+    if min(shares) < 0 or sum(shares) > 1:
+        raise ValueError(f"{owner}: query_negative_fraction, lookalike_negative_fraction and "
+                         f"shape_negative_fraction must be >= 0 and sum to at most 1, got {shares}")
+
+
 @dataclass
 class TrainConfig:
     """One training run: data, budget, optimiser, validation and logging."""
@@ -287,11 +297,8 @@ class TrainConfig:
             raise ValueError("train config: nll_weight and wta_weight must be >= 0 and wta_epsilon in [0, 1)")
         if not 0.0 <= self.wta_anneal <= 1.0:
             raise ValueError(f"train config: wta_anneal must be in [0, 1], got {self.wta_anneal}")
-        shares = (self.query_negative_fraction, self.lookalike_negative_fraction,
-                  self.shape_negative_fraction)
-        if min(shares) < 0 or sum(shares) > 1:
-            raise ValueError("train config: query_negative_fraction, lookalike_negative_fraction and "
-                             f"shape_negative_fraction must be >= 0 and sum to at most 1, got {shares}")
+        check_negative_shares(self.query_negative_fraction, self.lookalike_negative_fraction,
+                              self.shape_negative_fraction, "train config")
         if self.shape_negative_margin < 0 and self.shape_negative_margin != -1:
             raise ValueError("train config: shape_negative_margin must be >= 0 or -1 (the margin), "
                              f"got {self.shape_negative_margin}")

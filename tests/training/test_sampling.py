@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from service.geometry.mesh import points_to_mesh_distance
+from training.config import resolve_config
 from training.data.preprocess import Kept, PreprocessConfig, ShapeRecord, assemble, preprocess_shape
 from training.data.processed import ProcessedDataset
 from training.data.sampling import (
@@ -118,6 +119,17 @@ def test_query_negatives_come_from_the_query_at_the_asked_share(dataset: Process
 def test_query_negative_fraction_outside_0_1_is_refused(dataset: ProcessedDataset) -> None:
     with pytest.raises(ValueError, match="query_negative_fraction"):
         TripletSampler(dataset, query_negative_fraction=1.5)
+
+
+def test_hard_negative_shares_over_one_are_refused_by_sampler_and_config(dataset: ProcessedDataset) -> None:
+    # One rule (training.config.check_negative_shares), read by both: the config fails before any
+    # data is loaded, the sampler when built directly.
+    with pytest.raises(ValueError, match=r"TripletSampler: .*sum to at most 1, got \(0.6, 0.5, 0.0\)"):
+        TripletSampler(dataset, query_negative_fraction=0.6, lookalike_negative_fraction=0.5)
+    with pytest.raises(ValueError, match=r"train config: .*sum to at most 1, got \(0.0, 0.5, 0.6\)"):
+        overrides = {"lookalike_negative_fraction": 0.5, "shape_negative_fraction": 0.6}
+        resolve_config(overrides=overrides).validate()
+    TripletSampler(dataset, query_negative_fraction=0.5, lookalike_negative_fraction=0.5)   # at 1: allowed
 
 
 def test_lookalikes_are_the_nearest_components_of_other_shapes_of_the_category(

@@ -14,6 +14,7 @@ import numpy as np
 from service.geometry.pointsets import chamfer_distance
 from service.geometry.scaling import scaled_area
 from service.settings import Settings
+from training.config import check_negative_shares
 from training.data.processed import ProcessedDataset
 
 
@@ -349,12 +350,10 @@ class TripletSampler:
                             ("layout_warp", layout_warp)):
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
-        shares = query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction
         if positive_size_power < 0:
             raise ValueError(f"positive_size_power must be >= 0, got {positive_size_power}")
-        if shares > 1.0:
-            raise ValueError("query_negative_fraction + lookalike_negative_fraction + shape_negative_fraction "
-                             f"must be at most 1, got {shares}")
+        check_negative_shares(query_negative_fraction, lookalike_negative_fraction, shape_negative_fraction,
+                              "TripletSampler")
         self.ds = ds
         self.n_points = n_points
         self.query_negative_fraction = query_negative_fraction
