@@ -72,7 +72,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         raise
     engine = SuggestionEngine(artifacts, settings)
     if settings.warmup:
-        engine.warmup()         # compiles (or loads) contact refinement's kernel on the way
+        engine.warmup()         # compiles (or loads) contact refinement's and the spread's kernels
         mesh_kernel.warm()       # and the OBJ reader's, so the first upload does not
     served = Served(engine, settings, app.state.metrics)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
