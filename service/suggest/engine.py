@@ -59,7 +59,7 @@ from service.suggest.contact import Assembly, ContactParams, PartContacts, refin
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
 from service.suggest.fit_rank import fit_keys
-from service.suggest.mixture import mixture_log_likelihood, sigma_distances
+from service.suggest.mixture import mixture_log_likelihood, paired_sigma_distances
 from service.suggest.neighbours import BruteForceNeighbours
 from service.suggest.preferences import Preferences, diverse_order, spread_share_order
 from service.suggest.region import Region
@@ -1012,10 +1012,9 @@ class SuggestionEngine:
         if len(ranked.rows) == 0:
             return []
         k = ranked.modes.astype(np.int64)
-        # In float64 (sigma_distances): a query in a wrong frame puts candidates so far out that
+        # In float64 (paired_sigma_distances): a query in a wrong frame puts candidates so far out that
         # the squares overflow float32.
-        distance = float(sigma_distances(catalog.embeddings[ranked.rows], means, sigmas)
-                         [np.arange(len(k)), k].min())
+        distance = float(paired_sigma_distances(catalog.embeddings[ranked.rows], means[k], sigmas[k]).min())
         limit = self.config.ood_max_mode_distance
         if distance <= limit:
             return []

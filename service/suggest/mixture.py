@@ -71,5 +71,19 @@ def sigma_distances(y: np.ndarray, means: np.ndarray, sigmas: np.ndarray) -> np.
     Shapes:
         y (C, D), means (K, D), sigmas (K, D) -> (C, K) float64.
     """
-    z = (np.asarray(y, np.float64)[:, None, :] - means[None]) / sigmas[None]   # (C, K, D)
-    return np.sqrt(np.mean(z * z, axis=2))
+    return _rms((np.asarray(y, np.float64)[:, None, :] - means[None]) / sigmas[None])   # (C, K, D)
+
+
+def paired_sigma_distances(y: np.ndarray, means: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """``sigma_distances`` of each embedding to one mode only, its own: row c of ``means`` and
+    ``sigmas`` (the same numbers as that column of ``sigma_distances``, without the others').
+
+    Shapes:
+        y, means, sigmas (C, D) -> (C,) float64.
+    """
+    return _rms((np.asarray(y, np.float64) - means) / sigmas)
+
+
+def _rms(z: np.ndarray) -> np.ndarray:
+    """Root mean square over the last axis (z-scores to sigma distances)."""
+    return np.sqrt(np.mean(z * z, axis=-1))

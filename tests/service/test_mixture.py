@@ -10,6 +10,7 @@ from service.suggest.mixture import (
     component_log_densities,
     logsumexp_rows,
     mixture_log_likelihood,
+    paired_sigma_distances,
     sigma_distances,
 )
 
@@ -73,3 +74,19 @@ def test_sigma_distances_count_standard_deviations_of_each_mode() -> None:
     assert d[0, 0] == pytest.approx(1.0) and d[1, 1] == pytest.approx(1.0)   # one sigma on every axis
     assert d[2, 0] == 0.0
     assert d[2, 1] == pytest.approx(np.sqrt((4 + 1 + 0.25) / 3))
+
+
+def test_paired_sigma_distances_are_each_rows_own_column_bit_for_bit() -> None:
+    """The service's unfamiliar-query check reads each candidate's distance to its own mode only:
+    the same numbers as that column of ``sigma_distances`` (float32 embeddings and g's outputs, as
+    served), so the warning's threshold judges them alike."""
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        C, K, D = int(rng.integers(1, 120)), int(rng.integers(1, 9)), int(rng.integers(1, 70))
+        y = (rng.normal(size=(C, D)) * 10.0 ** rng.uniform(-2, 3)).astype(np.float32)
+        means = rng.normal(size=(K, D)).astype(np.float32)
+        sigmas = rng.uniform(0.01, 0.3, size=(K, D)).astype(np.float32)
+        own = rng.integers(0, K, C)
+        full = sigma_distances(y, means, sigmas)[np.arange(C), own]
+        assert np.array_equal(paired_sigma_distances(y, means[own], sigmas[own]), full)
+
