@@ -79,6 +79,7 @@ from scipy.spatial import cKDTree
 
 from service.artifacts.catalog import Catalog, drawn_training_shapes
 from service.errors import InputError
+from service.geometry import cover_kernel
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
 from service.geometry.pointsets import chamfer_below
@@ -855,14 +856,14 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
     Shapes:
         returns (parts,) float64.
     """
-    out: list[float] = []
+    out: list[np.ndarray] = []
     for _, rows in drawn_training_shapes(catalog, category, max_shapes, seed):
         clouds = [catalog.part_points(i).astype(np.float64) + catalog.translations[i] for i in rows]
-        for j, pts in enumerate(clouds):
-            rest = cKDTree(np.concatenate(clouds[:j] + clouds[j + 1:]))
-            d, _ = rest.query(pts, k=1, distance_upper_bound=distance)
-            out.append(float(np.mean(np.isfinite(d))))
-    return np.asarray(out, dtype=np.float64)
+        owner = np.repeat(np.arange(len(clouds), dtype=np.int64), [len(c) for c in clouds])
+        # Compiled (cover_kernel): a k-d tree of the rest of the shape for each part made the first
+        # /assemble of a category 0.17-0.45 s; the same shares.
+        out.append(cover_kernel.cover_shares(np.concatenate(clouds), owner, len(clouds), float(distance)))
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 # What each catalog snapshot's data says per category, made on first use: the cover share
