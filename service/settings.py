@@ -314,8 +314,9 @@ class Settings(BaseSettings):
     assemble_cover_shapes: int = Field(default=300, ge=1, description=(
         "Training shapes of a category `/assemble` reads at most (a seeded draw), for "
         "`assemble_cover_quantile` and for the missing-spot rule (`assemble_gap_neighbours`): the "
-        "shipped catalog has at most 144 training shapes per category, about 0.3 s on the first "
-        "`/assemble` of a category per catalog version; a catalog grown by writes costs no more."))
+        "shipped catalog has at most 144 training shapes per category, which add 25-90 ms to the "
+        "first `/assemble` of a category per catalog version (75-370 ms before the cover shares "
+        "were compiled); a catalog grown by writes costs no more."))
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(
         "`/assemble` skips a candidate whose placed box overlaps a placed part's box with more than "
         "this IoU when the two parts do the same job (see `assemble_same_job_sigmas`)."))
