@@ -584,6 +584,18 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(right["n"][c] <= res["tables"]["hausdorff"]["Ours"]["n"][c] for c in right["n"])
     assert sum(right["n"].values()) > 0 and right["mean"] > 0.0
     assert "top 5's parts of the removed label" in (tmp_path / "b.md").read_text()
+    # Robustness: every perturbation, both pools; unperturbed with the category pool it is Table 1.
+    from training.evaluate.robustness import PERTURBATIONS
+
+    rob = res["tables"]["robustness"]
+    names = {name for name, _, _ in PERTURBATIONS}
+    assert set(rob) == {"functional_map_category", "functional_map_all", "in_category_all"}
+    assert all(set(rows) == names for rows in rob.values())
+    table1, same = res["tables"]["functional_map"]["Ours"], rob["functional_map_category"]["as generated"]
+    assert same["n"] == table1["n"] and all(same[c] == pytest.approx(table1[c]) for c in table1["n"])
+    assert all(0.0 <= rows[name][c] <= 1.0 for rows in rob.values() for name in names
+               for c in rows[name]["n"] if rows[name]["n"][c])
+    assert "Robustness: Table 1 of Ours on perturbed queries" in (tmp_path / "b.md").read_text()
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:

@@ -51,6 +51,10 @@ def evaluate_command(
     plausibility_queries: int = typer.Option(50, "--plausibility-queries",
                                              help="All-but-one queries per category whose top-1 is "
                                                   "placed and checked for contact."),
+    robustness: bool = typer.Option(True, "--robustness/--no-robustness",
+                                    help="Also score Ours on the all-but-one queries perturbed (other "
+                                         "proportions, rotated, off frame, noisy, holed), with and "
+                                         "without the category (about a minute)."),
     methods: str = typer.Option("random,ck10,fixed,likelihood,ours", "--methods",
                                 help="Comma-separated subset of random, ck10, fixed, likelihood (the "
                                      "paper's ranking: Ours without the complement check, in likelihood "
@@ -107,7 +111,8 @@ def evaluate_command(
         artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
         queries_per_category=queries, query_split=query_split,
         placement_queries_per_category=placement_queries,
-        plausibility_queries_per_category=plausibility_queries, dense_points=dense_points,
+        plausibility_queries_per_category=plausibility_queries, robustness=robustness,
+        dense_points=dense_points,
         methods=tuple(m.strip() for m in methods.split(",") if m.strip()), ck10_shapes=ck10_shapes,
         threads=threads, details=details, progress=progress, notes=notes_text,
         command=" ".join(["complementme", *(shlex.quote(a) for a in sys.argv[1:])]),

@@ -144,6 +144,28 @@ def _target_hit(catalog: Catalog, rows: np.ndarray, removed: np.ndarray, collaps
     return hit
 
 
+def functional_hits(index: ShapeIndex, q: Query, rows: np.ndarray) -> np.ndarray:
+    """Which of ``rows`` carry the removed part's label (labels read to measure only).
+
+    Shapes:
+        rows (R,) catalog rows -> (R,) bool.
+    """
+    labels = index.labels
+    return np.array([labels[r] == q.label for r in np.asarray(rows).tolist()], dtype=bool)
+
+
+def functional_scores(index: ShapeIndex, q: Query, pool: np.ndarray, top: np.ndarray,
+                      group: np.ndarray | None, k: int) -> dict[str, float]:
+    """Table 1's functional AP@k of an all-but-one query's final top ``k`` (of ``pool``), and the
+    share of it from the query's category (with the pool "all" the method must find the category
+    itself, as the service infers it)."""
+    cat = index.catalog
+    n_func = relevant_in_pool(functional_hits(index, q, pool), pool, group)
+    return {"functional_ap": average_precision_at_k(functional_hits(index, q, top), n_func, k),
+            "in_category": (float(np.mean(cat.category_of[top] == cat.category_codes([q.category])[0]))
+                            if len(top) else math.nan)}
+
+
 def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
                        settings: RetrievalSettings, progress: bool = False) -> list[dict[str, Any]]:
     """Functional AP, Hausdorff, style AP and exact-component recall of one method, per query."""
@@ -171,14 +193,8 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
         rec["style_ap"] = (average_precision_at_k(top_style, relevant_in_pool(pool_style, pool, group), k)
                            if pool_style.size else math.nan)
         if q.setting == "all_but_one":
-            labels = index.labels
-            pool_func = np.array([labels[r] == q.label for r in pool.tolist()], dtype=bool)
-            top_func = np.array([labels[r] == q.label for r in top.tolist()], dtype=bool)
-            n_func = relevant_in_pool(pool_func, pool, group)
-            rec["functional_ap"] = average_precision_at_k(top_func, n_func, k)
-            # With the pool "all" the method must find the category itself (the service infers it).
-            rec["in_category"] = (float(np.mean(cat.category_of[top] == cat.category_codes([q.category])[0]))
-                                  if len(top) else math.nan)
+            top_func = functional_hits(index, q, top)
+            rec.update(functional_scores(index, q, pool, top, group, k))
             rec["hausdorff"] = top_hausdorff(index, q.removed, top)
             # The same where the removed label is one component: a label of several (a pair of
             # engines, a set of legs) is one point set, farther from any single catalog part.

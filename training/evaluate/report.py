@@ -243,7 +243,7 @@ def write_report(results: dict[str, Any], report_path: Path, chart_dir: Path) ->
     report = _Report(results, Path(chart_dir), report_path.parent)
     lines = [*report.header(), *report.summary(), *report.analysis(), *report.protocol(), *report.methods(),
              *report.retrieval(), *report.extra_tables(), *report.size_fit(), *report.placement(),
-             *report.recall(), *report.plausibility(), *report.query_counts()]
+             *report.recall(), *report.plausibility(), *report.robustness(), *report.query_counts()]
     report_path.parent.mkdir(parents=True, exist_ok=True)
     report_path.write_text("\n".join(lines))
 
@@ -455,6 +455,29 @@ class _Report:
                 worse["mean"] = per_cat["all"]["worse_than_truth"]
                 rows[f"{CASE_SHORT.get(case, case)}, worse than truth"] = worse
         return rows
+
+    def robustness(self) -> list[str]:
+        """Table 1 of Ours on perturbed queries: one table per measure, one row per perturbation."""
+        from training.evaluate.robustness import PERTURBATIONS
+
+        rob = self.tables.get("robustness")
+        if not rob:
+            return []
+        names = [name for name, _, _ in PERTURBATIONS if name in rob["functional_map_category"]]
+        lines = ["## Robustness: Table 1 of Ours on perturbed queries", "",
+                 "Each all-but-one query answered again after one perturbation of its points, about twice "
+                 "the range of the training augmentation, so that it is not only what the model has seen "
+                 "(seeded by the query; `training/evaluate/robustness.py`):", "",
+                 *(f"- **{name}**: {what}" for name, what, _ in PERTURBATIONS if name in names), ""]
+        for key, title in (("functional_map_category", "Functional mAP@5, category given (pool "
+                                                       "\"category\")"),
+                           ("functional_map_all", "Functional mAP@5, no category (pool \"all\": the service "
+                                                  "infers it)"),
+                           ("in_category_all", "Share of the top 5 from the query's category, no category "
+                                               "given")):
+            rows = {name: rob[key][name] for name in names}
+            lines += [f"### {title}", "", *method_table(rows, self.cats, None, first="Perturbation"), ""]
+        return lines
 
     def query_counts(self) -> list[str]:
         cats = self.cats

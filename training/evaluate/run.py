@@ -7,7 +7,8 @@
 2. draws the seeded queries of ``protocol`` from the catalog's held-out shapes;
 3. builds the baselines (Random, CK10, and the fixed-embedding g, trained briefly on the
    training split of the processed dataset or loaded from its cache in the run folder);
-4. evaluates Tables 1-4, the exact-component recall and the placement plausibility;
+4. evaluates Tables 1-4, the exact-component recall, the placement plausibility and Table 1 on
+   perturbed queries (``robustness``);
 5. writes ``results.json``, the Markdown report and the PNG charts (``report``).
 
 Layout of ``results.json`` (undefined values are null)::
@@ -36,6 +37,9 @@ Layout of ``results.json`` (undefined values are null)::
       plausibility:     {"top1" | "top1_refined" | "true_h" | "true_h_refined" | "true_gt":
                          {category | "all": {n, floating,
                          interpenetrating, median_gap, median_depth}}}
+      robustness:       {"functional_map_category" | "functional_map_all" | "in_category_all":
+                         {perturbation: {category: value, ..., "mean": ..., "n": {...}}}} (Ours on
+                         the all-but-one queries perturbed, ``robustness.PERTURBATIONS``)
     fixed_embedding: steps, train_seconds, final_loss, pca_explained_variance, scale, cached, ...
     timing_seconds:  {stage: seconds, "total": seconds}
 
@@ -78,6 +82,7 @@ from training.evaluate.evaluation import (
 from training.evaluate.fixed_embedding import FixedSettings
 from training.evaluate.ours import EngineMethod
 from training.evaluate.protocol import ShapeIndex, make_placement_queries, make_queries
+from training.evaluate.robustness import PERTURBATIONS, POOLS, evaluate_robustness
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +115,7 @@ class BenchmarkSettings:
     placement_queries_per_category: int = 100  # per split (train, test)
     plausibility_queries_per_category: int = 50   # per category: all-but-one and test placement queries
                                               # whose placements get the (costly) contact test
+    robustness: bool = True                   # Table 1 of Ours on perturbed queries (robustness.py)
     n_points: int | None = None               # query points (default: the artifacts' query_points)
     dense_points: int = 1024                  # surface samples per part (queries, Hausdorff, contact)
     methods: tuple[str, ...] = METHOD_KEYS
@@ -265,6 +271,8 @@ class _Benchmark:
             self.placement_tables()
             self.size_fit_table()
             self.plausibility_tables()
+            if self.s.robustness:
+                self.robustness_tables()
         return self.write(self.results())
 
     def load(self) -> None:
@@ -390,6 +398,19 @@ class _Benchmark:
             self.tables["plausibility"] = {case: plausibility_table(recs, self.cats)
                                            for case, recs in self.plaus.items()}
             log.debug("plausibility on %d queries", len(chosen))
+
+    def robustness_tables(self) -> None:
+        """Table 1 of Ours on the all-but-one queries perturbed, with and without the category."""
+        with self._timed("robustness"):
+            recs = evaluate_robustness(self.ours, self.queries["all_but_one"], self.index, self.s.retrieval,
+                                       self.s.seed, self.s.progress)
+        def rows(key: str, scope: str) -> dict[str, Any]:
+            return {name: table([r for r in recs if r["perturbation"] == name and r["pool"] == scope], key,
+                                self.cats) for name, _, _ in PERTURBATIONS}
+
+        self.tables["robustness"] = {
+            **{f"functional_map_{scope}": rows("functional_ap", scope) for scope in POOLS},
+            "in_category_all": rows("in_category", "all")}
 
     def results(self) -> dict[str, Any]:
         """The results dict of ``results.json`` (layout in the module docstring)."""
