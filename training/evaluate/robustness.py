@@ -96,10 +96,10 @@ def evaluate_robustness(method: Method, queries: list[Query], index: ShapeIndex,
     k = settings.top_k
     out: list[dict[str, Any]] = []
     for q in tqdm(queries, desc=f"{method.name} robustness", disable=not progress, leave=False):
+        pools = {scope: candidate_pool(index, q.shape_id, q.category, scope) for scope in POOLS}
         for name, _, _ in PERTURBATIONS:
             moved = perturbed(q, name, seed)
-            for scope in POOLS:
-                pool = candidate_pool(index, q.shape_id, q.category, scope)
+            for scope, pool in pools.items():
                 top = finalize_ranking(method.rank(moved, pool, k), pool, group, k)
                 out.append({"qid": q.qid, "category": q.category, "perturbation": name, "pool": scope,
                             **functional_scores(index, q, pool, top, group, k)})
