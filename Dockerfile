@@ -60,15 +60,14 @@ COPY --from=deps /opt/venv /opt/venv
 COPY exported/ exported/
 COPY docker/healthcheck.py healthcheck.py
 COPY --from=wheel /build/dist/ dist/
-# The compiled kernels (contact refinement's search, the OBJ reader, the suggestion order's spread,
-# the assembly's cover shares) are compiled by numba on first use (about 30 s): compile them here,
+# The compiled kernels (contact refinement's search and the assembly's cover shares, the OBJ reader,
+# the suggestion order's spread) are compiled by numba on first use (about 30 s): compile them here,
 # into the installed package's __pycache__, so a container loads them from that cache instead.
 RUN pip install --no-cache-dir --no-deps dist/*.whl \
     && rm -rf dist \
     && python -m service.suggest.contact_kernel \
     && python -m service.geometry.mesh_kernel \
-    && python -m service.suggest.spread_kernel \
-    && python -m service.geometry.cover_kernel
+    && python -m service.suggest.spread_kernel
 USER 10001:10001
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \

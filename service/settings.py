@@ -314,7 +314,7 @@ class Settings(BaseSettings):
     assemble_cover_shapes: int = Field(default=300, ge=1, description=(
         "Training shapes of a category `/assemble` reads at most (a seeded draw), for "
         "`assemble_cover_quantile` and for the missing-spot rule (`assemble_gap_neighbours`): the "
-        "shipped catalog has at most 144 training shapes per category, which add 13-50 ms to the "
+        "shipped catalog has at most 144 training shapes per category, which add 17-68 ms to the "
         "first `/assemble` of a category per catalog version (75-370 ms before the cover shares "
         "were compiled); a catalog grown by writes costs no more."))
     assemble_overlap_iou: float = Field(default=0.25, ge=0, le=1, description=(

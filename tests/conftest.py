@@ -35,16 +35,15 @@ def _serve_in_thread(app: Any, start_timeout: float = 120.0, **config: Any) -> I
 @pytest.fixture(scope="session", autouse=True)
 def _kernels_compiled() -> None:
     """The compiled kernels (contact refinement's search, the OBJ reader, the suggestion order's
-    spread, the assembly's cover shares), compiled once before any test (about 30 s the first
-    time on a fresh checkout, then loaded from numba's cache): so that a server a test starts does
-    not spend its start-up bound compiling them."""
-    from service.geometry import cover_kernel, mesh_kernel
+    spread), compiled once before any test (about 30 s the first time on a fresh checkout, then
+    loaded from numba's cache): so that a server a test starts does not spend its start-up bound
+    compiling them."""
+    from service.geometry import mesh_kernel
     from service.suggest import contact_kernel, spread_kernel
 
     contact_kernel.warm()
     mesh_kernel.warm()
     spread_kernel.warm()
-    cover_kernel.warm()
 
 
 @pytest.fixture(scope="session")

@@ -43,9 +43,10 @@ from service.api.served import Served
 from service.artifacts.layout import ArtifactError
 from service.artifacts.loading import load_served_artifacts
 from service.catalog_store.store import StoreError
-from service.geometry import cover_kernel, mesh_kernel
+from service.geometry import mesh_kernel
 from service.geometry.inputs import MeshUploads
 from service.settings import Settings, get_settings
+from service.suggest import contact_kernel
 from service.suggest.engine import SuggestionEngine
 
 log = logging.getLogger(__name__)
@@ -73,8 +74,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     engine = SuggestionEngine(artifacts, settings)
     if settings.warmup:
         engine.warmup()         # compiles (or loads) contact refinement's and the spread's kernels
+        contact_kernel.warm()    # and the assembly's cover shares, so the first /assemble does not
         mesh_kernel.warm()       # and the OBJ reader's, so the first upload does not
-        cover_kernel.warm()      # and the assembly's cover shares, so the first /assemble does not
     served = Served(engine, settings, app.state.metrics)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
         served.open_catalog()

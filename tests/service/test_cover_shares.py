@@ -1,6 +1,7 @@
-"""The compiled cover shares (``service.geometry.cover_kernel``) are the k-d tree's: for each part,
-the share of its samples with a sample of another part strictly closer than the distance, the
-squared distance summed axis by axis as ``scipy.spatial.cKDTree`` sums it. Compared on random
+"""The compiled cover shares (``service.suggest.contact_kernel.cover_shares``, on contact
+refinement's grids) are the k-d tree's: for each part, the share of its samples with a sample of
+another part strictly closer than the distance, the squared distance summed axis by axis as
+``scipy.spatial.cKDTree`` sums it. Compared on random
 shapes, on samples placed exactly at the bound, and on the shipped catalog's training shapes."""
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.artifacts.catalog import Catalog, drawn_training_shapes
-from service.geometry.cover_kernel import cover_shares
+from service.suggest.contact_kernel import cover_shares
 
 
 def _tree_shares(clouds: list[np.ndarray], distance: float) -> np.ndarray:
@@ -26,13 +27,13 @@ def _tree_shares(clouds: list[np.ndarray], distance: float) -> np.ndarray:
 
 
 def _kernel_shares(clouds: list[np.ndarray], distance: float) -> np.ndarray:
-    owner = np.repeat(np.arange(len(clouds), dtype=np.int64), [len(c) for c in clouds])
-    return cover_shares(np.concatenate(clouds), owner, len(clouds), distance)
+    start = np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64)
+    return cover_shares(np.concatenate(clouds), start, distance)
 
 
 def test_random_shapes_get_the_k_d_trees_shares() -> None:
     """Parts of 1 to 300 samples, touching, overlapping, apart, at scales from a hundredth to a
-    thousand times the distance (the grid's cells then widen to keep its keys in range)."""
+    thousand times the distance."""
     rng = np.random.default_rng(0)
     for trial in range(300):
         n = int(rng.integers(1, 8))
