@@ -45,6 +45,7 @@ from service.artifacts.loading import load_served_artifacts
 from service.catalog_store.store import StoreError
 from service.geometry import mesh_kernel
 from service.geometry.inputs import MeshUploads
+from service.modeling.assembly import Assembler
 from service.settings import Settings, get_settings
 from service.suggest import contact_kernel
 from service.suggest.engine import SuggestionEngine
@@ -76,6 +77,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         engine.warmup()         # compiles (or loads) contact refinement's and the spread's kernels
         contact_kernel.warm()    # and the assembly's cover shares, so the first /assemble does not
         mesh_kernel.warm()       # and the OBJ reader's, so the first upload does not
+        Assembler(engine, settings).warm()  # and what /assemble reads of each category's shapes
     served = Served(engine, settings, app.state.metrics)
     try:  # catalog additions (COMPLEMENTME_DATA_DIR): serves shipped + added parts from here on
         served.open_catalog()

@@ -234,9 +234,10 @@ def _build_catalog(records: list[dict[str, Any]], a: dict[str, np.ndarray]) -> C
     )
 
 
-def split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
+def split_shapes(catalog: Catalog, split: str, fallback: bool = True) -> dict[str, list[int]]:
     """Rows of each multi-part shape of one split (records carry ``split``; added parts have
-    none); a catalog without that split gives every multi-part shape."""
+    ``"added"``); a catalog without that split gives every multi-part shape (nothing when
+    ``fallback`` is off)."""
 
     def shapes_with(keep: Any) -> dict[str, list[int]]:
         rows_of: dict[str, list[int]] = {}
@@ -245,7 +246,8 @@ def split_shapes(catalog: Catalog, split: str) -> dict[str, list[int]]:
                 rows_of.setdefault(rec["shape_id"], []).append(i)
         return {s: rows for s, rows in rows_of.items() if len(rows) >= 2}
 
-    return shapes_with(lambda rec: rec.get("split", split) == split) or shapes_with(lambda rec: True)
+    own = shapes_with(lambda rec: rec.get("split", split) == split)
+    return own or (shapes_with(lambda rec: True) if fallback else {})
 
 
 def drawn_training_shapes(catalog: Catalog, category: str | None, max_shapes: int, seed: int = 0

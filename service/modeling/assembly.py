@@ -77,7 +77,7 @@ from typing import Literal, TypeVar
 import numpy as np
 from scipy.spatial import cKDTree
 
-from service.artifacts.catalog import Catalog, drawn_training_shapes
+from service.artifacts.catalog import Catalog, drawn_training_shapes, split_shapes
 from service.errors import InputError
 from service.geometry.boxes import box_iou
 from service.geometry.frames import Frame
@@ -795,7 +795,7 @@ class Assembler:
             shares = own_cover_shares(self.catalog, category, s.assemble_cover_distance,
                                       s.assemble_cover_shapes, s.seed)
             return float(np.quantile(shares, s.assemble_cover_quantile)) if len(shares) else 0.0
-        return max(s.assemble_cover_share, _per_snapshot(_COVER_SHARES, self.snapshot, category, make))
+        return max(s.assemble_cover_share, _per_snapshot(_COVER_SHARES, self._data_owner(), category, make))
 
     def templates(self, category: str) -> list[ShapeTemplate]:
         """The category's training shapes as the missing-spot rule reads them
@@ -803,7 +803,28 @@ class Assembler:
         def make() -> list[ShapeTemplate]:
             s = self.settings
             return shape_templates(self.catalog, category, s.assemble_cover_shapes, s.seed)
-        return _per_snapshot(_TEMPLATES, self.snapshot, category, make)
+        return _per_snapshot(_TEMPLATES, self._data_owner(), category, make)
+
+    def warm(self) -> None:
+        """Make every category's cover share and templates now (the server's warm-up: about 0.5 s
+        for the shipped catalog's nine categories), so that the first ``/assemble`` of a category
+        costs what the next one does instead of 13-80 ms more."""
+        for category in self.catalog.categories:
+            self.cover_share(category)
+            self.templates(category)
+
+    def _data_owner(self) -> CatalogSnapshot:
+        """The snapshot under which the cover shares and templates of this one are kept: the
+        shipped one when it has training shapes, since catalog writes add only parts of split
+        "added" and never delete a shipped part (``CatalogWriter.delete``), so every later
+        snapshot's training shapes are the shipped ones, row for row, and its values the same.
+        Kept per snapshot, every catalog write made the next ``/assemble`` of each category pay
+        them again (17-68 ms). A catalog with no training split reads all its multi-part shapes,
+        added ones too: its own snapshot."""
+        shipped = self.engine.shipped
+        has_training = _per_snapshot(_HAS_TRAINING, shipped, None,
+                                     lambda: bool(split_shapes(shipped.catalog, "train", fallback=False)))
+        return shipped if has_training else self.snapshot
 
     def _fills_frame(self, state: _State) -> bool:
         """Whether the state spans the complete object's frame: a complete object's box is centred
@@ -868,10 +889,13 @@ def own_cover_shares(catalog: Catalog, category: str | None, distance: float, ma
 
 
 # What each catalog snapshot's data says per category, made on first use: the cover share
-# (``Assembler.cover_share``) and the template shapes (``Assembler.templates``).
+# (``Assembler.cover_share``) and the template shapes (``Assembler.templates``), kept under the
+# shipped snapshot for the snapshots that share its training shapes (``Assembler._data_owner``).
 _COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float]] = (
     weakref.WeakKeyDictionary())
 _TEMPLATES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, list[ShapeTemplate]]] = (
+    weakref.WeakKeyDictionary())
+_HAS_TRAINING: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, bool]] = (
     weakref.WeakKeyDictionary())
 _CACHE_LOCK = threading.Lock()
 _T = TypeVar("_T")

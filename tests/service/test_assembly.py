@@ -654,3 +654,55 @@ def test_an_unmet_mode_adds_no_part_far_less_likely_than_the_placed_ones(
 
     assert seats(shipped_settings) == 0
     assert seats(shipped_settings.model_copy(update={"assemble_open_mode_margin": 1e9})) >= 1
+
+
+def test_a_catalog_write_keeps_what_the_assembly_read_of_the_data(shipped_engine: SuggestionEngine,
+                                                                   shipped_settings: Settings) -> None:
+    """Writes add parts of split "added" only, so a later snapshot's cover share and templates are
+    the shipped snapshot's: kept once, not made again by the first ``/assemble`` after each write.
+    An added chair shape of two parts is not among the templates a fresh build of them reads."""
+    from service.catalog_store.snapshot import AddedPart, CatalogBuilder, combined_index
+    from service.catalog_store.store import PartGeometry
+    from service.modeling.templates import shape_templates
+
+    s, cat = shipped_settings, shipped_engine.catalog
+    rows = next(r for r in split_shapes(cat, "train").values()
+                if cat.records[r[0]]["category"] == "chair")[:2]
+    added = []
+    for j, i in enumerate(rows):
+        vertices, faces = cat.mesh(i)
+        rec = dict(cat.records[i], part_id=f"added-{j}", shape_id="added-chair", split="added",
+                   origin="added", duplicate_of=None)
+        added.append(AddedPart(j, rec, cat.embeddings[i], cat.part_features[i],
+                               PartGeometry(vertices, faces, cat.points[i])))
+    builder = CatalogBuilder(cat)
+    builder.append(added)
+    grown = builder.catalog()
+    snapshot = shipped_engine.snapshot(grown, combined_index(shipped_engine.index, grown, len(cat)))
+    before, after = Assembler(shipped_engine, s), Assembler(shipped_engine, s, snapshot)
+    assert after.templates("chair") is before.templates("chair")
+    assert after.cover_share("chair") == before.cover_share("chair")
+    fresh = shape_templates(grown, "chair", s.assemble_cover_shapes, s.seed)
+    assert [t.shape_id for t in fresh] == [t.shape_id for t in before.templates("chair")]
+    assert own_cover_shares(grown, "chair", s.assemble_cover_distance, s.assemble_cover_shapes,
+                            s.seed).tolist() == own_cover_shares(cat, "chair", s.assemble_cover_distance,
+                                                                 s.assemble_cover_shapes, s.seed).tolist()
+
+
+def test_the_warm_up_makes_what_assembly_reads_of_every_category(artifacts: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """After start, no ``/assemble`` reads the training shapes again: the warm-up made every
+    category's cover share and templates (a first auto-complete costs what the next one does)."""
+    import service.modeling.assembly as assembly_module
+    from service.api.app import create_app
+
+    with TestClient(create_app(make_settings(artifacts, verify_checksums=False))) as c:
+        def refuse(*args: object, **kwargs: object) -> None:
+            raise AssertionError("read the training shapes after start")
+        monkeypatch.setattr(assembly_module, "own_cover_shares", refuse)
+        monkeypatch.setattr(assembly_module, "shape_templates", refuse)
+        catalog = c.app.state.served.engine.catalog  # type: ignore[attr-defined]
+        for category in catalog.categories:
+            start = next(r["part_id"] for r in catalog.records if r["category"] == category)
+            r = c.post("/assemble", json={"part_id": start, "max_parts": 2})
+            assert r.status_code == 200, r.text
