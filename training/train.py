@@ -237,8 +237,12 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
     threads = cfg.threads or max(1, (os.cpu_count() or 1) // env.local_world)
     torch.set_num_threads(threads)
     run_dir = Path(cfg.run)
-    _prepare_run_dir(run_dir, resume, env)
     ds = ProcessedDataset.load(Path(cfg.data))
+    if ds.grouped_by_label:
+        raise ValueError(f"{cfg.data}: its components were grouped by their labels for the paper-protocol "
+                         "benchmark (complementme evaluate --database grouped); training never reads "
+                         "labels, so it does not train on it")
+    _prepare_run_dir(run_dir, resume, env)
     split = _split_of(cfg, ds, run_dir, env)
     cfg = _with_category_head(cfg, ds)
     run = _Run(cfg, env, run_dir, threads)

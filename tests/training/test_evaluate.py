@@ -521,6 +521,40 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     assert wrong.exit_code == 2 and "valid" in wrong.output
 
 
+def test_the_grouped_database_benchmarks_the_same_networks_over_parts_grouped_by_label(
+        tiny_artifacts: dict[str, Path], tmp_path: Path) -> None:
+    """`--database grouped`: the artifacts' networks exported over the dataset grouped by label
+    (under <run>/grouped, made once), with the artifacts' own held-out shapes."""
+    from typer.testing import CliRunner
+
+    from service.artifacts.loading import load_artifacts
+    from training.cli import app
+
+    run = tmp_path / "run"
+    args = ["evaluate", "--artifacts", str(tiny_artifacts["artifacts"]), "--run", str(run), "--data",
+            str(tiny_artifacts["data"]), "--quick", "--no-progress", "--methods", "random,ours",
+            "--database", "grouped", "--out", str(tmp_path / "out"), "--report", str(tmp_path / "r.md")]
+    runner = CliRunner()
+    first = runner.invoke(app, args)
+    assert first.exit_code == 0, first.output
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    folder = Path(results["artifact"]["folder"])
+    assert folder.parent.parent == run / "grouped"
+    version = results["artifact"]["model_version"]
+    assert version.endswith("-recatalogued-" + version.rsplit("-", 1)[1])
+    shipped, grouped = load_artifacts(tiny_artifacts["artifacts"]).catalog, load_artifacts(folder).catalog
+    split_of = {r["shape_id"]: r["split"] for r in shipped.records}
+    assert all(split_of[r["shape_id"]] == r["split"] for r in grouped.records)
+    assert ProcessedDataset.load(folder.parent / "data").grouped_by_label
+    made = (folder / "manifest.json").stat().st_mtime_ns
+    again = runner.invoke(app, [*args[:-4], "--out", str(tmp_path / "out2"),
+                                "--report", str(tmp_path / "r2.md")])
+    assert again.exit_code == 0, again.output
+    assert (folder / "manifest.json").stat().st_mtime_ns == made  # reused, not exported again
+    bad = runner.invoke(app, [*args[:-6], "--database", "labels"])
+    assert bad.exit_code == 2 and "labels" in bad.output
+
+
 SHIPPED = Path(__file__).resolve().parents[2] / "exported"
 
 

@@ -46,6 +46,7 @@ ARRAY_NAMES = (
     "mesh_vertices", "mesh_faces", "vertex_first", "face_first",
 )
 _FIXED_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+GROUPED_KEY = "grouped_by_label"  # dataset.json key of a dataset grouped by label (evaluation only)
 
 
 def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray], lzma: Collection[str] = ()) -> None:
@@ -98,6 +99,12 @@ class ProcessedDataset:
     @property
     def n_components(self) -> int:
         return len(self.translation)
+
+    @property
+    def grouped_by_label(self) -> bool:
+        """Whether the components were grouped by their labels (``training.evaluate.grouped``):
+        data made from labels, for the paper-protocol benchmark only, never for training."""
+        return bool(self.info.get(GROUPED_KEY))
 
     def categories(self) -> list[str]:
         """The collection's category folders, sorted: the classes of g's category head.

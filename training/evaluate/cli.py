@@ -81,6 +81,12 @@ def evaluate_command(
     notes: Optional[Path] = typer.Option(None, "--notes",  # noqa: UP045
                                          help="Markdown file rendered as the report's Analysis section "
                                               "(kept in results.json)."),
+    database: str = typer.Option("components", "--database", help=(
+        "The parts ranked and removed: 'components' (the catalog's, as served) or 'grouped' (each "
+        "shape's components of one label grouped into one part, for the queries and the database: "
+        "the paper's Section 6.2 protocol; the artifacts' networks exported over the grouped data "
+        "into <run>/grouped/, reused while model and data are the same; labels read to measure only)."),
+        case_sensitive=False),
     render_only: bool = typer.Option(False, "--render-only",
                                      help="Re-render the report and charts from <out>/results.json "
                                           "(with --notes, replacing its notes) without running anything."),
@@ -107,6 +113,18 @@ def evaluate_command(
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from exc
         return
+    if database not in ("components", "grouped"):
+        typer.echo(f"error: --database {database!r}: expected 'components' or 'grouped'", err=True)
+        raise typer.Exit(code=2)
+    if database == "grouped":
+        from training.evaluate.grouped import grouped_catalog
+
+        try:
+            artifacts, data, run = grouped_catalog(artifacts, data or _manifest_data(artifacts),
+                                                   run / "grouped", seed)
+        except (ValueError, FileNotFoundError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=2) from exc
     settings = BenchmarkSettings(
         artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
         queries_per_category=queries, query_split=query_split,
@@ -126,6 +144,18 @@ def evaluate_command(
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from exc
+
+
+def _manifest_data(artifacts: Path) -> Path:
+    """The processed dataset an artifact folder was exported from (its manifest's path)."""
+    import json
+
+    from service.artifacts.layout import MANIFEST
+
+    path = str(json.loads((Path(artifacts) / MANIFEST).read_text()).get("dataset", {}).get("path", ""))
+    if not path:
+        raise typer.BadParameter("the artifacts' manifest names no dataset: pass --data", param_hint="--data")
+    return Path(path)
 
 
 def evaluate_assembly_command(
