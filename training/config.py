@@ -239,6 +239,11 @@ class TrainConfig:
     # the whole shape, small rotations about the up axis, frames off centre and scale, point
     # noise, missing surface and density changes, in the ranges of data.sampling.Augmentation.
     augment: float = field(default=0.0, metadata=_help("Share of triplets augmented (0 = off)."))
+    # How wide: 1 is data.sampling.Augmentation's ranges; 2 doubles the per-axis and whole-shape
+    # rescales, the yaw, the frame offset and the noise (what the benchmark's robustness table
+    # perturbs by; docs/training.md, "Wider augmentation").
+    augment_strength: float = field(default=1.0, metadata=_help(
+        "Multiplier of the augmentation's rescale, yaw, offset and noise ranges (1 = as listed)."))
     # Not in the paper: the shape's layout warped per axis (data.sampling.layout_warp: parts move
     # and rescale with a random monotone map, contacts kept), so h reads where the query leaves
     # room instead of where each kind of part sat in the training styles (docs/training.md).
@@ -315,6 +320,8 @@ class TrainConfig:
                              f"got {self.removal_query_fraction}")
         if not 0.0 <= self.augment <= 1.0:
             raise ValueError(f"train config: augment must be in [0, 1], got {self.augment}")
+        if not 0.0 < self.augment_strength <= 4.0:
+            raise ValueError(f"train config: augment_strength must be in (0, 4], got {self.augment_strength}")
         if self.split_seed < -1:
             raise ValueError(f"train config: split_seed must be >= 0, or -1 for the seed, got "
                              f"{self.split_seed}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
@@ -379,3 +380,25 @@ def _first_components(ds: ProcessedDataset, n: int) -> ProcessedDataset:
         mesh_vertices=ds.mesh_vertices[:ds.vertex_first[n]], mesh_faces=ds.mesh_faces[:ds.face_first[n]],
         vertex_first=ds.vertex_first[:n + 1], face_first=ds.face_first[:n + 1],
         shapes=[{**ds.shapes[0], "labels": ds.shapes[0]["labels"][:n]}], info={})
+
+
+def test_augment_strength_widens_the_augmentation_s_rescale(dataset: ProcessedDataset) -> None:
+    """The same draws at strength 2 rescale each augmented positive by the square of strength 1's
+    factors (twice the log scales); strength 1 is the default's batches exactly."""
+    def positives(strength: float | None) -> np.ndarray:
+        sampler = (TripletSampler(dataset, n_points=64, augment=1.0) if strength is None else
+                   TripletSampler(dataset, n_points=64, augment=1.0, augment_strength=strength))
+        # No holes: how many points a hole replaces depends on the points, and so would the draws
+        # of the triplets after it.
+        sampler.ranges = dataclasses.replace(sampler.ranges, hole_probability=0.0)
+        return sampler.batch(16, np.random.default_rng(5))["Y"].astype(np.float64)
+
+    np.testing.assert_array_equal(positives(1.0), positives(None))
+    before, one, two = positives(1e-9), positives(1.0), positives(2.0)
+    for b in range(len(before)):
+        logs = []
+        for after in (one, two):
+            A = np.linalg.lstsq(before[b], after[b], rcond=None)[0]
+            logs.append(np.log(np.linalg.svd(A, compute_uv=False)))
+        np.testing.assert_allclose(logs[1], 2 * logs[0], atol=2e-3)
+        assert np.abs(logs[0]).max() <= 0.2 + 0.1 + 1e-3  # per axis and whole shape, strength 1
