@@ -495,6 +495,7 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     assert a["artifact"]["model_version"] in (root / "a.md").read_text()
     report = (root / "a.md").read_text()
     assert "Table 1" in report and "Table 4" in report and "Placement plausibility" in report
+    assert "Database grouped" not in report and a["settings"]["database"] == "components"
     assert (root / "a" / "functional_map.png").stat().st_size > 1000
     # Bad input is named.
     bad = runner.invoke(app, [*args, "--methods", "ours,magic", "--out", str(root / "c")])
@@ -546,6 +547,8 @@ def test_the_grouped_database_benchmarks_the_same_networks_over_parts_grouped_by
     split_of = {r["shape_id"]: r["split"] for r in shipped.records}
     assert all(split_of[r["shape_id"]] == r["split"] for r in grouped.records)
     assert ProcessedDataset.load(folder.parent / "data").grouped_by_label
+    assert results["settings"]["database"] == "grouped"
+    assert "Database grouped by label" in (tmp_path / "r.md").read_text()
     made = (folder / "manifest.json").stat().st_mtime_ns
     again = runner.invoke(app, [*args[:-4], "--out", str(tmp_path / "out2"),
                                 "--report", str(tmp_path / "r2.md")])

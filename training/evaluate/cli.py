@@ -126,7 +126,8 @@ def evaluate_command(
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from exc
     settings = BenchmarkSettings(
-        artifacts=artifacts, run=run, data=data, out=out_dir, report=report_path, seed=seed,
+        artifacts=artifacts, run=run, database=database, data=data, out=out_dir, report=report_path,
+        seed=seed,
         queries_per_category=queries, query_split=query_split,
         placement_queries_per_category=placement_queries,
         plausibility_queries_per_category=plausibility_queries, robustness=robustness,

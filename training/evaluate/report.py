@@ -29,6 +29,13 @@ RETRIEVAL_TABLES = (
 )
 
 
+GROUPED_PROTOCOL = """
+- Database grouped by label (`--database grouped`, the paper's own protocol): every shape's
+  components of one label are one part, in the queries and among the candidates alike, and the
+  catalog is those parts embedded by the same networks (`training.evaluate.grouped`); a removed
+  label is then one candidate part, where the components database splits it into several.
+"""
+
 PROTOCOL = """
 - Queries come from the held-out shapes of the catalog (`split` = test: the trainer's seeded
   80/20 split per category). *All but one*: one labelled part is removed (all components of the
@@ -316,10 +323,13 @@ class _Report:
 
     def protocol(self) -> list[str]:
         s = self.settings
-        return ["## Protocol", "", PROTOCOL.format(
+        lines = ["## Protocol", "", PROTOCOL.format(
             n_points=self.results["artifact"]["n_points"], dense=s["dense_points"],
             scope=s["retrieval"]["pool_scope"],
-            collapse="on" if s["retrieval"]["collapse_duplicates"] else "off").strip(), ""]
+            collapse="on" if s["retrieval"]["collapse_duplicates"] else "off").strip()]
+        if s.get("database") == "grouped":
+            lines.append(GROUPED_PROTOCOL.strip())
+        return [*lines, ""]
 
     def methods(self) -> list[str]:
         lines = ["## Methods", "", *(f"- **{name}**: {self.results['methods'][name]}" for name in self.order)]

@@ -105,6 +105,8 @@ class BenchmarkSettings:
 
     artifacts: Path = Path("exported")
     run: Path | None = Path("runs/shipped")   # run folder: the fixed-embedding cache lives here
+    database: str = "components"              # or "grouped": artifacts and data are the grouped ones
+                                              # (training.evaluate.grouped), for the report to say
     data: Path | None = None                  # processed dataset (default: the manifest's path)
     out: Path = Path("docs/benchmark")        # results.json and the PNG charts
     report: Path = Path("docs/benchmark.md")
@@ -131,6 +133,8 @@ class BenchmarkSettings:
     fixed: FixedSettings = field(default_factory=FixedSettings)
 
     def validate(self) -> None:
+        if self.database not in ("components", "grouped"):
+            raise ValueError(f"database {self.database!r}: expected 'components' or 'grouped'")
         if self.query_split not in ("train", "test"):
             raise ValueError(f"query split {self.query_split!r}: expected 'train' or 'test'")
         unknown = [m for m in self.methods if m not in METHOD_KEYS]
