@@ -81,6 +81,10 @@ def test_quick_run_answers_every_path_and_writes_the_results(tmp_path: Path) -> 
     assert len(r["place_parts"]) == 5
     assert r["paths"]["assemble"]["answer"]["nodes"] >= 2
     assert {"suggest", "contact", "total"} <= set(r["paths"]["assemble"]["answer_timings"])
+    first = r["assemble_first"]  # each category's first /assemble after the start, one call each
+    assert len(first["ms"]) == 9 and set(first["ms"]) == set(first["starts"])
+    assert all(part.startswith(f"{cat}-") for cat, part in first["starts"].items())
+    assert all(ms > 0 for ms in first["ms"].values())
     for fmt in ("glb", "obj"):
         assert set(r["mesh_stages_in_process"][fmt]) == {"parse", "sample", "collect", "upload_sample"}
     assert "contact" in r["engine_stages_in_process"]["suggest_contact_on"]
@@ -88,5 +92,6 @@ def test_quick_run_answers_every_path_and_writes_the_results(tmp_path: Path) -> 
 
     text = render_results({"interactive": data})
     assert "### e. Interactive paths at concurrency 1 (issue 20)" in text
+    assert "each category's first call after the server started" in text
     for label in INTERACTIVE_LABELS.values():
         assert f"| {label} | {cfg['requests']} / {cfg['requests']} |" in text
