@@ -244,6 +244,12 @@ class TrainConfig:
     # perturbs by; docs/training.md, "Wider augmentation").
     augment_strength: float = field(default=1.0, metadata=_help(
         "Multiplier of the augmentation's rescale, yaw, offset and noise ranges (1 = as listed)."))
+    # Whether the positive and negatives take the query's augmentation too (as shipped). Off: f and
+    # g see them as the catalog holds them, so g learns to point at the catalog's parts from a
+    # perturbed query rather than at perturbed parts no catalog holds (docs/training.md, "Wider
+    # augmentation"); h's part and translation target are augmented either way.
+    augment_parts: bool = field(default=True, metadata=_help(
+        "Augment the positive and negatives with the query (off: as the catalog holds them)."))
     # Not in the paper: the shape's layout warped per axis (data.sampling.layout_warp: parts move
     # and rescale with a random monotone map, contacts kept), so h reads where the query leaves
     # room instead of where each kind of part sat in the training styles (docs/training.md).

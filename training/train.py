@@ -260,7 +260,7 @@ def _train(cfg: TrainConfig, resume: bool, show_progress: bool, env: _Dist) -> T
                               "positive_size_power": cfg.positive_size_power,
                               "removal_query_fraction": cfg.removal_query_fraction,
                               "positives": cfg.positives, "augment": cfg.augment,
-                              "augment_strength": cfg.augment_strength,
+                              "augment_strength": cfg.augment_strength, "augment_parts": cfg.augment_parts,
                               "scale_augment": cfg.scale_augment,
                               "substitute_fraction": cfg.substitute_fraction,
                               "mixed_query_fraction": cfg.mixed_query_fraction,

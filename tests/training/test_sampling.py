@@ -402,3 +402,20 @@ def test_augment_strength_widens_the_augmentation_s_rescale(dataset: ProcessedDa
             logs.append(np.log(np.linalg.svd(A, compute_uv=False)))
         np.testing.assert_allclose(logs[1], 2 * logs[0], atol=2e-3)
         assert np.abs(logs[0]).max() <= 0.2 + 0.1 + 1e-3  # per axis and whole shape, strength 1
+
+
+def test_without_augmented_parts_the_query_alone_is_augmented(dataset: ProcessedDataset) -> None:
+    """``augment_parts`` off: the query as augmented as before, the positive and negatives as the
+    catalog holds them (the same draws with the augmentation's transform near identity), h's
+    translation target augmented with the query."""
+    def batch(**options: object) -> dict[str, np.ndarray]:
+        sampler = TripletSampler(dataset, n_points=64, augment=1.0, **options)  # type: ignore[arg-type]
+        sampler.ranges = dataclasses.replace(sampler.ranges, hole_probability=0.0)
+        return sampler.batch(16, np.random.default_rng(6))
+
+    both, query_only, near_identity = batch(), batch(augment_parts=False), batch(augment_strength=1e-9)
+    np.testing.assert_array_equal(query_only["X"], both["X"])
+    np.testing.assert_array_equal(query_only["Y_translation"], both["Y_translation"])
+    for key in ("Y", "Z", "P"):
+        np.testing.assert_allclose(query_only[key], near_identity[key], atol=1e-6)
+        assert np.abs(both[key] - query_only[key]).max() > 0.01, key

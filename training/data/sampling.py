@@ -337,7 +337,7 @@ class TripletSampler:
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
-                 augment_strength: float = 1.0, scale_augment: float = 0.0, substitute_fraction: float = 0.0,
+                 augment_strength: float = 1.0, augment_parts: bool = True, scale_augment: float = 0.0, substitute_fraction: float = 0.0,
                  mixed_query_fraction: float = 0.0, layout_warp: float = 0.0,
                  shape_negative_fraction: float = 0.0, positive_size_power: float = 0.0,
                  categories: list[str] | None = None):
@@ -361,7 +361,7 @@ class TripletSampler:
         self.shape_negative_fraction = shape_negative_fraction
         self.removal_query_fraction = removal_query_fraction
         self.positives, self.augment, self.scale_augment = positives, augment, scale_augment
-        self.augment_strength = augment_strength
+        self.augment_strength, self.augment_parts = augment_strength, augment_parts
         self.substitute_fraction = substitute_fraction
         self.mixed_query_fraction = mixed_query_fraction
         self.layout_warp = layout_warp
@@ -495,9 +495,12 @@ class TripletSampler:
                 if warp is not None:
                     P[b, j] *= warp[1][int(comp) - first]
             mask[b, :1 + len(extra)] = True
+            as_catalog = None
             if augmented:
                 A, offset = augmentation_transform(rng, self.augment_strength, ranges)
                 X[b] = X[b] @ A.T + offset
+                if not self.augment_parts:
+                    as_catalog = (Y[b].copy(), Z[b].copy(), P[b].copy())
                 Y[b], Z[b], P[b], S[b] = Y[b] @ A.T, Z[b] @ A.T, P[b] @ A.T, S[b] @ A.T
                 T[b] = T[b] @ A.T + offset
                 X[b] += rng.normal(0.0, rng.uniform(0, ranges.noise * self.augment_strength), X[b].shape)
@@ -505,6 +508,8 @@ class TripletSampler:
                     X[b] = punch_hole(X[b], rng, ranges.hole_radius)
             if substitute is not None or warp is not None:
                 fit[b] = substitute_log_scale(Y[b], S[b])
+            if as_catalog is not None:
+                Y[b], Z[b], P[b] = as_catalog
         a = self.scale_augment
         log_scale = rng.uniform(-a, a, (batch_size, 3)).astype(np.float32) if a > 0 \
             else np.zeros((batch_size, 3), np.float32)
