@@ -113,18 +113,6 @@ def evaluate_command(
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from exc
         return
-    if database not in ("components", "grouped"):
-        typer.echo(f"error: --database {database!r}: expected 'components' or 'grouped'", err=True)
-        raise typer.Exit(code=2)
-    if database == "grouped":
-        from training.evaluate.grouped import grouped_catalog
-
-        try:
-            artifacts, data, run = grouped_catalog(artifacts, data or _manifest_data(artifacts),
-                                                   run / "grouped", seed)
-        except (ValueError, FileNotFoundError) as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(code=2) from exc
     settings = BenchmarkSettings(
         artifacts=artifacts, run=run, database=database, data=data, out=out_dir, report=report_path,
         seed=seed,
@@ -145,18 +133,6 @@ def evaluate_command(
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from exc
-
-
-def _manifest_data(artifacts: Path) -> Path:
-    """The processed dataset an artifact folder was exported from (its manifest's path)."""
-    import json
-
-    from service.artifacts.layout import MANIFEST
-
-    path = str(json.loads((Path(artifacts) / MANIFEST).read_text()).get("dataset", {}).get("path", ""))
-    if not path:
-        raise typer.BadParameter("the artifacts' manifest names no dataset: pass --data", param_hint="--data")
-    return Path(path)
 
 
 def evaluate_assembly_command(

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from service.artifacts.layout import write_json_atomic
+from service.artifacts.layout import MANIFEST, write_json_atomic
 from service.artifacts.loading import load_artifacts
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine
@@ -180,9 +180,7 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
     from training.evaluate.fixed_embedding import FixedEmbeddingMethod, load_or_train_fixed, rms_spread
 
     manifest = artifacts.manifest
-    data = s.data or Path(str(manifest.get("dataset", {}).get("path", "")))
-    if not str(data):
-        raise ValueError("the fixed-embedding baseline needs the processed dataset: pass --data")
+    data = dataset_path(manifest, s.data, "the fixed-embedding baseline")
     if s.run is None:
         raise ValueError("the fixed-embedding baseline caches its weights in a run folder: pass --run")
     ds = ProcessedDataset.load(Path(data))
@@ -227,9 +225,29 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
     return FixedEmbeddingMethod(model, index.part_descriptors(s.descriptor_pairs)), model.info
 
 
+def dataset_path(manifest: dict[str, Any], data: Path | None, what: str) -> Path:
+    """The processed dataset: ``data``, else the one the artifacts' manifest was exported from."""
+    path = data or Path(str(manifest.get("dataset", {}).get("path", "")))
+    if not str(path):
+        raise ValueError(f"{what} needs the processed dataset: pass --data")
+    return Path(path)
+
+
 def run_benchmark(s: BenchmarkSettings) -> dict[str, Any]:
-    """Run the whole benchmark; write results.json, the report and the charts; return the results."""
+    """Run the whole benchmark; write results.json, the report and the charts; return the results.
+
+    With ``database`` "grouped" it runs on the artifacts' networks exported over the dataset
+    grouped by label (``grouped.grouped_catalog``, kept under ``<run>/grouped``)."""
     s.validate()
+    if s.database == "grouped":
+        from training.evaluate.grouped import grouped_catalog
+
+        if s.run is None:
+            raise ValueError("the grouped database is kept in the run folder: pass --run")
+        manifest = json.loads((Path(s.artifacts) / MANIFEST).read_text())
+        data = dataset_path(manifest, s.data, "--database grouped")
+        artifacts, data, run = grouped_catalog(s.artifacts, data, s.run / "grouped", s.seed)
+        s = dataclasses.replace(s, artifacts=artifacts, data=data, run=run)
     return _Benchmark(s).run()
 
 
