@@ -155,13 +155,16 @@ def functional_hits(index: ShapeIndex, q: Query, rows: np.ndarray) -> np.ndarray
 
 
 def functional_scores(index: ShapeIndex, q: Query, pool: np.ndarray, top: np.ndarray,
-                      group: np.ndarray | None, k: int) -> dict[str, float]:
+                      group: np.ndarray | None, k: int, top_hits: np.ndarray | None = None
+                      ) -> dict[str, float]:
     """Table 1's functional AP@k of an all-but-one query's final top ``k`` (of ``pool``), and the
     share of it from the query's category (with the pool "all" the method must find the category
-    itself, as the service infers it)."""
+    itself, as the service infers it). ``top_hits``: ``functional_hits`` of ``top`` when the caller
+    has them already."""
     cat = index.catalog
     n_func = relevant_in_pool(functional_hits(index, q, pool), pool, group)
-    return {"functional_ap": average_precision_at_k(functional_hits(index, q, top), n_func, k),
+    hits = functional_hits(index, q, top) if top_hits is None else top_hits
+    return {"functional_ap": average_precision_at_k(hits, n_func, k),
             "in_category": (float(np.mean(cat.category_of[top] == cat.category_codes([q.category])[0]))
                             if len(top) else math.nan)}
 
@@ -194,7 +197,7 @@ def evaluate_retrieval(method: Method, queries: list[Query], index: ShapeIndex,
                            if pool_style.size else math.nan)
         if q.setting == "all_but_one":
             top_func = functional_hits(index, q, top)
-            rec.update(functional_scores(index, q, pool, top, group, k))
+            rec.update(functional_scores(index, q, pool, top, group, k, top_hits=top_func))
             rec["hausdorff"] = top_hausdorff(index, q.removed, top)
             # The same where the removed label is one component: a label of several (a pair of
             # engines, a set of legs) is one point set, farther from any single catalog part.
