@@ -572,7 +572,8 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
 
     result = CliRunner().invoke(app, [
         "evaluate", "--artifacts", str(SHIPPED), "--run", str(tmp_path / "run"), "--quick", "--no-progress",
-        "--methods", "random,ck10,ours", "--out", str(tmp_path / "out"), "--report", str(tmp_path / "b.md")])
+        "--methods", "random,ck10,likelihood,ours", "--out", str(tmp_path / "out"),
+        "--report", str(tmp_path / "b.md")])
     assert result.exit_code == 0, result.output
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     manifest = json.loads((SHIPPED / "manifest.json").read_text())
@@ -633,6 +634,16 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(0.0 <= rows[name][c] <= 1.0 for rows in rob.values() for name in names
                for c in rows[name]["n"] if rows[name]["n"][c])
     assert "Robustness: Table 1 of Ours on perturbed queries" in (tmp_path / "b.md").read_text()
+    # The same for g's mixture alone (the likelihood method was run): unperturbed with the
+    # category pool it is that method's Table 1, and perturbed it is not Ours' table.
+    like = res["tables"]["robustness_likelihood"]
+    assert set(like) == set(rob) and all(set(rows) == names for rows in like.values())
+    table1 = res["tables"]["functional_map"]["Ours (likelihood only)"]
+    same = like["functional_map_category"]["as generated"]
+    assert same["n"] == table1["n"] and all(same[c] == pytest.approx(table1[c]) for c in table1["n"])
+    assert any(like["functional_map_all"][name]["mean"] != rob["functional_map_all"][name]["mean"]
+               for name in names)
+    assert "Functional mAP@5 of Ours (likelihood only), category given" in (tmp_path / "b.md").read_text()
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:

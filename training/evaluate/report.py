@@ -467,7 +467,8 @@ class _Report:
         return rows
 
     def robustness(self) -> list[str]:
-        """Table 1 of Ours on perturbed queries: one table per measure, one row per perturbation."""
+        """Table 1 of Ours on perturbed queries: one table per measure, one row per perturbation;
+        then, when it was run, the same for "Ours (likelihood only)" (g's mixture alone)."""
         from training.evaluate.robustness import PERTURBATIONS
 
         rob = self.tables.get("robustness")
@@ -479,14 +480,22 @@ class _Report:
                  "the range of the training augmentation, so that it is not only what the model has seen "
                  "(seeded by the query; `training/evaluate/robustness.py`):", "",
                  *(f"- **{name}**: {what}" for name, what, _ in PERTURBATIONS if name in names), ""]
-        for key, title in (("functional_map_category", "Functional mAP@5, category given (pool "
-                                                       "\"category\")"),
-                           ("functional_map_all", "Functional mAP@5, no category (pool \"all\": the service "
-                                                  "infers it)"),
+        map_titles = (("functional_map_category", "category given (pool \"category\")"),
+                      ("functional_map_all", "no category (pool \"all\": the service infers it)"))
+        for key, title in (*((k, f"Functional mAP@5, {t}") for k, t in map_titles),
                            ("in_category_all", "Share of the top 5 from the query's category, no category "
                                                "given")):
             rows = {name: rob[key][name] for name in names}
             lines += [f"### {title}", "", *method_table(rows, self.cats, None, first="Perturbation"), ""]
+        like = self.tables.get("robustness_likelihood")
+        if like:
+            lines += ["The same queries ranked by g's mixture log-likelihood alone (\"Ours (likelihood "
+                      "only)\": no fit key, complement check or share order), so that a loss of g's "
+                      "own is not hidden by what the service's order adds:", ""]
+            for key, title in map_titles:
+                rows = {name: like[key][name] for name in names}
+                lines += [f"### Functional mAP@5 of Ours (likelihood only), {title}", "",
+                          *method_table(rows, self.cats, None, first="Perturbation"), ""]
         return lines
 
     def query_counts(self) -> list[str]:

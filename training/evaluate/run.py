@@ -40,6 +40,7 @@ Layout of ``results.json`` (undefined values are null)::
       robustness:       {"functional_map_category" | "functional_map_all" | "in_category_all":
                          {perturbation: {category: value, ..., "mean": ..., "n": {...}}}} (Ours on
                          the all-but-one queries perturbed, ``robustness.PERTURBATIONS``)
+      robustness_likelihood: the same for "Ours (likelihood only)", when that method is run
     fixed_embedding: steps, train_seconds, final_loss, pca_explained_variance, scale, cached, ...
     timing_seconds:  {stage: seconds, "total": seconds}
 
@@ -422,17 +423,18 @@ class _Benchmark:
             log.debug("plausibility on %d queries", len(chosen))
 
     def robustness_tables(self) -> None:
-        """Table 1 of Ours on the all-but-one queries perturbed, with and without the category."""
-        with self._timed("robustness"):
-            recs = evaluate_robustness(self.ours, self.queries["all_but_one"], self.index, self.s.retrieval,
-                                       self.s.seed, self.s.progress)
-        def rows(key: str, scope: str) -> dict[str, Any]:
-            return {name: table([r for r in recs if r["perturbation"] == name and r["pool"] == scope], key,
-                                self.cats) for name, _, _ in PERTURBATIONS}
-
-        self.tables["robustness"] = {
-            **{f"functional_map_{scope}": rows("functional_ap", scope) for scope in POOLS},
-            "in_category_all": rows("in_category", "all")}
+        """Table 1 of Ours on the all-but-one queries perturbed, with and without the category; and
+        of "Ours (likelihood only)" when it is run: g's own robustness, without the service's
+        fit key and order, which can hide a loss of g's (``robustness_likelihood``)."""
+        like = METHOD_NAMES["likelihood"]
+        for key, method in (("robustness", self.ours),
+                            ("robustness_likelihood", self.methods.get(like))):
+            if method is None:
+                continue
+            with self._timed(f"robustness {method.name}"):
+                recs = evaluate_robustness(method, self.queries["all_but_one"], self.index, self.s.retrieval,
+                                           self.s.seed, self.s.progress)
+            self.tables[key] = _robustness_tables(recs, self.cats)
 
     def results(self) -> dict[str, Any]:
         """The results dict of ``results.json`` (layout in the module docstring)."""
@@ -542,3 +544,13 @@ def _first_per_category(queries: list[Any], n: int) -> list[Any]:
             out.append(q)
             seen[q.category] = seen.get(q.category, 0) + 1
     return out
+
+
+def _robustness_tables(recs: list[dict[str, Any]], cats: list[str]) -> dict[str, Any]:
+    """``evaluate_robustness``'s records as the results' robustness tables (layout above)."""
+    def rows(key: str, scope: str) -> dict[str, Any]:
+        return {name: table([r for r in recs if r["perturbation"] == name and r["pool"] == scope], key, cats)
+                for name, _, _ in PERTURBATIONS}
+
+    return {**{f"functional_map_{scope}": rows("functional_ap", scope) for scope in POOLS},
+            "in_category_all": rows("in_category", "all")}
