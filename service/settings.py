@@ -104,7 +104,8 @@ class Settings(BaseSettings):
         "mesh surface sampling."))
     warmup: bool = Field(default=True, description=(
         "Run one suggestion at start, load the compiled kernels and make what `/assemble` reads "
-        "of each category's training shapes (about 0.5 s in all); `/readyz` reports ready only "
+        "of each category's training shapes and build every route's request models (about 0.5 s "
+        "in all), so that no first request pays for them; `/readyz` reports ready only "
         "after it passed."))
 
     # --- modeling: contact refinement, preferences, assembly, export (docs/modeling.md) -------

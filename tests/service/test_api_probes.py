@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 from service_testkit import AssemblyQuery
@@ -102,3 +103,27 @@ def test_openapi_has_examples_for_every_endpoint(client: TestClient) -> None:
                 missing.append(f"{method.upper()} {path}")
     assert not missing, f"operations without examples: {missing}"
     assert client.get("/docs").status_code == 200
+
+
+def test_the_warm_up_builds_every_route_before_the_first_request(
+        settings: Settings, query: AssemblyQuery, monkeypatch: pytest.MonkeyPatch) -> None:
+    """FastAPI builds an included router's routes on their first request unless the warm-up did
+    (``service.api.app.build_routes``): after a warmed start no request builds one; without the
+    warm-up the first request does (so the count can tell)."""
+    import fastapi.routing
+
+    built: list[str] = []
+    original = fastapi.routing._EffectiveRouteContext.from_api_route
+
+    def counting(*args: object, **kwargs: object) -> object:
+        built.append("route")
+        return original(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(fastapi.routing._EffectiveRouteContext, "from_api_route", counting)
+    body = {"points": query.points.tolist(), "k": 3}
+    for warmup, expect_built in ((True, False), (False, True)):
+        with TestClient(create_app(settings.model_copy(update={"warmup": warmup}))) as c:
+            built.clear()
+            assert c.post("/suggest", json=body).status_code == 200
+            assert c.get("/parts", params={"limit": 1}).status_code == 200
+            assert bool(built) is expect_built, (warmup, len(built))
