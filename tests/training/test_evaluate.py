@@ -25,6 +25,7 @@ from training.evaluate.evaluation import (
     RetrievalSettings,
     evaluate_retrieval,
     hausdorff_bound,
+    interval,
     iou_bound,
     table,
     top_hausdorff,
@@ -38,6 +39,7 @@ from training.evaluate.metrics import (
     percentile_rank,
     placement_error,
     recall_at_k,
+    stratified_interval,
     styles_match,
 )
 from training.evaluate.protocol import (
@@ -63,6 +65,30 @@ def test_ap_at_5_hits_at_1_and_3() -> None:
 def test_ap_at_5_divides_by_the_relevant_count_when_fewer_than_k() -> None:
     assert average_precision_at_k([True, False, True, False, False], n_relevant=2) == pytest.approx(5 / 6)
     assert average_precision_at_k([False, True, False, False, False], n_relevant=1) == pytest.approx(0.5)
+
+
+def test_the_bootstrap_interval_of_a_mean_of_category_means() -> None:
+    # One category of 100 coin flips, mean 0.5: the 95% interval is about 0.5 +- 1.96 * 0.05.
+    flips = np.tile([0.0, 1.0], 50)
+    low, high = stratified_interval([flips], seed=0)
+    assert 0.38 < low < 0.45 and 0.55 < high < 0.62
+    assert stratified_interval([flips], seed=0) == (low, high)          # seeded
+    # Four times the queries: half the width.
+    low4, high4 = stratified_interval([np.tile(flips, 4)], seed=0)
+    assert (high4 - low4) == pytest.approx((high - low) / 2, rel=0.2)
+    # A category whose every query scores alike adds no width; an empty one is left out, as the
+    # mean of category means leaves it out.
+    both = stratified_interval([flips, np.ones(30), np.array([])], seed=0)
+    assert both[0] == pytest.approx((low + 1.0) / 2, abs=0.02) and both[1] == pytest.approx((high + 1.0) / 2,
+                                                                                            abs=0.02)
+    assert all(math.isnan(v) for v in stratified_interval([np.array([])], seed=0))
+    # Through the per-query records, with table()'s rules: None and NaN left out.
+    records = ([{"category": "chair", "ap": v} for v in flips]
+               + [{"category": "lamp", "ap": 1.0}] * 30 + [{"category": "lamp", "ap": None},
+                                                           {"category": "lamp", "ap": math.nan}])
+    lo, hi = interval(records, "ap", ["chair", "lamp"], seed=0)
+    assert lo < table(records, "ap", ["chair", "lamp"])["mean"] < hi
+    assert (lo, hi) == pytest.approx(both[:2], abs=0.02)
 
 
 def test_ap_at_5_extremes_and_cut_off() -> None:
@@ -634,6 +660,16 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert all(0.0 <= rows[name][c] <= 1.0 for rows in rob.values() for name in names
                for c in rows[name]["n"] if rows[name]["n"][c])
     assert "Robustness: Table 1 of Ours on perturbed queries" in (tmp_path / "b.md").read_text()
+    # Every headline mean of Ours with its interval around it, in the report under the summary.
+    intervals = res["tables"]["intervals"]
+    assert {"functional_map", "hausdorff", "missing_label_coverage_top10", "placement_error",
+            "placed-box IoU, fitting on"} <= set(intervals)
+    for key, mean in (("functional_map", table1["mean"]),
+                      ("hausdorff", res["tables"]["hausdorff"]["Ours"]["mean"]),
+                      ("placement_error", res["tables"]["placement_error"]["test"]["mean"])):
+        low, high = intervals[key]
+        assert low <= mean <= high and low < high, key
+    assert "95% bootstrap intervals of Ours' means" in (tmp_path / "b.md").read_text()
     # The same for g's mixture alone (the likelihood method was run): unperturbed with the
     # category pool it is that method's Table 1, and perturbed it is not Ours' table.
     like = res["tables"]["robustness_likelihood"]
@@ -644,6 +680,30 @@ def test_quick_benchmark_on_the_shipped_artifacts(tmp_path: Path) -> None:
     assert any(like["functional_map_all"][name]["mean"] != rob["functional_map_all"][name]["mean"]
                for name in names)
     assert "Functional mAP@5 of Ours (likelihood only), category given" in (tmp_path / "b.md").read_text()
+
+
+def test_the_intervals_say_whether_a_target_lies_inside_them() -> None:
+    from training.evaluate.report import interval_lines
+
+    results = {"tables": {
+        "functional_map": {"Ours": {"mean": 0.92}},
+        "missing_label_coverage_top10": {"Ours": {"mean": 0.906}},
+        "hausdorff": {"Ours": {"mean": 0.161}},
+        "size_fit": {"placed-box IoU, fitting on": {"mean": 0.5}},
+        "placement_error": {"test": {"mean": 0.03}},
+        "intervals": {"functional_map": [0.91, 0.93], "missing_label_coverage_top10": [0.89, 0.92],
+                      "hausdorff": [0.155, 0.167], "placed-box IoU, fitting on": [0.48, 0.52],
+                      "placement_error": [0.028, 0.032]}}}
+    rows = interval_lines(results)
+    assert "| Functional mAP@5 (Table 1) | 0.920 | 0.910 - 0.930 | at least 0.9: met across it |" in rows
+    assert ("| Missing-label coverage of the top 10 | 0.906 | 0.890 - 0.920 "
+            "| at least 0.9: inside the interval |") in rows
+    assert ("| Hausdorff distance (Table 2) | 0.161 | 0.155 - 0.167 "
+            "| at most 0.15: not met across it |") in rows
+    assert "| Placed-box IoU, fitting on | 0.500 | 0.480 - 0.520 | at least 0.6: not met across it |" in rows
+    assert ("| Placement test error of h (Table 4) | 0.030 | 0.028 - 0.032 "
+            "| at most 0.04: met across it |") in rows
+    assert interval_lines({"tables": {}}) == []   # results from before the intervals render as before
 
 
 def test_summary_names_where_a_baseline_does_better() -> None:

@@ -34,6 +34,7 @@ from training.evaluate.metrics import (
     percentile_rank,
     placement_error,
     recall_at_k,
+    stratified_interval,
     style_set,
     styles_match,
 )
@@ -331,18 +332,28 @@ def evaluate_plausibility(ours: EngineMethod, index: ShapeIndex, queries: list[Q
     return out
 
 
-def table(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, Any]:
-    """Per-category means of one per-query metric, their mean ("mean"), and the query counts ("n")."""
-    row: dict[str, Any] = {}
-    counts: dict[str, int] = {}
+def category_values(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, list[Any]]:
+    """The defined values of one per-query metric, per category (None and NaN left out)."""
+    out: dict[str, list[Any]] = {}
     for c in categories:
         vals = [r[key] for r in per_query if r["category"] == c and r.get(key) is not None]
-        vals = [v for v in vals if not (isinstance(v, float) and math.isnan(v))]
-        row[c] = nanmean(vals)
-        counts[c] = len(vals)
+        out[c] = [v for v in vals if not (isinstance(v, float) and math.isnan(v))]
+    return out
+
+
+def table(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, Any]:
+    """Per-category means of one per-query metric, their mean ("mean"), and the query counts ("n")."""
+    values = category_values(per_query, key, categories)
+    row: dict[str, Any] = {c: nanmean(values[c]) for c in categories}
     row["mean"] = nanmean(row[c] for c in categories)
-    row["n"] = counts
+    row["n"] = {c: len(values[c]) for c in categories}
     return row
+
+
+def interval(per_query: list[dict[str, Any]], key: str, categories: list[str], seed: int) -> list[float]:
+    """95% bootstrap interval of ``table``'s "mean" (queries resampled within their category)."""
+    values = category_values(per_query, key, categories)
+    return list(stratified_interval([np.asarray(values[c], dtype=np.float64) for c in categories], seed))
 
 
 def median_table(per_query: list[dict[str, Any]], key: str, categories: list[str]) -> dict[str, Any]:

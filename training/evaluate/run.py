@@ -41,6 +41,8 @@ Layout of ``results.json`` (undefined values are null)::
                          {perturbation: {category: value, ..., "mean": ..., "n": {...}}}} (Ours on
                          the all-but-one queries perturbed, ``robustness.PERTURBATIONS``)
       robustness_likelihood: the same for "Ours (likelihood only)", when that method is run
+      intervals:        {table key | size-fit row title: [low, high]} 95% bootstrap interval of
+                        Ours' "mean" in that table (placement_error: the test split)
     fixed_embedding: steps, train_seconds, final_loss, pca_explained_variance, scale, cached, ...
     timing_seconds:  {stage: seconds, "total": seconds}
 
@@ -76,6 +78,7 @@ from training.evaluate.evaluation import (
     evaluate_plausibility,
     evaluate_retrieval,
     evaluate_size_fit,
+    interval,
     median_table,
     plausibility_table,
     table,
@@ -275,6 +278,8 @@ class _Benchmark:
         self.tables: dict[str, Any] = {}
         self.per_query: dict[str, dict[str, list[dict[str, Any]]]] = {}
         self.placement: list[dict[str, Any]] = []
+        self.coverage_records: dict[str, list[dict[str, Any]]] = {}   # per method
+        self.size_fit_records: list[dict[str, Any]] = []               # Ours' top suggestions, placed
         self.plaus: dict[str, list[dict[str, Any]]] = {}
 
     @contextmanager
@@ -296,6 +301,7 @@ class _Benchmark:
             self.plausibility_tables()
             if self.s.robustness:
                 self.robustness_tables()
+        self.interval_table()
         return self.write(self.results())
 
     def load(self) -> None:
@@ -383,6 +389,7 @@ class _Benchmark:
             with self._timed(f"coverage {name}"):
                 coverage = evaluate_coverage(m, self.queries["single"], self.index, self.s.retrieval,
                                              progress=self.s.progress)
+            self.coverage_records[name] = coverage
             tables.setdefault("missing_label_coverage_top10", {})[name] = table(coverage, "coverage", cats)
             tables.setdefault("distinct_labels_top10", {})[name] = table(coverage, "distinct_labels", cats)
             if any("live_modes" in r for r in coverage):
@@ -407,6 +414,7 @@ class _Benchmark:
             fits = evaluate_size_fit(self.ours, self.queries["all_but_one"],
                                      self.per_query["Ours"]["all_but_one"], self.index, self.s.progress)
             self.tables["size_fit"] = {title: table(fits, key, self.cats) for title, key in SIZE_FIT_ROWS}
+            self.size_fit_records = fits
 
     def plausibility_tables(self) -> None:
         """The contact test of the first all-but-one and test placement queries of each category."""
@@ -435,6 +443,24 @@ class _Benchmark:
                 recs = evaluate_robustness(method, self.queries["all_but_one"], self.index, self.s.retrieval,
                                            self.s.seed, self.s.progress)
             self.tables[key] = _robustness_tables(recs, self.cats)
+
+    def interval_table(self) -> None:
+        """95% bootstrap intervals of Ours' headline means (queries resampled within their
+        category, seeded): how far each figure would move with other queries of the same split."""
+        ours, cats, seed = METHOD_NAMES["ours"], self.cats, self.s.seed
+        if ours not in self.per_query:
+            return
+        sources: list[tuple[str, list[dict[str, Any]], str]] = [
+            ("functional_map", self.per_query[ours]["all_but_one"], "functional_ap"),
+            ("hausdorff", self.per_query[ours]["all_but_one"], "hausdorff"),
+            ("style_map_all_but_one", self.per_query[ours]["all_but_one"], "style_ap"),
+            ("missing_label_coverage_top10", self.coverage_records.get(ours, []), "coverage"),
+            ("distinct_labels_top10", self.coverage_records.get(ours, []), "distinct_labels"),
+            ("live_modes", self.coverage_records.get(ours, []), "live_modes"),
+            ("placed-box IoU, fitting on", self.size_fit_records, "iou_on"),
+            ("placement_error", [r for r in self.placement if r["split"] == "test"], "error")]
+        self.tables["intervals"] = {key: interval(recs, metric, cats, seed)
+                                    for key, recs, metric in sources if recs}
 
     def results(self) -> dict[str, Any]:
         """The results dict of ``results.json`` (layout in the module docstring)."""
