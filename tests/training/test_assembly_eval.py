@@ -19,6 +19,7 @@ from training.evaluate.assembly_eval import (
     AssemblyEvalSettings,
     data_good,
     data_stacked,
+    good_interval,
     measure_run,
     misplaced,
     report_markers,
@@ -164,19 +165,42 @@ def test_the_datas_own_shapes_are_measured_by_the_same_stacked_rule() -> None:
     assert not data_good(index, {"wheel", "body"}, 2, settings)  # type: ignore[arg-type]
     assert not data_good(index, {"body", "roof"}, 3, settings)  # type: ignore[arg-type]
     assert data_good(index, {"roof"}, 3, settings)  # type: ignore[arg-type]
-    run = {"category": "car", "good": True, "complete": True, "stacked": [], "empty": False, "parts": ["a"],
-           "stop_reason": "complete", "seconds": 0.1}
+    run = {"category": "car", "start": "car-0001/0", "good": True, "complete": True, "stacked": [],
+           "empty": False, "parts": ["a"], "stop_reason": "complete", "seconds": 0.1}
     data = [{"category": "car", "stacked": True, "good": False},
             {"category": "car", "stacked": False, "good": True}]
     assert summarize([run], data, ["car"])["car"]["data_good"] == 0.5
 
 
+def test_the_interval_of_good_runs_resamples_start_shapes_not_runs() -> None:
+    """Starts from one shape share it: ten shapes of ten starts each, five shapes all good and
+    five all bad, tell less than a hundred shapes of one start each with the same share."""
+    from training.evaluate.metrics import cluster_share_interval
+
+    def runs(shapes: int, per_shape: int) -> list[dict[str, object]]:
+        return [{"category": "chair", "start": f"chair-{s:04d}/{i}", "good": s % 2 == 0}
+                for s in range(shapes) for i in range(per_shape)]
+
+    clustered, independent = good_interval(runs(10, 10), seed=0), good_interval(runs(100, 1), seed=0)
+    assert clustered[0] < independent[0] < 0.5 < independent[1] < clustered[1]
+    assert independent[0] > 0.35 and independent[1] < 0.65            # about +-0.1 for 100 draws
+    assert good_interval(runs(10, 10), seed=0) == clustered            # seeded
+    # Each category's shapes are drawn within the category: a category all good stays all good.
+    both = good_interval([*runs(100, 1), *({"category": "car", "start": f"car-{s}/0", "good": True}
+                                             for s in range(100))], seed=0)
+    assert both[0] > 0.7 and both[1] < 0.83                           # 0.75 +- 0.05
+    summary = summarize([{**r, "complete": True, "stacked": [], "empty": False, "parts": [],
+                          "stop_reason": "complete", "seconds": 0.1} for r in runs(10, 10)], [], ["chair"])
+    assert summary["chair"]["good_interval"] == clustered and summary["chair"]["good"] == 0.5
+    assert all(np.isnan(v) for v in cluster_share_interval([], seed=0))
+
+
 def test_summary_and_report_block(tmp_path: Path) -> None:
-    runs = [{"category": "chair", "good": True, "complete": True, "stacked": [], "empty": False,
-             "parts": ["a"], "stop_reason": "complete", "seconds": 0.1, "floating": [False],
+    runs = [{"category": "chair", "start": "chair-0001/0", "good": True, "complete": True, "stacked": [],
+             "empty": False, "parts": ["a"], "stop_reason": "complete", "seconds": 0.1, "floating": [False],
              "interpenetrating": [True]},
-            {"category": "chair", "good": False, "complete": False, "stacked": [], "empty": True, "parts": [],
-             "stop_reason": "unlikely", "seconds": 0.2}]
+            {"category": "chair", "start": "chair-0002/0", "good": False, "complete": False, "stacked": [],
+             "empty": True, "parts": [], "stop_reason": "unlikely", "seconds": 0.2}]
     data = [{"category": "chair", "floating": False, "interpenetrating": True, "stacked": True},
             {"category": "chair", "stacked": False}]   # a one-part shape: no contact measured
     summary = summarize(runs, data, ["chair"])
@@ -195,8 +219,8 @@ def test_summary_and_report_block(tmp_path: Path) -> None:
     for tag in ("exported", "v3-exported"):
         start, end = report_markers(tag)
         assert text.count(start) == 1 and text.count(end) == 1
-    assert "before" in text and text.count("| chair | 2 | 50% |") == 2
-    assert "From a complete shape's part" in text and "| 50% | n/a | n/a (0) |" in text
+    assert "before" in text and text.count("| chair | 2 | 50% | 0%-100% |") == 2
+    assert "From a complete shape's part" in text and "| 50% | 0%-100% | n/a | n/a (0) |" in text
     assert "Data: stacked" in text
     assert "| n/a | n/a | 100% | 50% | n/a | n/a | complete 1, unlikely 1 |" in text
 

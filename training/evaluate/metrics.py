@@ -164,6 +164,31 @@ def stratified_interval(groups: list[np.ndarray], seed: int, reps: int = 1000, l
     return float(low), float(high)
 
 
+def cluster_share_interval(groups: list[tuple[np.ndarray, np.ndarray]], seed: int, reps: int = 1000,
+                           level: float = 0.95) -> tuple[float, float]:
+    """Bootstrap interval of a share of hits counted in clusters: the clusters of each group
+    resampled with replacement (within the group), the share being all hits over all counts.
+    Why clusters: runs that start from parts of one shape are not independent draws (they share
+    that shape's other parts); resampling runs one by one would make the interval too narrow.
+
+    Shapes:
+        groups: list of (hits (m_g,), counts (m_g,)) per cluster -> (low, high); (nan, nan)
+        when there is no count.
+    """
+    kept = [(np.asarray(h, dtype=np.float64), np.asarray(n, dtype=np.float64)) for h, n in groups if len(n)]
+    if not kept or sum(float(n.sum()) for _, n in kept) == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    hits, counts = np.zeros(reps), np.zeros(reps)
+    for h, n in kept:
+        pick = rng.integers(0, len(n), size=(reps, len(n)))
+        hits += h[pick].sum(axis=1)
+        counts += n[pick].sum(axis=1)
+    tail = (1.0 - level) / 2.0 * 100.0
+    low, high = np.percentile(hits / counts, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
 def nanmedian(values: Iterable[float]) -> float:
     """Median over the defined (non-NaN) values; NaN when there is none."""
     arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
