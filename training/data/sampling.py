@@ -495,21 +495,20 @@ class TripletSampler:
                 if warp is not None:
                     P[b, j] *= warp[1][int(comp) - first]
             mask[b, :1 + len(extra)] = True
-            as_catalog = None
+            placed = Y[b]   # the positive as h must fit it: in the augmented shape's frame
             if augmented:
                 A, offset = augmentation_transform(rng, self.augment_strength, ranges)
                 X[b] = X[b] @ A.T + offset
-                if not self.augment_parts:
-                    as_catalog = (Y[b].copy(), Z[b].copy(), P[b].copy())
-                Y[b], Z[b], P[b], S[b] = Y[b] @ A.T, Z[b] @ A.T, P[b] @ A.T, S[b] @ A.T
+                placed = Y[b] @ A.T
+                if self.augment_parts:  # off: f and g see the parts as the catalog holds them
+                    Y[b], Z[b], P[b] = placed, Z[b] @ A.T, P[b] @ A.T
+                S[b] = S[b] @ A.T
                 T[b] = T[b] @ A.T + offset
                 X[b] += rng.normal(0.0, rng.uniform(0, ranges.noise * self.augment_strength), X[b].shape)
                 if rng.random() < ranges.hole_probability:
                     X[b] = punch_hole(X[b], rng, ranges.hole_radius)
             if substitute is not None or warp is not None:
-                fit[b] = substitute_log_scale(Y[b], S[b])
-            if as_catalog is not None:
-                Y[b], Z[b], P[b] = as_catalog
+                fit[b] = substitute_log_scale(placed, S[b])
         a = self.scale_augment
         log_scale = rng.uniform(-a, a, (batch_size, 3)).astype(np.float32) if a > 0 \
             else np.zeros((batch_size, 3), np.float32)

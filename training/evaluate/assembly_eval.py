@@ -360,14 +360,12 @@ def good_interval(runs: list[dict[str, Any]], seed: int) -> list[float]:
     """95% bootstrap interval of the share of good runs, the runs clustered by their start's
     shape (several starts come from one held-out shape) and the shapes resampled within each
     category."""
-    groups = []
-    for c in sorted({r["category"] for r in runs}):
-        per_shape: dict[str, list[bool]] = {}
-        for r in runs:
-            if r["category"] == c:
-                per_shape.setdefault(r["start"].split("/")[0], []).append(bool(r["good"]))
-        groups.append((np.array([sum(v) for v in per_shape.values()]),
-                       np.array([len(v) for v in per_shape.values()])))
+    per_shape: dict[str, dict[str, list[bool]]] = {}
+    for r in runs:
+        shapes = per_shape.setdefault(r["category"], {})
+        shapes.setdefault(r["start"].split("/")[0], []).append(bool(r["good"]))
+    groups = [(np.array([sum(v) for v in shapes.values()]), np.array([len(v) for v in shapes.values()]))
+              for _, shapes in sorted(per_shape.items())]
     return list(cluster_share_interval(groups, seed))
 
 

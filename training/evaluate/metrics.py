@@ -140,6 +140,33 @@ def nanmean(values: Iterable[float]) -> float:
     return float(arr.mean()) if arr.size else math.nan
 
 
+def _bootstrap(groups: list[tuple[np.ndarray, np.ndarray]], seed: int, reps: int, level: float,
+               pooled: bool) -> tuple[float, float]:
+    """The one resampling behind ``stratified_interval`` and ``cluster_share_interval``: each
+    group's clusters (sum, count) drawn with replacement within the group, ``reps`` times; the
+    statistic is all sums over all counts (``pooled``) or the mean of the groups' sum / count;
+    the central ``level`` share of it. Groups without clusters are left out.
+
+    Shapes:
+        groups: list of (sums (m_g,), counts (m_g,)) -> (low, high); (nan, nan) when no count.
+    """
+    kept = [(np.asarray(h, dtype=np.float64), np.asarray(n, dtype=np.float64)) for h, n in groups if len(n)]
+    if not kept or sum(float(n.sum()) for _, n in kept) == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    sums, counts, means = np.zeros(reps), np.zeros(reps), np.zeros(reps)
+    for h, n in kept:
+        pick = rng.integers(0, len(n), size=(reps, len(n)))
+        group_sum, group_count = h[pick].sum(axis=1), n[pick].sum(axis=1)
+        sums += group_sum
+        counts += group_count
+        means += group_sum / group_count
+    stat = sums / counts if pooled else means / len(kept)
+    tail = (1.0 - level) / 2.0 * 100.0
+    low, high = np.percentile(stat, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
 def stratified_interval(groups: list[np.ndarray], seed: int, reps: int = 1000, level: float = 0.95
                         ) -> tuple[float, float]:
     """Bootstrap interval of the mean of group means: each group's values resampled with
@@ -151,17 +178,7 @@ def stratified_interval(groups: list[np.ndarray], seed: int, reps: int = 1000, l
     Shapes:
         groups: list of (n_g,) float arrays -> (low, high); (nan, nan) when every group is empty.
     """
-    kept = [np.asarray(g, dtype=np.float64) for g in groups if len(g)]
-    if not kept:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    means = np.zeros(reps)
-    for g in kept:
-        means += g[rng.integers(0, len(g), size=(reps, len(g)))].mean(axis=1)
-    means /= len(kept)
-    tail = (1.0 - level) / 2.0 * 100.0
-    low, high = np.percentile(means, [tail, 100.0 - tail])
-    return float(low), float(high)
+    return _bootstrap([(g, np.ones(len(g))) for g in groups], seed, reps, level, pooled=False)
 
 
 def cluster_share_interval(groups: list[tuple[np.ndarray, np.ndarray]], seed: int, reps: int = 1000,
@@ -175,18 +192,7 @@ def cluster_share_interval(groups: list[tuple[np.ndarray, np.ndarray]], seed: in
         groups: list of (hits (m_g,), counts (m_g,)) per cluster -> (low, high); (nan, nan)
         when there is no count.
     """
-    kept = [(np.asarray(h, dtype=np.float64), np.asarray(n, dtype=np.float64)) for h, n in groups if len(n)]
-    if not kept or sum(float(n.sum()) for _, n in kept) == 0:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    hits, counts = np.zeros(reps), np.zeros(reps)
-    for h, n in kept:
-        pick = rng.integers(0, len(n), size=(reps, len(n)))
-        hits += h[pick].sum(axis=1)
-        counts += n[pick].sum(axis=1)
-    tail = (1.0 - level) / 2.0 * 100.0
-    low, high = np.percentile(hits / counts, [tail, 100.0 - tail])
-    return float(low), float(high)
+    return _bootstrap(groups, seed, reps, level, pooled=True)
 
 
 def nanmedian(values: Iterable[float]) -> float:
