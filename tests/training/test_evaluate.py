@@ -549,9 +549,9 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
 
 
 def test_the_grouped_database_benchmarks_the_same_networks_over_parts_grouped_by_label(
-        tiny_artifacts: dict[str, Path], tmp_path: Path) -> None:
+        tiny_artifacts: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`--database grouped`: the artifacts' networks exported over the dataset grouped by label
-    (under <run>/grouped, made once), with the artifacts' own held-out shapes."""
+    (under <run>/grouped, made once for one grouping), with the artifacts' own held-out shapes."""
     from typer.testing import CliRunner
 
     from service.artifacts.loading import load_artifacts
@@ -580,6 +580,22 @@ def test_the_grouped_database_benchmarks_the_same_networks_over_parts_grouped_by
                                 "--report", str(tmp_path / "r2.md")])
     assert again.exit_code == 0, again.output
     assert (folder / "manifest.json").stat().st_mtime_ns == made  # reused, not exported again
+    # Other grouping code over the same source data makes its own catalog, never the cached one.
+    from training.evaluate import grouped as grouping
+
+    def other(ds: ProcessedDataset, seed: int = 0) -> ProcessedDataset:
+        out = group_by_label(ds, seed)
+        out.points = out.points[:, ::-1].copy()  # the same parts, samples in another order
+        return out
+
+    group_by_label = grouping.group_by_label
+    monkeypatch.setattr(grouping, "group_by_label", other)
+    third = runner.invoke(app, [*args[:-4], "--out", str(tmp_path / "out3"),
+                                "--report", str(tmp_path / "r3.md")])
+    assert third.exit_code == 0, third.output
+    remade = Path(json.loads((tmp_path / "out3" / "results.json").read_text())["artifact"]["folder"])
+    assert remade != folder and remade.parent.parent == run / "grouped"
+    assert (folder / "manifest.json").stat().st_mtime_ns == made
     bad = runner.invoke(app, [*args[:-6], "--database", "labels"])
     assert bad.exit_code == 2 and "labels" in bad.output
 
