@@ -250,14 +250,17 @@ def split_shapes(catalog: Catalog, split: str, fallback: bool = True) -> dict[st
     return own or (shapes_with(lambda rec: True) if fallback else {})
 
 
-def drawn_training_shapes(catalog: Catalog, category: str | None, max_shapes: int, seed: int = 0
-                          ) -> list[tuple[str, list[int]]]:
+def drawn_training_shapes(catalog: Catalog, category: str | None, max_shapes: int, seed: int = 0,
+                          rows_of: dict[str, list[int]] | None = None) -> list[tuple[str, list[int]]]:
     """The catalog's training shapes of ``category`` (every category: None) as (shape id, rows),
     sorted by id, at most ``max_shapes`` of them (a seeded draw, kept in id order): what the
     assembly reads of the data, bounded so that a catalog grown by writes costs no more than the
-    shipped one."""
+    shipped one. ``rows_of``: ``split_shapes(catalog, "train")`` when the caller has it already
+    (a walk over every record: the warm-up reads eighteen categories' worth from one)."""
     code = None if category is None else catalog.category_codes([category])[0]
-    shapes = [(sid, rows) for sid, rows in sorted(split_shapes(catalog, "train").items())
+    if rows_of is None:
+        rows_of = split_shapes(catalog, "train")
+    shapes = [(sid, rows) for sid, rows in sorted(rows_of.items())
               if code is None or catalog.category_of[rows[0]] == code]
     if len(shapes) > max_shapes:
         pick = np.random.default_rng(seed).choice(len(shapes), size=max_shapes, replace=False)

@@ -61,11 +61,13 @@ class ShapeTemplate:
     tree: cKDTree
 
 
-def shape_templates(catalog: Catalog, category: str, max_shapes: int, seed: int = 0) -> list[ShapeTemplate]:
+def shape_templates(catalog: Catalog, category: str, max_shapes: int, seed: int = 0,
+                    rows_of: dict[str, list[int]] | None = None) -> list[ShapeTemplate]:
     """The catalog's training shapes of ``category`` (every multi-part shape when the catalog has
-    no split), at most ``max_shapes`` of them (a seeded draw), as ``ShapeTemplate``s."""
+    no split), at most ``max_shapes`` of them (a seeded draw), as ``ShapeTemplate``s; ``rows_of``
+    as ``drawn_training_shapes`` takes it."""
     out: list[ShapeTemplate] = []
-    for sid, rows in drawn_training_shapes(catalog, category, max_shapes, seed):
+    for sid, rows in drawn_training_shapes(catalog, category, max_shapes, seed, rows_of):
         clouds = [catalog.part_points(i)[:TEMPLATE_SAMPLES].astype(np.float64) + catalog.translations[i]
                   for i in rows]
         points = np.concatenate(clouds)

@@ -689,6 +689,41 @@ def test_a_catalog_write_keeps_what_the_assembly_read_of_the_data(shipped_engine
                                                                  s.assemble_cover_shapes, s.seed).tolist()
 
 
+def test_the_warm_up_walks_the_catalog_records_twice_for_every_category(
+        shipped_settings: Settings, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every category's cover share and templates read the training shapes of one walk over the
+    records (and one more asks whether the catalog has a training split), not a walk each: at
+    ten million parts a walk takes seconds. What they read is what a walk of their own gives."""
+    import service.artifacts.catalog as catalog_module
+    import service.modeling.assembly as assembly_module
+    from service.artifacts.loading import load_artifacts
+    from service.modeling.templates import shape_templates
+
+    s = shipped_settings
+    engine = SuggestionEngine(load_artifacts(s.artifacts), s)  # its own snapshot: nothing cached yet
+    cat = engine.catalog
+    alone = {c: [t.shape_id for t in shape_templates(cat, c, s.assemble_cover_shapes, s.seed)]
+             for c in cat.categories}
+    shares = own_cover_shares(cat, "rifle", s.assemble_cover_distance, s.assemble_cover_shapes, s.seed)
+    walks: list[str] = []
+
+    def counted(catalog: Catalog, split: str, fallback: bool = True) -> dict[str, list[int]]:
+        walks.append(split)
+        return split_shapes(catalog, split, fallback)
+
+    monkeypatch.setattr(catalog_module, "split_shapes", counted)
+    monkeypatch.setattr(assembly_module, "split_shapes", counted)
+    assembler = Assembler(engine, s)
+    assembler.warm()
+    assert walks == ["train", "train"]
+    assert {c: [t.shape_id for t in assembler.templates(c)] for c in cat.categories} == alone
+    assert own_cover_shares(cat, "rifle", s.assemble_cover_distance, s.assemble_cover_shapes, s.seed,
+                            assembler.training_shapes()).tolist() == shares.tolist()
+    assert assembler.cover_share("rifle") == max(s.assemble_cover_share,
+                                                 float(np.quantile(shares, s.assemble_cover_quantile)))
+    assert walks == ["train", "train"]
+
+
 def test_the_warm_up_makes_what_assembly_reads_of_every_category(artifacts: Path,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """After start, no ``/assemble`` reads the training shapes again: the warm-up made every
