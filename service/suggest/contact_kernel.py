@@ -261,7 +261,8 @@ def _clusters(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _pairs(src: np.ndarray, grid: Grid, bound: float
+def _pairs(src: np.ndarray, grid: Grid, bound: float,
+           clusters: tuple[np.ndarray, np.ndarray, np.ndarray]
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every pair of a ``src`` and a ``dst`` sample strictly within ``bound`` of each other, folded
     into both sides' nearest: exact for every sample whose nearest is within the bound.
@@ -270,7 +271,8 @@ def _pairs(src: np.ndarray, grid: Grid, bound: float
     from ``dst`` has no such pair and is skipped.
 
     Shapes:
-        src (n, 3); grid: of the t samples of the other side, dst (``build_grid``) ->
+        src (n, 3); grid: of the t samples of the other side, dst (``build_grid``); clusters:
+        ``_clusters(src)`` ->
         d_src (n,), i_src (n,) each src sample's nearest distance and dst row (inf, -1 where none is
         within the bound); d_dst (t,), i_dst (t,) the same for dst (rows of its original order).
     """
@@ -283,7 +285,7 @@ def _pairs(src: np.ndarray, grid: Grid, bound: float
     bd = np.empty(1)
     bi = np.empty(1, np.int64)
     b2 = bound * bound
-    corder, cstart, balls = _clusters(src)
+    corder, cstart, balls = clusters
     for c in range(len(balls)):
         if cstart[c] == cstart[c + 1]:
             continue
@@ -339,7 +341,7 @@ def _closest(idx: np.ndarray, dist: np.ndarray, m: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nearest_rest(a_pts: np.ndarray, part: np.ndarray, pgrid: Grid, d2: np.ndarray, i2: np.ndarray,
+def _nearest_rest(a_pts: np.ndarray, balls: np.ndarray, pgrid: Grid, d2: np.ndarray, i2: np.ndarray,
                   known: np.ndarray, m: int, ub: float, bd: np.ndarray, bi: np.ndarray) -> np.ndarray:
     """The assembly samples among which the m nearest the part are chosen, when fewer than m have
     a part sample within reach (``known``, all nearer than the rest): ``known`` and enough of the
@@ -353,7 +355,8 @@ def _nearest_rest(a_pts: np.ndarray, part: np.ndarray, pgrid: Grid, d2: np.ndarr
     seat, a part's box was no bound: that measured every sample, 0.25 ms of a 0.4 ms part).
 
     Shapes:
-        a_pts (t, 3); part (n, 3); d2 (t,), i2 (t,) updated in place; known (j,) rows, j < m ->
+        a_pts (t, 3); balls (c, 4): ``_clusters`` of the part's samples (those ``pgrid`` holds);
+        d2 (t,), i2 (t,) updated in place; known (j,) rows, j < m ->
         rows (at least m unless t < m: then all of them), in row order.
     """
     t = len(a_pts)
@@ -365,7 +368,6 @@ def _nearest_rest(a_pts: np.ndarray, part: np.ndarray, pgrid: Grid, d2: np.ndarr
         return np.arange(t)
     # Balls around clusters of the part's samples: a sample is at least its distance to the
     # nearest ball's surface from the part.
-    _, _, balls = _clusters(part)
     rest = np.flatnonzero(i2 < 0)
     lower = np.empty(len(rest))
     for j in range(len(rest)):
@@ -431,14 +433,15 @@ def _refine_one(part: np.ndarray, pnrm: np.ndarray, has_pn: bool, apts: np.ndarr
     # samples only if within reach of the assembly; the assembly's nearest the part, at any distance.
     # One pass over the pairs within reach gives the part samples' nearest, and the assembly
     # samples' for all that have a part sample within reach: when m do, they are the m nearest.
-    d1, i1, d2, i2 = _pairs(part, agrid, reach)
+    clusters = _clusters(part)  # the pairs' pruning and the nearest-first search share them
+    d1, i1, d2, i2 = _pairs(part, agrid, reach, clusters)
     near_p = np.flatnonzero(i1 >= 0)
     if len(near_p) == 0:
         return FAR
     r1 = _closest(near_p, d1[near_p], m)
     known = np.flatnonzero(i2 >= 0)
     if len(known) < m:
-        known = _nearest_rest(a_pts, part, pgrid, d2, i2, known, m, ub, bd, bi)
+        known = _nearest_rest(a_pts, clusters[2], pgrid, d2, i2, known, m, ub, bd, bi)
     r2 = _closest(known, d2[known], m)
     q1 = np.ascontiguousarray(part[r1])
     q2 = np.ascontiguousarray(a_pts[r2])

@@ -208,7 +208,8 @@ def test_nearest_rest_chooses_the_nearest_samples(leg: Surface, seed: int) -> No
     assert 0 < len(known) < m
     grid = contact_kernel.build_grid(part, 1.0)
     bd, bi = np.empty(4), np.empty(4, np.int64)
-    rows = contact_kernel._nearest_rest(a_pts, part, grid, d2, i2, known, m, ub, bd, bi)
+    balls = contact_kernel._clusters(part)[2]
+    rows = contact_kernel._nearest_rest(a_pts, balls, grid, d2, i2, known, m, ub, bd, bi)
     chosen = contact_kernel._closest(rows, d2[rows], m)
     expected = np.sort(np.argsort(true_d, kind="mergesort")[:m])
     np.testing.assert_array_equal(chosen, expected)
