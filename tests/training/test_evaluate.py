@@ -507,6 +507,23 @@ def test_quick_benchmark_end_to_end_and_reproducible(tiny_artifacts: dict[str, P
     b = json.loads((root / "b" / "results.json").read_text())
     assert a["tables"] == b["tables"]          # seeded: the same numbers again
     assert b["fixed_embedding"]["cached"] and not a["fixed_embedding"]["cached"]
+    # --fixed-cache: the baseline's weights in a folder of their own (the committed benchmark keeps
+    # them beside its results), read from there by a run with another run folder.
+    cache = root / "fixed-cache"
+    third = runner.invoke(app, [*args, "--fixed-cache", str(cache), "--out", str(root / "c"),
+                                "--report", str(root / "c.md")])
+    assert third.exit_code == 0, third.output
+    c = json.loads((root / "c" / "results.json").read_text())
+    assert not c["fixed_embedding"]["cached"] and len(list(cache.glob("eval_fixed_embedding-*.pt"))) == 1
+    elsewhere = [*args]
+    elsewhere[elsewhere.index("--run") + 1] = str(root / "another-run")
+    fourth = runner.invoke(app, [*elsewhere, "--fixed-cache", str(cache), "--out", str(root / "d"),
+                                 "--report", str(root / "d.md")])
+    assert fourth.exit_code == 0, fourth.output
+    d = json.loads((root / "d" / "results.json").read_text())
+    assert d["fixed_embedding"]["cached"] and d["tables"] == c["tables"]
+    assert f"loaded from its cache ({cache}" in (root / "d.md").read_text()
+    assert not (root / "another-run").exists()
     assert set(a["method_order"]) == {"Random", "CK10", "Ours (fixed embedding)", "Ours (likelihood only)",
                                       "Ours"}
     for key in ("functional_map", "hausdorff", "style_map_all_but_one", "style_map_single", "recall@1",

@@ -29,7 +29,8 @@ def evaluate_command(
     artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder (Ours)."),
     run: Path = typer.Option(Path("runs/shipped"), "--run", "--run-dir",
                              help="The training run's folder: its split.json is checked against the "
-                                  "catalog, and the fixed-embedding baseline caches its weights there."),
+                                  "catalog, and the fixed-embedding baseline caches its weights there "
+                                  "unless --fixed-cache names a folder."),
     data: Optional[Path] = typer.Option(None, "--data",  # noqa: UP045 (typer needs Optional on 3.10)
                                         help="Processed dataset (default: the path in the manifest)."),
     out: Optional[Path] = typer.Option(None, "--out",  # noqa: UP045
@@ -71,6 +72,10 @@ def evaluate_command(
                                         help="Fixed-embedding baseline: a wall-clock guard that stops a far "
                                              "slower training than planned (its rows then differ)."),
     fixed_dim: int = typer.Option(50, "--fixed-dim", help="Fixed-embedding baseline: PCA dimensions."),
+    fixed_cache: Optional[Path] = typer.Option(  # noqa: UP045
+        None, "--fixed-cache", help="Folder of the fixed-embedding baseline's cached weights (default: the "
+                                    "run folder). The committed benchmark keeps them beside its results, "
+                                    "so that a re-run on any host reads the same baseline."),
     contact_tolerance: float = typer.Option(0.02, "--contact-tolerance",
                                             help="Gap or depth (unit radius) of an implausible placement."),
     contact_samples: int = typer.Option(256, "--contact-samples",
@@ -114,7 +119,8 @@ def evaluate_command(
             raise typer.Exit(code=2) from exc
         return
     settings = BenchmarkSettings(
-        artifacts=artifacts, run=run, database=database, data=data, out=out_dir, report=report_path,
+        artifacts=artifacts, run=run, fixed_cache=fixed_cache, database=database, data=data, out=out_dir,
+        report=report_path,
         seed=seed,
         queries_per_category=queries, query_split=query_split,
         placement_queries_per_category=placement_queries,

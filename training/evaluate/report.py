@@ -383,7 +383,7 @@ class _Report:
         fixed = self.results.get("fixed_embedding")
         if fixed:
             cached = fixed.get("cached")
-            origin = "loaded from the cache in the run folder" if cached else "trained in this run"
+            origin = f"loaded from its cache ({fixed.get('cache')})" if cached else "trained in this run"
             lines.append(f"  - Fixed-embedding training: {fixed.get('steps')} steps of g in "
                          f"{fixed.get('train_seconds')} s, final triplet loss "
                          f"{_fmt(fixed.get('final_loss'))}, PCA keeps "

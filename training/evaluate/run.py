@@ -6,7 +6,8 @@
    engine on it ("Ours" is evaluated through that engine);
 2. draws the seeded queries of ``protocol`` from the catalog's held-out shapes;
 3. builds the baselines (Random, CK10, and the fixed-embedding g, trained briefly on the
-   training split of the processed dataset or loaded from its cache in the run folder);
+   training split of the processed dataset or loaded from its cache: ``--fixed-cache``, else the run
+   folder);
 4. evaluates Tables 1-4, the exact-component recall, the placement plausibility and Table 1 on
    perturbed queries (``robustness``);
 5. writes ``results.json``, the Markdown report and the PNG charts (``report``).
@@ -108,7 +109,11 @@ class BenchmarkSettings:
     """Everything one benchmark run depends on (stored in results.json)."""
 
     artifacts: Path = Path("exported")
-    run: Path | None = Path("runs/shipped")   # run folder: the fixed-embedding cache lives here
+    run: Path | None = Path("runs/shipped")   # run folder: its split.json is checked; the
+                                              # fixed-embedding cache lives here unless fixed_cache
+    fixed_cache: Path | None = None           # folder of the fixed-embedding baseline's weights
+                                              # (committed beside a report, every host reads the
+                                              # same baseline: its training differs across hosts)
     database: str = "components"              # or "grouped": artifacts and data are the grouped ones
                                               # (training.evaluate.grouped), for the report to say
     data: Path | None = None                  # processed dataset (default: the manifest's path)
@@ -185,8 +190,10 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
 
     manifest = artifacts.manifest
     data = dataset_path(manifest, s.data, "the fixed-embedding baseline")
-    if s.run is None:
-        raise ValueError("the fixed-embedding baseline caches its weights in a run folder: pass --run")
+    cache = s.fixed_cache or s.run
+    if cache is None:
+        raise ValueError("the fixed-embedding baseline caches its weights in a folder: pass --fixed-cache "
+                         "or --run")
     ds = ProcessedDataset.load(Path(data))
     want = manifest.get("dataset", {}).get("hash")
     have = ds.info.get("hash") or ds.content_hash()
@@ -224,7 +231,7 @@ def _build_fixed(s: BenchmarkSettings, artifacts: Any, index: ShapeIndex) -> tup
         s.fixed, seed=s.seed, descriptor_pairs=s.descriptor_pairs,
         n_points=s.fixed.n_points or int(shipped.get("n_points") or artifacts.n_points),
         batch_size=s.fixed.batch_size or int(shipped.get("batch_size") or 32))
-    model = load_or_train_fixed(s.run, train_ds, train_desc, have, model_cfg, fixed_settings,
+    model = load_or_train_fixed(cache, train_ds, train_desc, have, model_cfg, fixed_settings,
                                 rms_spread(artifacts.catalog.embeddings))
     return FixedEmbeddingMethod(model, index.part_descriptors(s.descriptor_pairs)), model.info
 
