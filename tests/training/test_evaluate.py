@@ -600,12 +600,13 @@ def test_the_grouped_database_benchmarks_the_same_networks_over_parts_grouped_by
     # Other grouping code over the same source data makes its own catalog, never the cached one.
     from training.evaluate import grouped as grouping
 
+    committed = grouping.group_by_label
+
     def other(ds: ProcessedDataset, seed: int = 0) -> ProcessedDataset:
-        out = group_by_label(ds, seed)
+        out = committed(ds, seed)
         out.points = out.points[:, ::-1].copy()  # the same parts, samples in another order
         return out
 
-    group_by_label = grouping.group_by_label
     monkeypatch.setattr(grouping, "group_by_label", other)
     third = runner.invoke(app, [*args[:-4], "--out", str(tmp_path / "out3"),
                                 "--report", str(tmp_path / "r3.md")])

@@ -233,23 +233,23 @@ def load_fixed(path: Path, key: str, model_cfg: ModelConfig, dim: int) -> FixedE
     return FixedEmbedding(projection=projection, g=g, info=info)
 
 
-def load_or_train_fixed(run_dir: Path, train_ds: ProcessedDataset, train_descriptors: np.ndarray,
+def load_or_train_fixed(cache_dir: Path, train_ds: ProcessedDataset, train_descriptors: np.ndarray,
                         dataset_hash: str, model_cfg: ModelConfig, settings: FixedSettings,
                         reference_rms: float) -> FixedEmbedding:
     """The fixed-embedding model of a run: from the cache when it matches, else trained and cached."""
     key = cache_key(settings, model_cfg, dataset_hash, train_descriptors, reference_rms)
-    path = Path(run_dir) / FIXED_WEIGHTS_PATTERN.format(key=key[:16])
-    cached = load_fixed(path, key, model_cfg, settings.dim)
-    if cached is not None:
-        log.info("fixed embedding: reusing %s (%s steps)", path, cached.info.get("steps"))
-        cached.info["cache"] = str(path)
-        return cached
-    log.info("fixed embedding: training g for up to %d steps / %.1f min", settings.steps, settings.minutes)
-    model = train_fixed_g(train_ds, train_descriptors, model_cfg, settings, reference_rms)
-    model.info["cached"] = False
-    Path(run_dir).mkdir(parents=True, exist_ok=True)
-    save_fixed(path, model, key)
-    model.info["cache"] = str(path)
+    path = Path(cache_dir) / FIXED_WEIGHTS_PATTERN.format(key=key[:16])
+    model = load_fixed(path, key, model_cfg, settings.dim)
+    if model is not None:
+        log.info("fixed embedding: reusing %s (%s steps)", path, model.info.get("steps"))
+    else:
+        log.info("fixed embedding: training g for up to %d steps / %.1f min", settings.steps,
+                 settings.minutes)
+        model = train_fixed_g(train_ds, train_descriptors, model_cfg, settings, reference_rms)
+        model.info["cached"] = False
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        save_fixed(path, model, key)
+    model.info["cache"] = str(path)   # the report names the file (not stored in it)
     return model
 
 
