@@ -811,8 +811,19 @@ class Assembler:
         snapshot that owns the data (``_data_owner``) for every category's cover share and
         templates: a walk per category and kind was 19 walks over every record at the warm-up
         (3-13 ms each for the shipped catalog's 8,300 records, linear in the records)."""
+        shipped = self._shipped_training()
+        if shipped:
+            return shipped
         owner = self._data_owner()
         return _per_snapshot(_TRAINING_SHAPES, owner, None, lambda: split_shapes(owner.catalog, "train"))
+
+    def _shipped_training(self) -> dict[str, list[int]]:
+        """The shipped snapshot's training shapes, without the fallback to every multi-part shape
+        (empty when it has no training split): one walk answers both whether it owns the data
+        and what the data is."""
+        shipped = self.engine.shipped
+        return _per_snapshot(_SHIPPED_TRAINING, shipped, None,
+                             lambda: split_shapes(shipped.catalog, "train", fallback=False))
 
     def warm(self) -> None:
         """Make every category's cover share and templates now (the server's warm-up: about 0.5 s
@@ -830,10 +841,7 @@ class Assembler:
         Kept per snapshot, every catalog write made the next ``/assemble`` of each category pay
         them again (17-68 ms). A catalog with no training split reads all its multi-part shapes,
         added ones too: its own snapshot."""
-        shipped = self.engine.shipped
-        has_training = _per_snapshot(_HAS_TRAINING, shipped, None,
-                                     lambda: bool(split_shapes(shipped.catalog, "train", fallback=False)))
-        return shipped if has_training else self.snapshot
+        return self.engine.shipped if self._shipped_training() else self.snapshot
 
     def _fills_frame(self, state: _State) -> bool:
         """Whether the state spans the complete object's frame: a complete object's box is centred
@@ -905,7 +913,7 @@ _COVER_SHARES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, float
     weakref.WeakKeyDictionary())
 _TEMPLATES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, list[ShapeTemplate]]] = (
     weakref.WeakKeyDictionary())
-_HAS_TRAINING: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, bool]] = (
+_SHIPPED_TRAINING: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, dict[str, list[int]]]] = (
     weakref.WeakKeyDictionary())
 _TRAINING_SHAPES: weakref.WeakKeyDictionary[CatalogSnapshot, dict[str | None, dict[str, list[int]]]] = (
     weakref.WeakKeyDictionary())

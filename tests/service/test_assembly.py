@@ -689,10 +689,10 @@ def test_a_catalog_write_keeps_what_the_assembly_read_of_the_data(shipped_engine
                                                                  s.assemble_cover_shapes, s.seed).tolist()
 
 
-def test_the_warm_up_walks_the_catalog_records_twice_for_every_category(
+def test_the_warm_up_walks_the_catalog_records_once_for_every_category(
         shipped_settings: Settings, monkeypatch: pytest.MonkeyPatch) -> None:
     """Every category's cover share and templates read the training shapes of one walk over the
-    records (and one more asks whether the catalog has a training split), not a walk each: at
+    records (the same walk says whether the catalog has a training split), not a walk each: at
     ten million parts a walk takes seconds. What they read is what a walk of their own gives."""
     import service.artifacts.catalog as catalog_module
     import service.modeling.assembly as assembly_module
@@ -715,13 +715,36 @@ def test_the_warm_up_walks_the_catalog_records_twice_for_every_category(
     monkeypatch.setattr(assembly_module, "split_shapes", counted)
     assembler = Assembler(engine, s)
     assembler.warm()
-    assert walks == ["train", "train"]
+    assert walks == ["train"]
     assert {c: [t.shape_id for t in assembler.templates(c)] for c in cat.categories} == alone
     assert own_cover_shares(cat, "rifle", s.assemble_cover_distance, s.assemble_cover_shapes, s.seed,
                             assembler.training_shapes()).tolist() == shares.tolist()
     assert assembler.cover_share("rifle") == max(s.assemble_cover_share,
                                                  float(np.quantile(shares, s.assemble_cover_quantile)))
-    assert walks == ["train", "train"]
+    assert walks == ["train"]
+
+
+def test_a_catalog_without_a_training_split_reads_every_multi_part_shape(shipped_settings: Settings) -> None:
+    """A catalog with no training split (here every record marked "test") has no training shapes
+    to keep under the shipped snapshot: the assembly reads every multi-part shape of its own
+    snapshot, as a walk with the fallback gives them."""
+    import dataclasses
+
+    from service.artifacts.loading import load_artifacts
+    from service.modeling.templates import shape_templates
+
+    s = shipped_settings
+    artifacts = load_artifacts(s.artifacts)
+    records = [{**rec, "split": "test"} for rec in artifacts.catalog.records]
+    artifacts.catalog = dataclasses.replace(artifacts.catalog, records=records)
+    engine = SuggestionEngine(artifacts, s)
+    cat = engine.catalog
+    assert split_shapes(cat, "train", fallback=False) == {}
+    assembler = Assembler(engine, s)
+    assert assembler.training_shapes() == split_shapes(cat, "train")
+    assert len(assembler.training_shapes()) > len(split_shapes(load_artifacts(s.artifacts).catalog, "train"))
+    assert ([t.shape_id for t in assembler.templates("chair")]
+            == [t.shape_id for t in shape_templates(cat, "chair", s.assemble_cover_shapes, s.seed)])
 
 
 def test_the_warm_up_makes_what_assembly_reads_of_every_category(artifacts: Path,
