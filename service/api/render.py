@@ -52,6 +52,7 @@ def render_suggest(result: SuggestResult, model_version: str, frame_fitted: bool
             "rank": s.rank, "part_id": s.part_id, "shape_id": s.shape_id, "category": s.category,
             "label": s.label, "score": s.score, "rank_score": s.rank_score, "mode": s.mode,
             "mode_weight": s.mode_weight, "duplicates": s.duplicates,
+            "covered": s.covered, "covered_share": s.covered_share,
             **render_placed(s.part_id, s.translation, s.contact_offset, s.bbox_min, s.bbox_max, s.scale),
         } for s in result.suggestions],
         "inferred_category": (None if result.inferred_category is None else {

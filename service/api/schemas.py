@@ -282,6 +282,16 @@ class SuggestionOut(BaseModel):
     mode: int = Field(..., description="The mixture mode that explains the part best.")
     mode_weight: float = Field(..., description="That mode's weight.")
     duplicates: int = Field(..., description="Catalog parts in this part's near-duplicate group.")
+    covered: bool | None = Field(default=None, description=(
+        "The complement check's verdict: placed where the answer puts it (before contact "
+        "refinement), the part lies mostly on the partial assembly's own surface, so it "
+        "duplicates or would replace a part already there rather than add one. Covered parts come "
+        "after the others. null when the check did not run (`complement_check` false, or "
+        "COMPLEMENTME_SUGGEST_COMPLEMENT_CHECK off and not asked for)."))
+    covered_share: float | None = Field(default=None, ge=0, le=1, description=(
+        "The share of the part's surface samples within COMPLEMENTME_COMPLEMENT_COVER_DISTANCE of "
+        "the partial assembly's points; `covered` is true from COMPLEMENTME_COMPLEMENT_COVER_SHARE "
+        "on. null when the check did not run."))
     translation: Vec3 = Field(..., description="Where the part's bounding-box centre goes (caller frame).")
     contact_offset: Vec3 = Field(..., description=(
         "The contact refinement's share of the translation (zero when off or not needed)."))

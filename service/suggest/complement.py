@@ -42,12 +42,19 @@ def covered_share(query: np.ndarray, part_points: np.ndarray, translations: np.n
     return (sq_dist[:, 0] <= distance * distance).reshape(m, s).mean(axis=1)
 
 
-def demote_covered(share: np.ndarray, max_share: float) -> np.ndarray:
-    """Order (indices into ``share``) that keeps rank order but puts covered parts last.
+def is_covered(share: np.ndarray, max_share: float) -> np.ndarray:
+    """Which parts are covered: at least ``max_share`` of their samples lie on the query's surface
+    (the part mostly duplicates, or would replace, what the query has). NaN (not measured) is not.
 
-    A part is covered when at least ``max_share`` of its samples lie on the query's surface.
+    Shapes:
+        share (P,) -> (P,) bool.
     """
-    covered = share >= max_share
+    return np.asarray(share) >= max_share
+
+
+def demote_covered(share: np.ndarray, max_share: float) -> np.ndarray:
+    """Order (indices into ``share``) that keeps rank order but puts covered parts (``is_covered``) last."""
+    covered = is_covered(share, max_share)
     return np.concatenate([np.flatnonzero(~covered), np.flatnonzero(covered)])
 
 
@@ -75,7 +82,7 @@ def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
     order = demote_covered(share, max_share)
     if deal is None:
         return order
-    covered = share[order] >= max_share
+    covered = is_covered(share[order], max_share)
     groups = [g[np.argsort(-scores[g], kind="stable")] for g in (order[~covered], order[covered])]
     out, start = [], 0
     for g in groups:

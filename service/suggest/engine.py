@@ -54,7 +54,7 @@ from service.geometry.frames import Frame
 from service.geometry.inputs import check_points
 from service.geometry.mesh import resample_points
 from service.settings import Settings
-from service.suggest.complement import complement_order, covered_share
+from service.suggest.complement import complement_order, covered_share, is_covered
 from service.suggest.contact import Assembly, ContactParams, PartContacts, refine_offsets
 from service.suggest.engine_settings import EngineSettings
 from service.suggest.familiarity import FamiliarityCheck, Projection, mixture_descriptor
@@ -133,6 +133,11 @@ class Suggestion:
     bbox_max: np.ndarray
     contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))  # per axis, about the part's centre
+    # The complement check's measure at h's placement: the share of the part's samples on the
+    # query's own surface, and whether that makes it covered (it mostly duplicates, or would
+    # replace, a part the query has); None when the check did not run.
+    covered_share: float | None = None
+    covered: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -210,6 +215,11 @@ class Placement:
     bbox_max: np.ndarray
     contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))  # per axis, about the part's centre
+    # The complement check's measure at h's placement: the share of the part's samples on the
+    # query's own surface, and whether that makes it covered (it mostly duplicates, or would
+    # replace, a part the query has); None when the check did not run.
+    covered_share: float | None = None
+    covered: bool | None = None
 
 
 @dataclass
@@ -246,8 +256,8 @@ class Placed:
     """One query's chosen parts with h's placement, in the order they are answered.
 
     Shapes:
-        rows, scores, modes, keys: (P,); translations: (P, 3) canonical; scales: (P, 3) fitted,
-        canonical axes.
+        rows, scores, modes, keys, covered: (P,); translations: (P, 3) canonical; scales: (P, 3)
+        fitted, canonical axes.
     """
 
     rows: np.ndarray
@@ -256,11 +266,12 @@ class Placed:
     translations: np.ndarray
     scales: np.ndarray
     keys: np.ndarray      # the answer order's key (service.suggest.fit_rank): scores less fit penalties
+    covered: np.ndarray   # the complement check's covered share at h's placement; NaN: not checked
 
     def take(self, keep: np.ndarray) -> Placed:
         """The parts ``keep`` (a mask or indices, in that order)."""
         return Placed(self.rows[keep], self.scores[keep], self.modes[keep], self.translations[keep],
-                      self.scales[keep], self.keys[keep])
+                      self.scales[keep], self.keys[keep], self.covered[keep])
 
 
 class QueryMixture(NamedTuple):
@@ -701,9 +712,15 @@ class SuggestionEngine:
         # fits worse either way (served unscaled, it is the wrong size).
         keys = fit_keys(ranked.scores, self._clipped(raw_scales), translations,
                         snap.catalog.translations[ranked.rows], c.rank_scale_weight, c.rank_move_weight)
-        placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit, keys)
+        placed = Placed(ranked.rows, ranked.scores, ranked.modes, translations, fit, keys,
+                        np.full(len(ranked.rows), np.nan))
         if q.region is not None:
             placed = placed.take(self._in_region(q, placed, snap))
+        if len(placed.rows) and self._checks_complement(q.options):
+            samples = snap.catalog.part_samples(placed.rows, c.complement_part_samples)
+            share = covered_share(q.points, samples, placed.translations.astype(np.float32),
+                                  c.complement_cover_distance)
+            placed = replace(placed, covered=share)
         return placed.take(self._answer_order(q, placed, ranked, snap)[:q.k])
 
     def refine(self, q: Query, placed: Placed, deadline: float | None, snap: CatalogSnapshot) -> np.ndarray:
@@ -942,19 +959,13 @@ class SuggestionEngine:
         penalty the ranked order stands.
         """
         idx = placed.rows
-        c = self.config
         if len(idx) == 0 or not self._reorders(q.options):
             return np.arange(len(idx))
-        checks = self._checks_complement(q.options)
-        share = np.zeros(len(idx))
-        if checks:
-            samples = snap.catalog.part_samples(idx, c.complement_part_samples)
-            share = covered_share(q.points, samples, placed.translations.astype(np.float32),
-                                  c.complement_cover_distance)
+        share = np.nan_to_num(placed.covered, nan=0.0)   # not checked: nothing is demoted
         weights, emb = ranked.weights, snap.catalog.embeddings
         deal = None if weights is None else (
             lambda g: self._mode_order(q, placed.modes[g], weights, emb[placed.rows[g]], ranked.sigmas))
-        return complement_order(share, c.complement_cover_share, placed.keys, deal, q.k)
+        return complement_order(share, self.config.complement_cover_share, placed.keys, deal, q.k)
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
@@ -1029,6 +1040,8 @@ class SuggestionEngine:
         trans, lo, hi = _placed_boxes(catalog, placed.rows, moved, frame, placed.scales)
         off_caller = offsets @ frame.rotation * frame.radius
         scale_caller = _caller_scale(placed.scales, frame)
+        checked = ~np.isnan(placed.covered)
+        covered = is_covered(placed.covered, self.config.complement_cover_share)
         out = []
         for r, i in enumerate(placed.rows.tolist()):
             rec = catalog.records[i]
@@ -1039,7 +1052,9 @@ class SuggestionEngine:
                 rank_score=float(placed.keys[r]),
                 mode=mode, mode_weight=float(weights[mode]),
                 duplicates=int(catalog.group_size[i]), translation=trans[r], bbox_min=lo[r], bbox_max=hi[r],
-                contact_offset=off_caller[r], scale=scale_caller[r]))
+                contact_offset=off_caller[r], scale=scale_caller[r],
+                covered_share=float(placed.covered[r]) if checked[r] else None,
+                covered=bool(covered[r]) if checked[r] else None))
         return out
 
 

@@ -47,7 +47,8 @@ def _canonical_share(engine: SuggestionEngine, query: AssemblyQuery, result) -> 
     s, cat = engine.config, engine.catalog
     pts = engine.prepare(query.points, Frame())
     idx = np.array([x.part_index for x in result.suggestions])
-    tr = np.stack([x.translation for x in result.suggestions]).astype(np.float32)  # canonical frame
+    # Canonical frame; h's placement, before any contact refinement (what the check measures).
+    tr = np.stack([x.translation - x.contact_offset for x in result.suggestions]).astype(np.float32)
     return covered_share(pts, cat.part_samples(idx, s.complement_part_samples), tr,
                          s.complement_cover_distance)
 
@@ -64,6 +65,10 @@ def test_engine_puts_uncovered_parts_first(engine: SuggestionEngine, settings: S
                                                         complement_check=False))
     share = _canonical_share(engine, query, checked)
     covered = share >= engine.config.complement_cover_share
+    # Each suggestion carries the check's measure and verdict; without the check, neither.
+    np.testing.assert_allclose([x.covered_share for x in checked.suggestions], share, atol=1e-6)
+    assert [x.covered for x in checked.suggestions] == covered.tolist()
+    assert all(x.covered is None and x.covered_share is None for x in plain.suggestions)
     # No covered part ahead of an uncovered one, and the checked list is drawn from the plain
     # top candidates in their likelihood order on each side.
     assert not np.any(covered[:-1] & ~covered[1:])
@@ -152,3 +157,22 @@ def test_complement_order_deals_each_group_again_from_its_likelihood_order() -> 
     assert calls == [4]
     assert complement_order(share, 0.5, scores, counted, k=5).tolist() == dealt.tolist()
     assert calls == [4, 4, 2]
+
+
+def test_a_complete_shape_gets_its_parts_again_marked_covered(client, engine: SuggestionEngine) -> None:
+    """Asked for more parts for a whole shape, the answer lists parts it already has, and says so:
+    ``covered`` on every part lying mostly on the shape's own surface, those after the others,
+    ``covered_share`` beside it; null for both when the request turns the check off."""
+    cat = engine.catalog
+    shape = max(multi_part_shapes(cat, 8), key=lambda sid: int(np.sum(cat.shape_of == cat.shape_code(sid))))
+    rows = np.flatnonzero(cat.shape_of == cat.shape_code(shape))
+    pts = (cat.part_samples(rows, 128) + cat.translations[rows][:, None, :]).reshape(-1, 3)
+    body = {"points": pts.tolist(), "k": 10, "category": cat.records[rows[0]]["category"]}
+    got = client.post("/suggest", json=body).json()["suggestions"]
+    flags = [s["covered"] for s in got]
+    share = engine.config.complement_cover_share
+    assert any(flags), [s["covered_share"] for s in got]
+    assert flags == sorted(flags, key=lambda f: bool(f)), flags  # no covered part before an uncovered one
+    assert all((s["covered_share"] >= share) == s["covered"] for s in got)
+    off = client.post("/suggest", json={**body, "complement_check": False}).json()["suggestions"]
+    assert all(s["covered"] is None and s["covered_share"] is None for s in off)
