@@ -215,11 +215,6 @@ class Placement:
     bbox_max: np.ndarray
     contact_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # part of translation
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))  # per axis, about the part's centre
-    # The complement check's measure at h's placement: the share of the part's samples on the
-    # query's own surface, and whether that makes it covered (it mostly duplicates, or would
-    # replace, a part the query has); None when the check did not run.
-    covered_share: float | None = None
-    covered: bool | None = None
 
 
 @dataclass
