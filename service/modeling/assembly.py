@@ -814,8 +814,8 @@ class Assembler:
         shipped = self._shipped_training()
         if shipped:
             return shipped
-        owner = self._data_owner()
-        return _per_snapshot(_TRAINING_SHAPES, owner, None, lambda: split_shapes(owner.catalog, "train"))
+        own = self.snapshot   # no training split shipped: this snapshot owns its data (_data_owner)
+        return _per_snapshot(_TRAINING_SHAPES, own, None, lambda: split_shapes(own.catalog, "train"))
 
     def _shipped_training(self) -> dict[str, list[int]]:
         """The shipped snapshot's training shapes, without the fallback to every multi-part shape

@@ -69,8 +69,8 @@ def complement_order(share: np.ndarray, max_share: float, scores: np.ndarray,
     keep it) and dealt again.
 
     Args:
-        share, scores: (P,) each placed part's covered share and ranking key (the log-likelihood,
-            less the fit penalties of ``service.suggest.fit_rank``).
+        share, scores: (P,) each placed part's covered share (NaN: not measured, so not covered)
+            and ranking key (the log-likelihood, less the fit penalties of ``service.suggest.fit_rank``).
         deal: positions into a group (indices into the parts, in key order) in the order
             its parts are dealt (``preferences.share_order`` or ``diverse_order`` over their
             modes); None keeps the rank order.

@@ -956,11 +956,11 @@ class SuggestionEngine:
         idx = placed.rows
         if len(idx) == 0 or not self._reorders(q.options):
             return np.arange(len(idx))
-        share = np.nan_to_num(placed.covered, nan=0.0)   # not checked: nothing is demoted
         weights, emb = ranked.weights, snap.catalog.embeddings
         deal = None if weights is None else (
             lambda g: self._mode_order(q, placed.modes[g], weights, emb[placed.rows[g]], ranked.sigmas))
-        return complement_order(share, self.config.complement_cover_share, placed.keys, deal, q.k)
+        # A part not checked (NaN share) is not covered (complement.is_covered): nothing is demoted.
+        return complement_order(placed.covered, self.config.complement_cover_share, placed.keys, deal, q.k)
 
     def _fitted(self, raw: np.ndarray, asked: bool | None) -> np.ndarray:
         """Fitting scales as served: clipped to the settings' range, or ones when fitting is off.
