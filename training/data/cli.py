@@ -12,7 +12,8 @@ import typer
 data_app = typer.Typer(help="Shape data: generate, ingest, preprocess (paper Section 4), statistics.",
                        no_args_is_help=True)
 
-# Commands are added below, one function each: generate (generator), ingest, preprocess, stats.
+# Commands are added below, one function each: generate (generator), ingest, sweethome3d,
+# preprocess, stats.
 
 
 # ---- generate ----------------------------------------------------------------------------------
@@ -60,6 +61,29 @@ def ingest_cmd(
     typer.echo(report.table())
     if not report.written:
         raise typer.Exit(code=1)
+
+
+@data_app.command("sweethome3d")
+def sweethome3d_cmd(
+    libraries: list[Path] = typer.Argument(..., help=(
+        "Sweet Home 3D furniture libraries (.sh3f), or folders of them (Debian's sweethome3d-furniture: "
+        "/usr/share/sweethome3d/furniture).")),
+    out: Path = typer.Option(Path("data/real/src"), "--out", help="Writes <category>/<model>.obj + sources.json."),
+) -> None:
+    """Chairs, tables, sofas and lamps of furniture libraries as OBJ files for `data ingest`."""
+    from training.data.sweethome3d import LibraryError, export_library
+
+    paths = sorted(p for lib in libraries for p in ([lib] if lib.is_file() else lib.glob("*.sh3f")))
+    if not paths:
+        typer.echo(f"error: no .sh3f library in {', '.join(map(str, libraries))} (install Debian's "
+                   "sweethome3d-furniture, or name the files)", err=True)
+        raise typer.Exit(2)
+    try:
+        counts = export_library(paths, out)
+    except LibraryError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(f"{out}: " + ", ".join(f"{n} {c}" for c, n in sorted(counts.items())) + f" from {len(paths)} libraries")
 
 
 @data_app.command("preprocess")

@@ -206,8 +206,34 @@ def evaluate_frames_command(
     typer.echo(markdown(report))
 
 
+def evaluate_real_command(
+    data: Path = typer.Option(Path("data/real/processed"), "--data", help=(
+        "Processed folder of an outside collection (`data sweethome3d`, `data ingest`, `data preprocess`).")),
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for results.json."),  # noqa: UP045
+    queries_per_shape: int = typer.Option(4, "--queries-per-shape", min=1,
+                                          help="Components taken away per shape."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the queries and the chance baseline."),
+) -> None:
+    """Suggestions on shapes nobody here made, beside as many of the catalog's held-out shapes.
+
+    Label-free measures: the inferred category against the folders, warnings, and how far the
+    placed suggestions lie from the component taken away."""
+    from training.evaluate.real_shapes import RealEvalSettings, markdown, run_real_evaluation
+
+    try:
+        report = run_real_evaluation(RealEvalSettings(data=data, artifacts=artifacts, out=out,
+                                                      queries_per_shape=queries_per_shape, seed=seed))
+    except (ValueError, FileNotFoundError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=2) from exc
+    typer.echo(f"{report['model_version']} on {report['data']}")
+    typer.echo(markdown(report))
+
+
 def register_evaluate_command(app: typer.Typer) -> None:
-    """Add `evaluate`, `evaluate-assembly` and `evaluate-frames` to the root CLI."""
+    """Add `evaluate`, `evaluate-assembly`, `evaluate-frames` and `evaluate-real` to the root CLI."""
     app.command("evaluate")(evaluate_command)
     app.command("evaluate-assembly")(evaluate_assembly_command)
     app.command("evaluate-frames")(evaluate_frames_command)
+    app.command("evaluate-real")(evaluate_real_command)

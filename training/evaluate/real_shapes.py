@@ -1,0 +1,250 @@
+"""`complementme evaluate-real`: the shipped model on shapes nobody here made.
+
+The benchmark (`complementme evaluate`) queries the generator's own held-out shapes. This asks the
+same engine about a collection from outside (for example Sweet Home 3D's furniture,
+``training.data.sweethome3d``, ingested and preprocessed like any user collection) and, as the
+reference, about as many of the catalog's held-out shapes of the same categories, with one
+protocol for both:
+
+- a query is a shape with one component taken away, ``n_points`` area-weighted samples of the rest
+  (``training.data.sampling.draw_area_weighted``, the benchmark's and training's sampler), in the
+  shape's canonical frame; up to ``queries_per_shape`` components per shape, drawn with the seed;
+- *named*: the engine is told the shape's category folder (as the page with a category chosen);
+  *unnamed*: it is told nothing and infers the category (as a request without one);
+- the measures are label-free, because an outside collection's groups carry no part labels: the
+  inferred category against the folder; the share of the unnamed top 5 in the folder's category;
+  how many answers carry a warning that makes them guesses (``QueryWarning.guess``); and the
+  Chamfer distance (mean nearest-neighbour distance both ways, unit radius) between each
+  suggestion *as the service places it* (h's translation and scale) and the component taken away,
+  for the top 1 and the best of the top 5;
+- two references for the distances: five random parts of the category placed by h (chance), and
+  the bound: the catalog part of the category nearest the removed component when put at its
+  true centre at catalog size (what the catalog could give at best without fitting).
+
+Categories are read from the folders (for outside shapes) and the catalog records (held out): to
+measure only. The catalog's own shapes are never suggested for their own queries.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from service.artifacts.catalog import Catalog, split_shapes
+from service.artifacts.loading import load_served_artifacts
+from service.settings import Settings
+from service.suggest.engine import SuggestionEngine, SuggestOptions
+from training.data.processed import ProcessedDataset
+from training.data.sampling import draw_area_weighted
+
+SETS = ("outside", "held-out")
+# The measures of one query, in the report's row order, with the rows' names.
+MEASURES = {
+    "category_right": "unnamed: inferred category is the folder's",
+    "in_category": "unnamed: share of the top 5 in the folder's category",
+    "guess_warned": "unnamed: answers warned as guesses",
+    "named_top1": "named: Chamfer, top 1 as placed",
+    "named_best5": "named: Chamfer, best of the top 5 as placed",
+    "named_top1_centre": "named: Chamfer, top 1 at the true centre (h's scale)",
+    "unnamed_best5": "unnamed: Chamfer, best of the top 5 as placed",
+    "random_top1": "chance: Chamfer, a random part of the category placed by h",
+    "random_best5": "chance: Chamfer, best of 5 random parts placed by h",
+    "bound": "bound: Chamfer, the nearest catalog part at the true centre, catalog size",
+}
+# Measures where lower is better (distances); the others are shares.
+DISTANCES = frozenset(m for m in MEASURES if m not in ("category_right", "in_category", "guess_warned"))
+
+
+@dataclass(frozen=True)
+class RealEvalSettings:
+    data: Path                      # processed folder of the outside collection
+    artifacts: Path = Path("exported")
+    queries_per_shape: int = 4
+    k: int = 5
+    n_points: int = 2048
+    part_points: int = 512          # samples per part in the distances
+    seed: int = 0
+    out: Path | None = None
+
+
+@dataclass(frozen=True)
+class Case:
+    """One query: the rest of a shape, and the component taken away (canonical frame)."""
+
+    category: str
+    shape_id: str
+    query: np.ndarray       # (n_points, 3) float32
+    removed: np.ndarray     # (part_points, 3) float32, placed in the shape
+
+
+def chamfer(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean nearest-neighbour distance from a to b and from b to a, averaged.
+
+    Shapes:
+        a: (N, 3), b: (M, 3) -> float.
+    """
+    return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def _cases(samples: np.ndarray, translations: np.ndarray, areas: np.ndarray,
+           shapes: list[tuple[str, str, np.ndarray]], cfg: RealEvalSettings,
+           rng: np.random.Generator) -> list[Case]:
+    """Queries of shapes given as (category, shape id, component rows into ``samples``)."""
+    cases = []
+    for category, shape_id, rows in shapes:
+        for gone in rng.permutation(rows)[:cfg.queries_per_shape]:
+            rest = np.asarray([r for r in rows if r != gone], dtype=np.int64)
+            query = draw_area_weighted(samples, translations, areas, rest, cfg.n_points, rng)
+            removed = samples[gone][:cfg.part_points].astype(np.float32) + translations[gone]
+            cases.append(Case(category, shape_id, query, removed))
+    return cases
+
+
+def outside_cases(ds: ProcessedDataset, cfg: RealEvalSettings, rng: np.random.Generator) -> list[Case]:
+    """Queries of every multi-component shape of a processed collection, in its shapes' order."""
+    shapes = [(str(meta["category"]), str(meta["shape_id"]), ds.components_of(s))
+              for s, meta in enumerate(ds.shapes) if len(ds.components_of(s)) >= 2]
+    return _cases(ds.points, ds.translation, ds.area, shapes, cfg, rng)
+
+
+def held_out_cases(catalog: Catalog, per_category: dict[str, int], cfg: RealEvalSettings,
+                   rng: np.random.Generator) -> list[Case]:
+    """Queries of the catalog's held-out shapes: ``per_category[c]`` shapes of each category c."""
+    rows_of = split_shapes(catalog, "test")
+    by_category: dict[str, list[str]] = {}
+    for shape in sorted(rows_of):
+        by_category.setdefault(catalog.records[rows_of[shape][0]]["category"], []).append(shape)
+    shapes = []
+    for category, count in sorted(per_category.items()):
+        pool = by_category.get(category, [])
+        for j in rng.permutation(len(pool))[:count]:
+            shapes.append((category, pool[j], np.asarray(rows_of[pool[j]], dtype=np.int64)))
+    areas = np.array([float(r.get("area", 1.0)) for r in catalog.records])
+    return _cases(catalog.points, catalog.translations, areas, shapes, cfg, rng)
+
+
+class _Measurer:
+    """The measures of one query through the engine (see the module docstring)."""
+
+    def __init__(self, engine: SuggestionEngine, cfg: RealEvalSettings, rng: np.random.Generator):
+        self.engine, self.cfg, self.rng = engine, cfg, rng
+        self.catalog = engine.catalog
+        self._pool_points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def placed(self, row: int, translation: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        pts = self.catalog.part_points(row)[:self.cfg.part_points]
+        return pts * np.asarray(scale, np.float32) + np.asarray(translation, np.float32)
+
+    def pool(self, category: str, shape_id: str) -> np.ndarray:
+        """Catalog rows of the category, without the query's own shape."""
+        cat = self.catalog
+        rows = np.flatnonzero(cat.category_of == cat.categories.index(category))
+        own = cat.shape_ids.index(shape_id) if shape_id in cat.shape_ids else -1
+        return rows[cat.shape_of[rows] != own]
+
+    def bound(self, case: Case, pool: np.ndarray) -> float:
+        """The nearest pool part (catalog size) put at the removed component's box centre."""
+        centre = (case.removed.max(axis=0) + case.removed.min(axis=0)) / 2
+        tree = cKDTree(case.removed)
+        best = np.inf
+        for row in pool:
+            pts = self.catalog.part_points(int(row))[:128] + centre
+            a = float(tree.query(pts)[0].mean())
+            if a / 2 >= best:  # the other half is >= 0: cannot beat the best
+                continue
+            best = min(best, 0.5 * (a + float(cKDTree(pts).query(case.removed)[0].mean())))
+        return best
+
+    def __call__(self, case: Case) -> dict[str, float]:
+        cfg, eng = self.cfg, self.engine
+        if case.category not in self.catalog.categories:
+            raise ValueError(f"{case.shape_id}: category {case.category!r} is not in the catalog "
+                             f"({', '.join(self.catalog.categories)})")
+        exclude = (case.shape_id,) if case.shape_id in self.catalog.shape_ids else ()
+        named = eng.suggest(case.query, SuggestOptions(k=cfg.k, categories=(case.category,),
+                                                       exclude_shapes=exclude))
+        unnamed = eng.suggest(case.query, SuggestOptions(k=cfg.k, exclude_shapes=exclude))
+        if not named.suggestions or not unnamed.suggestions:
+            raise ValueError(f"{case.shape_id}: the engine suggested nothing")
+        centre = (case.removed.max(axis=0) + case.removed.min(axis=0)) / 2
+        d_named = [chamfer(self.placed(s.part_index, s.translation, s.scale), case.removed)
+                   for s in named.suggestions]
+        d_unnamed = [chamfer(self.placed(s.part_index, s.translation, s.scale), case.removed)
+                     for s in unnamed.suggestions]
+        top = named.suggestions[0]
+        pool = self.pool(case.category, case.shape_id)
+        picks = [self.catalog.part_ids[int(r)] for r in self.rng.choice(pool, cfg.k, replace=False)]
+        placed = eng.place(case.query, picks, refine_contact=False).placements
+        d_random = [chamfer(self.placed(p.part_index, p.translation, p.scale), case.removed) for p in placed]
+        inferred = unnamed.inferred_category
+        return {
+            "category_right": float(inferred is not None and inferred.category == case.category),
+            "in_category": float(np.mean([s.category == case.category for s in unnamed.suggestions])),
+            "guess_warned": float(any(w.guess for w in unnamed.warnings)),
+            "named_top1": d_named[0],
+            "named_best5": min(d_named),
+            "named_top1_centre": chamfer(self.placed(top.part_index, centre, top.scale), case.removed),
+            "unnamed_best5": min(d_unnamed),
+            "random_top1": d_random[0],
+            "random_best5": min(d_random),
+            "bound": self.bound(case, pool),
+        }
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Mean of each measure per category and over all queries ("all"), with the query counts."""
+    out: dict[str, dict[str, float]] = {}
+    for category in [*sorted({r["category"] for r in rows}), "all"]:
+        mine = [r for r in rows if category in ("all", r["category"])]
+        out[category] = {m: round(float(np.mean([r[m] for r in mine])), 3) for m in MEASURES}
+        out[category]["queries"] = len(mine)
+        out[category]["shapes"] = len({r["shape_id"] for r in mine})
+    return out
+
+
+def run_real_evaluation(cfg: RealEvalSettings) -> dict[str, Any]:
+    """Both sets' queries through the engine on ``cfg.artifacts``; the report (and results.json)."""
+    if not (cfg.data / "dataset.json").is_file():
+        raise FileNotFoundError(f"{cfg.data} holds no processed collection (dataset.json): make one with "
+                                "`complementme data ingest` and `complementme data preprocess`")
+    settings = Settings().model_copy(update={"artifacts": cfg.artifacts})
+    engine = SuggestionEngine(load_served_artifacts(settings), settings)
+    rng = np.random.default_rng(cfg.seed)
+    outside = outside_cases(ProcessedDataset.load(cfg.data), cfg, rng)
+    shapes: dict[str, set[str]] = {}
+    for case in outside:
+        shapes.setdefault(case.category, set()).add(case.shape_id)
+    held = held_out_cases(engine.catalog, {c: len(s) for c, s in shapes.items()}, cfg, rng)
+    measure = _Measurer(engine, cfg, rng)
+    results = {}
+    for name, cases in zip(SETS, (outside, held), strict=True):
+        rows = [{"category": c.category, "shape_id": c.shape_id, **measure(c)} for c in cases]
+        results[name] = summarise(rows)
+    report = {"artifacts": str(cfg.artifacts), "model_version": engine.model_version, "data": str(cfg.data),
+              "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
+                           if k not in ("out",)},
+              "results": results}
+    if cfg.out is not None:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        (cfg.out / "results.json").write_text(json.dumps(report, indent=1) + "\n")
+    return report
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """One table per set: a row per measure, a column per category and "all"."""
+    parts = []
+    for name in SETS:
+        res = report["results"][name]
+        cats = list(res)
+        head = " | ".join(f"{c} ({res[c]['shapes']} shapes, {res[c]['queries']} queries)" if c != "all"
+                          else f"all ({res[c]['queries']})" for c in cats)
+        lines = [f"**{name}**", "", f"| Measure | {head} |", "|---|" + "---|" * len(cats)]
+        for m, title in MEASURES.items():
+            lines.append(f"| {title} | " + " | ".join(f"{res[c][m]:.3f}" for c in cats) + " |")
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts)
