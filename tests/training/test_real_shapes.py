@@ -11,7 +11,14 @@ from typer.testing import CliRunner
 
 from training.cli import app
 from training.data.processed import ProcessedDataset
-from training.evaluate.real_shapes import MEASURES, SETS, RealEvalSettings, chamfer, run_real_evaluation
+from training.evaluate.real_shapes import (
+    MEASURES,
+    SETS,
+    RealEvalSettings,
+    chamfer,
+    markdown,
+    run_real_evaluation,
+)
 
 SHIPPED = Path(__file__).resolve().parents[2] / "exported"
 pytestmark = pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(),
@@ -53,6 +60,10 @@ def test_shapes_like_the_training_ones_score_like_the_held_out_set(collection: P
         assert res["all"]["category_right"] >= 0.9, res["all"]
         assert res["all"]["named_best5"] < res["all"]["random_best5"], res["all"]
     assert report["results"]["outside"]["all"]["shapes"] == 18
+    # A catalog without a held-out split has no reference set, and the report says so.
+    table = markdown({**report, "results": {**report["results"], "held-out": {}}})
+    assert "**held-out**: no queries (the catalog has no held-out split)" in table
+    assert "| named: Chamfer, best of the top 5 as placed |" in table
 
 
 def test_command_refuses_a_folder_without_a_collection(tmp_path: Path) -> None:

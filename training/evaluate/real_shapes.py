@@ -115,7 +115,7 @@ def outside_cases(ds: ProcessedDataset, cfg: RealEvalSettings, rng: np.random.Ge
 def held_out_cases(catalog: Catalog, per_category: dict[str, int], cfg: RealEvalSettings,
                    rng: np.random.Generator) -> list[Case]:
     """Queries of the catalog's held-out shapes: ``per_category[c]`` shapes of each category c."""
-    rows_of = split_shapes(catalog, "test")
+    rows_of = split_shapes(catalog, "test", fallback=False)  # no split: no reference, not the training shapes
     by_category: dict[str, list[str]] = {}
     for shape in sorted(rows_of):
         by_category.setdefault(catalog.records[rows_of[shape][0]]["category"], []).append(shape)
@@ -178,7 +178,8 @@ class _Measurer:
                      for s in unnamed.suggestions]
         top = named.suggestions[0]
         pool = self.pool(case.category, case.shape_id)
-        picks = [self.catalog.part_ids[int(r)] for r in self.rng.choice(pool, cfg.k, replace=False)]
+        drawn = self.rng.choice(pool, min(cfg.k, len(pool)), replace=False)
+        picks = [self.catalog.part_ids[int(r)] for r in drawn]
         placed = eng.place(case.query, picks, refine_contact=False).placements
         d_random = [chamfer(self.placed(p.part_index, p.translation, p.scale), case.removed) for p in placed]
         inferred = unnamed.inferred_category
@@ -224,7 +225,7 @@ def run_real_evaluation(cfg: RealEvalSettings) -> dict[str, Any]:
     results = {}
     for name, cases in zip(SETS, (outside, held), strict=True):
         rows = [{"category": c.category, "shape_id": c.shape_id, **measure(c)} for c in cases]
-        results[name] = summarise(rows)
+        results[name] = summarise(rows) if rows else {}
     report = {"artifacts": str(cfg.artifacts), "model_version": engine.model_version, "data": str(cfg.data),
               "settings": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
                            if k not in ("out",)},
@@ -240,6 +241,9 @@ def markdown(report: dict[str, Any]) -> str:
     parts = []
     for name in SETS:
         res = report["results"][name]
+        if not res:
+            parts.append(f"**{name}**: no queries (the catalog has no held-out split)")
+            continue
         cats = list(res)
         head = " | ".join(f"{c} ({res[c]['shapes']} shapes, {res[c]['queries']} queries)" if c != "all"
                           else f"all ({res[c]['queries']})" for c in cats)
