@@ -27,7 +27,6 @@ measure only. The catalog's own shapes are never suggested for their own queries
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from service.artifacts.catalog import Catalog, split_shapes
+from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_served_artifacts
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
@@ -232,7 +232,7 @@ def run_real_evaluation(cfg: RealEvalSettings) -> dict[str, Any]:
               "results": results}
     if cfg.out is not None:
         cfg.out.mkdir(parents=True, exist_ok=True)
-        (cfg.out / "results.json").write_text(json.dumps(report, indent=1) + "\n")
+        write_json_atomic(cfg.out / "results.json", report)
     return report
 
 
@@ -244,7 +244,7 @@ def markdown(report: dict[str, Any]) -> str:
         if not res:
             parts.append(f"**{name}**: no queries (the catalog has no held-out split)")
             continue
-        cats = list(res)
+        cats = [*sorted(c for c in res if c != "all"), "all"]  # results.json keeps its keys sorted
         head = " | ".join(f"{c} ({res[c]['shapes']} shapes, {res[c]['queries']} queries)" if c != "all"
                           else f"all ({res[c]['queries']})" for c in cats)
         lines = [f"**{name}**", "", f"| Measure | {head} |", "|---|" + "---|" * len(cats)]
