@@ -54,11 +54,13 @@ def test_shapes_like_the_training_ones_score_like_the_held_out_set(collection: P
         assert set(res) == {"chair", "lamp", "table", "all"}
         assert set(MEASURES) <= set(res["all"])
         assert res["all"]["queries"] == sum(res[c]["queries"] for c in ("chair", "lamp", "table"))
-        for m in ("category_right", "in_category", "guess_warned"):
+        for m in ("category_right", "in_category", "guess_warned", "frame_up", "frame_good"):
             assert 0.0 <= res["all"][m] <= 1.0
         # The model knows these shapes: it names their category and its picks beat chance.
         assert res["all"]["category_right"] >= 0.9, res["all"]
         assert res["all"]["named_best5"] < res["all"]["random_best5"], res["all"]
+        # ... and fits the frame of most of them from a random caller frame.
+        assert res["all"]["frame_good"] >= 0.6 and res["all"]["frame_up"] >= res["all"]["frame_good"]
     assert report["results"]["outside"]["all"]["shapes"] == 18
     # A catalog without a held-out split has no reference set, and the report says so.
     table = markdown({**report, "results": {**report["results"], "held-out": {}}})

@@ -74,8 +74,16 @@ def kind_missing(catalog: Catalog, count: int, n_points: int, seed: int, split: 
     return out
 
 
-def _good(fit: Frame, true: Frame) -> tuple[bool, bool]:
-    """(up axis right, good frame) of one fit."""
+def random_caller_frame(rng: np.random.Generator) -> Frame:
+    """A caller's frame as the measurements draw it: up axis y or z, radius 100-1000 units,
+    centre anywhere within 2000 of the origin."""
+    return Frame(center=rng.uniform(-2000, 2000, 3), radius=float(rng.uniform(100, 1000)),
+                 up_axis=str(rng.choice(UP_AXES)))  # type: ignore[arg-type]
+
+
+def good_frame(fit: Frame, true: Frame) -> tuple[bool, bool]:
+    """(up axis right, good frame) of one fit: a good frame has the right up axis, its radius
+    within 25% and its centre within 0.3 of the true radius."""
     up = fit.up_axis == true.up_axis
     near = (abs(np.log(fit.radius / true.radius)) < np.log(1.25)
             and float(np.linalg.norm(np.asarray(fit.center) - np.asarray(true.center))) < 0.3 * true.radius)
@@ -94,8 +102,7 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
     for name, clouds in sets.items():
         counts = {rule: np.zeros(2) for rule in RULES}
         for cloud in clouds:
-            true = Frame(center=rng.uniform(-2000, 2000, 3), radius=float(rng.uniform(100, 1000)),
-                         up_axis=str(rng.choice(UP_AXES)))  # type: ignore[arg-type]
+            true = random_caller_frame(rng)
             points = true.from_canonical(cloud.astype(np.float64))
             frames = hypotheses_of(settings, points, UP_AXES)
             # The k = 1 answers carry both scores: the best suggestion's likelihood and g's familiarity.
@@ -107,7 +114,7 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
                      "familiarity": most_familiar(frames, distances, 0.0),
                      "shipped": most_familiar(frames, distances, settings.fit_frame_radius_prior)}
             for rule, fit in picks.items():
-                counts[rule] += _good(fit.frame, true)
+                counts[rule] += good_frame(fit.frame, true)
         results[name] = {rule: {"up_axis_right": round(float(c[0]) / max(len(clouds), 1), 3),
                                 "good": round(float(c[1]) / max(len(clouds), 1), 3)}
                          for rule, c in counts.items()}

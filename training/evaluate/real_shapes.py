@@ -19,7 +19,11 @@ protocol for both:
   for the top 1 and the best of the top 5;
 - two references for the distances: five random parts of the category placed by h (chance), and
   the bound: the catalog part of the category nearest the removed component when put at its
-  true centre at catalog size (what the catalog could give at best without fitting).
+  true centre at catalog size (what the catalog could give at best without fitting);
+- frames: the query moved into a random caller frame (``frames_eval.random_caller_frame``: units
+  of 100-1000 to the radius, y or z up, off centre) and sent without one, category named, as a
+  mesh upload is: whether the frame the service fits (``service.suggest.frame_fit``) has the right
+  up axis, and whether it is good (``frames_eval.good_frame``).
 
 Categories are read from the folders (for outside shapes) and the catalog records (held out): to
 measure only. The catalog's own shapes are never suggested for their own queries.
@@ -39,8 +43,10 @@ from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_served_artifacts
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
+from service.suggest.frame_fit import fit_frame
 from training.data.processed import ProcessedDataset
 from training.data.sampling import draw_area_weighted
+from training.evaluate.frames_eval import good_frame, random_caller_frame
 
 SETS = ("outside", "held-out")
 # The measures of one query, in the report's row order, with the rows' names.
@@ -55,9 +61,9 @@ MEASURES = {
     "random_top1": "chance: Chamfer, a random part of the category placed by h",
     "random_best5": "chance: Chamfer, best of 5 random parts placed by h",
     "bound": "bound: Chamfer, the nearest catalog part at the true centre, catalog size",
+    "frame_up": "frames: fitted up axis right, from a random caller frame",
+    "frame_good": "frames: fitted frame good (up axis, radius within 25%, centre within 0.3)",
 }
-# Measures where lower is better (distances); the others are shares.
-DISTANCES = frozenset(m for m in MEASURES if m not in ("category_right", "in_category", "guess_warned"))
 
 
 @dataclass(frozen=True)
@@ -131,8 +137,11 @@ def held_out_cases(catalog: Catalog, per_category: dict[str, int], cfg: RealEval
 class _Measurer:
     """The measures of one query through the engine (see the module docstring)."""
 
-    def __init__(self, engine: SuggestionEngine, cfg: RealEvalSettings, rng: np.random.Generator):
-        self.engine, self.cfg, self.rng = engine, cfg, rng
+    def __init__(self, engine: SuggestionEngine, settings: Settings, cfg: RealEvalSettings,
+                 rng: np.random.Generator):
+        self.engine, self.settings, self.cfg, self.rng = engine, settings, cfg, rng
+        # The caller frames draw from their own stream: the other measures do not move with them.
+        self.frame_rng = np.random.default_rng([cfg.seed, 1])
         self.catalog = engine.catalog
         self._pool_points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -183,6 +192,10 @@ class _Measurer:
         placed = eng.place(case.query, picks, refine_contact=False).placements
         d_random = [chamfer(self.placed(p.part_index, p.translation, p.scale), case.removed) for p in placed]
         inferred = unnamed.inferred_category
+        caller = random_caller_frame(self.frame_rng)
+        fit = fit_frame(eng, self.settings, caller.from_canonical(case.query.astype(np.float64)),
+                        SuggestOptions(k=1, categories=(case.category,)))
+        frame_up, frame_ok = good_frame(fit.frame, caller)
         return {
             "category_right": float(inferred is not None and inferred.category == case.category),
             "in_category": float(np.mean([s.category == case.category for s in unnamed.suggestions])),
@@ -194,6 +207,8 @@ class _Measurer:
             "random_top1": d_random[0],
             "random_best5": min(d_random),
             "bound": self.bound(case, pool),
+            "frame_up": float(frame_up),
+            "frame_good": float(frame_ok),
         }
 
 
@@ -221,7 +236,7 @@ def run_real_evaluation(cfg: RealEvalSettings) -> dict[str, Any]:
     for case in outside:
         shapes.setdefault(case.category, set()).add(case.shape_id)
     held = held_out_cases(engine.catalog, {c: len(s) for c, s in shapes.items()}, cfg, rng)
-    measure = _Measurer(engine, cfg, rng)
+    measure = _Measurer(engine, settings, cfg, rng)
     results = {}
     for name, cases in zip(SETS, (outside, held), strict=True):
         rows = [{"category": c.category, "shape_id": c.shape_id, **measure(c)} for c in cases]
