@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Everything a trained candidate must show before it may replace exported/ (docs/training.md,
 # "Shipping a candidate"): its export, the committed benchmark in the shipped model's own order,
-# its leave-one-style-out twin, automatic assembly, frame fitting, and the service's tests on it.
+# its leave-one-style-out twin, automatic assembly, frame fitting, the furniture nobody here made
+# (when training/recipes/real.sh has made data/real), and the service's tests on it.
 # Nothing in exported/ or docs/ is touched: every result goes under the candidate's folders.
 #
 #   RUN=runs/v3-32k LOSO_RUN=runs/v3-32k-loso training/recipes/candidate.sh
@@ -45,10 +46,15 @@ if [ -n "$LOSO_RUN" ]; then
 fi
 step assembly $CLI evaluate-assembly --artifacts "$EXP" --no-report --out "$EXP/assembly" --no-progress
 step frames $CLI evaluate-frames --artifacts "$EXP" --out "$EXP/frame-fit"
+REAL=${REAL:-data/real/processed}
+if [ -f "$REAL/dataset.json" ]; then
+    step real $CLI evaluate-real --data "$REAL" --artifacts "$EXP" --out "$EXP/real"
+fi
 step service-tests env COMPLEMENTME_TEST_ARTIFACTS="$EXP" "$PYTHON" -m pytest -q -p no:cacheprovider \
     tests/service --deselect tests/service/test_golden.py
 
-echo "results: $EXP/benchmark/benchmark.md, $EXP/assembly/results.json, $EXP/frame-fit/results.json"
+echo "results: $EXP/benchmark/benchmark.md, $EXP/assembly/results.json, $EXP/frame-fit/results.json," \
+     "$EXP/real/results.json (against docs/benchmark-real/results.json)"
 [ -n "$LOSO_RUN" ] && echo "leave-one-style-out: $LOSO_EXP/benchmark/benchmark.md"
 if [ ${#failed[@]} -gt 0 ]; then
     echo "failed: ${failed[*]}" >&2
