@@ -13,7 +13,7 @@ data_app = typer.Typer(help="Shape data: generate, ingest, preprocess (paper Sec
                        no_args_is_help=True)
 
 # Commands are added below, one function each: generate (generator), ingest, sweethome3d,
-# preprocess, stats.
+# flightgear, preprocess, stats.
 
 
 # ---- generate ----------------------------------------------------------------------------------
@@ -68,7 +68,8 @@ def sweethome3d_cmd(
     libraries: list[Path] = typer.Argument(..., help=(
         "Sweet Home 3D furniture libraries (.sh3f), or folders of them (Debian's sweethome3d-furniture: "
         "/usr/share/sweethome3d/furniture).")),
-    out: Path = typer.Option(Path("data/real/src"), "--out", help="Writes <category>/<model>.obj + sources.json."),
+    out: Path = typer.Option(Path("data/real/src"), "--out",
+                             help="Writes <category>/<model>.obj + sources.json."),
 ) -> None:
     """Chairs, tables, sofas and lamps of furniture libraries as OBJ files for `data ingest`."""
     from training.data.sweethome3d import LibraryError, export_library
@@ -83,7 +84,32 @@ def sweethome3d_cmd(
     except LibraryError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    typer.echo(f"{out}: " + ", ".join(f"{n} {c}" for c, n in sorted(counts.items())) + f" from {len(paths)} libraries")
+    filed = ", ".join(f"{n} {c}" for c, n in sorted(counts.items()))
+    typer.echo(f"{out}: {filed} from {len(paths)} libraries")
+
+
+@data_app.command("flightgear")
+def flightgear_cmd(
+    root: Path = typer.Argument(..., help=(
+        "Folder of AC3D aircraft models (Debian's flightgear-data-ai: "
+        "/usr/share/games/flightgear/AI/Aircraft).")),
+    out: Path = typer.Option(Path("data/real-air/src"), "--out",
+                             help="Writes airplane/<model>.obj + sources.json."),
+    min_objects: int = typer.Option(3, "--min-objects", min=2, help="Skip models with fewer part objects."),
+) -> None:
+    """FlightGear's AI aircraft (AC3D) as OBJ files for `data ingest`, a group per object."""
+    from training.data.flightgear import export_aircraft
+
+    if not root.is_dir():
+        typer.echo(f"error: {root} is not a folder (install Debian's flightgear-data-ai, or name one)",
+                   err=True)
+        raise typer.Exit(2)
+    written, skipped = export_aircraft(root, out, min_objects)
+    for reason in skipped:
+        typer.echo(f"skipped {reason}", err=True)
+    typer.echo(f"{out}: {written} airplanes, {len(skipped)} files unreadable")
+    if not written:
+        raise typer.Exit(1)
 
 
 @data_app.command("preprocess")

@@ -586,7 +586,8 @@ def _concat(arrays: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
 def _dataset_info(records: list[ShapeRecord], config: PreprocessConfig, components: int) -> dict[str, Any]:
     """The dataset's ``info``: config, counts, merges, per-category outcomes and every rejection."""
     rejected = [(r, r.outcome) for r in records if isinstance(r.outcome, Rejected)]
-    merges = {k: int(sum(getattr(r.outcome.merges, k) for r in records)) for k in ("size", "overlap", "identical")}
+    merges = {k: int(sum(getattr(r.outcome.merges, k) for r in records))
+              for k in ("size", "overlap", "identical")}
     # Components per shape, over every shape that reached merging, and over the kept ones.
     histogram: dict[str, dict[str, int]] = {}
     histogram_kept: dict[str, dict[str, int]] = {}

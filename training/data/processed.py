@@ -161,7 +161,8 @@ class ProcessedDataset:
         arrays_path, meta_path = folder / "arrays.npz", folder / "dataset.json"
         for p in (arrays_path, meta_path):
             if not p.is_file():
-                raise FileNotFoundError(f"processed dataset file missing: {p} (run `complementme data preprocess`)")
+                raise FileNotFoundError(
+                    f"processed dataset file missing: {p} (run `complementme data preprocess`)")
         meta = json.loads(meta_path.read_text())
         shapes = meta.pop("shapes")
         arrays = load_npz(arrays_path)

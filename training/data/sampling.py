@@ -168,8 +168,8 @@ def shape_lookalikes(ds: ProcessedDataset, k: int = SHAPE_NEGATIVE_NEIGHBOURS,
 
     lookalikes = lookalike_components(ds, k)
     # A fixed subsample (the same samples of every part), so the table depends on the data alone.
-    pick = np.random.default_rng(0).choice(ds.points.shape[1], min(SHAPE_DISTANCE_SAMPLES, ds.points.shape[1]),
-                                           replace=False)
+    n_cached = ds.points.shape[1]
+    pick = np.random.default_rng(0).choice(n_cached, min(SHAPE_DISTANCE_SAMPLES, n_cached), replace=False)
     sub = ds.points[:, np.sort(pick)].astype(np.float64)
     trees = [cKDTree(p) for p in sub]
     out = np.full_like(lookalikes, -1)
@@ -214,7 +214,7 @@ class Augmentation:
     hole_probability: float = 0.3      # chance that X loses the points within a random ball
     hole_radius: float = 0.25
     uniform_density_probability: float = 0.3  # chance that X samples components evenly, not by area
-    warp_log_slope: float = 0.5        # layout warp: each segment's stretch, exp(U(-a, a)) before renormalising
+    warp_log_slope: float = 0.5        # layout warp: each segment's stretch, exp(U(-a, a)), renormalised
     warp_segments: int = 4             # layout warp: equal segments of [-1, 1] per axis
 
 
@@ -235,7 +235,8 @@ def augmentation_transform(rng: np.random.Generator, strength: float,
     return A.astype(np.float32), t.astype(np.float32)
 
 
-def layout_warp(rng: np.random.Generator, ranges: Augmentation = Augmentation()) -> tuple[np.ndarray, np.ndarray]:
+def layout_warp(rng: np.random.Generator,
+                ranges: Augmentation = Augmentation()) -> tuple[np.ndarray, np.ndarray]:
     """A random monotone piecewise-linear map of [-1, 1] onto itself, one per axis.
 
     Each of ``warp_segments`` equal segments is stretched by exp(U(-a, a)), then the whole is
@@ -337,7 +338,8 @@ class TripletSampler:
     def __init__(self, ds: ProcessedDataset, n_points: int = 1000, query_negative_fraction: float = 0.0,
                  lookalike_negative_fraction: float = 0.0, lookalike_neighbours: int = 8,
                  removal_query_fraction: float = 0.0, positives: int = 1, augment: float = 0.0,
-                 augment_strength: float = 1.0, augment_parts: bool = True, scale_augment: float = 0.0, substitute_fraction: float = 0.0,
+                 augment_strength: float = 1.0, augment_parts: bool = True, scale_augment: float = 0.0,
+                 substitute_fraction: float = 0.0,
                  mixed_query_fraction: float = 0.0, layout_warp: float = 0.0,
                  shape_negative_fraction: float = 0.0, positive_size_power: float = 0.0,
                  categories: list[str] | None = None):

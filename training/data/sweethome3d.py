@@ -111,7 +111,8 @@ def read_catalog(path: Path, max_entry_bytes: int) -> Iterator[Model]:
         with zipfile.ZipFile(path) as z:
             info = z.getinfo(CATALOG_ENTRY)
             if info.file_size > max_entry_bytes:
-                raise LibraryError(f"{path}: {CATALOG_ENTRY} is {info.file_size} bytes (limit {max_entry_bytes})")
+                raise LibraryError(
+                    f"{path}: {CATALOG_ENTRY} is {info.file_size} bytes (limit {max_entry_bytes})")
             text = z.read(info).decode("latin-1")
     except (zipfile.BadZipFile, KeyError, OSError) as exc:
         raise LibraryError(f"{path}: not a Sweet Home 3D furniture library ({exc})") from exc
@@ -160,9 +161,11 @@ def export_library(paths: list[Path], out: Path, max_entry_bytes: int = 64 * 102
                 try:
                     info = z.getinfo(model.entry)
                 except KeyError as exc:
-                    raise LibraryError(f"{path}: #{model.number} names {model.entry}, which is not in it") from exc
+                    raise LibraryError(
+                        f"{path}: #{model.number} names {model.entry}, which is not in it") from exc
                 if info.file_size > max_entry_bytes:
-                    raise LibraryError(f"{path}: {model.entry} is {info.file_size} bytes (limit {max_entry_bytes})")
+                    raise LibraryError(
+                        f"{path}: {model.entry} is {info.file_size} bytes (limit {max_entry_bytes})")
                 try:
                     obj = canonical_obj(z.read(info).decode("latin-1"), model.rotation)
                 except ValueError as exc:
