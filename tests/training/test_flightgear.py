@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from orientation_check import top_behind_and_ahead
 from typer.testing import CliRunner
 
 from training.cli import app
@@ -101,19 +102,10 @@ DEBIAN_AIRCRAFT = Path("/usr/share/games/flightgear/AI/Aircraft")
 
 
 @pytest.mark.skipif(not DEBIAN_AIRCRAFT.is_dir(),
-                    reason="no FlightGear AI aircraft: apt-get install -y flightgear-data-ai")
+                    reason="no FlightGear AI aircraft: .ci/run installs Debian's flightgear-data-ai")
 def test_debians_aircraft_are_written_as_docs_benchmark_real_says(tmp_path: Path) -> None:
     written, skipped = export_aircraft(DEBIAN_AIRCRAFT, tmp_path)
     assert written == 100 and len(skipped) == 2, skipped  # docs/benchmark-real: the two Dromaders
-    # Front +x: a plane's highest points (its fin) lie behind its centre. Turned the other way
-    # round, nearly all would lie in front.
-    behind = ahead = 0
-    for obj in (tmp_path / "airplane").glob("*.obj"):
-        v = np.array([[float(x) for x in line.split()[1:4]] for line in obj.read_text().splitlines()
-                      if line.startswith("v ")])
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        top = v[v[:, 1] > lo[1] + 0.8 * (hi[1] - lo[1])]
-        x = (top[:, 0].mean() - (lo[0] + hi[0]) / 2) / (hi[0] - lo[0])
-        behind += bool(x < -0.05)
-        ahead += bool(x > 0.05)
+    # Front +x: a plane's highest points (its fin, the top 20% of its height) lie behind its centre.
+    behind, ahead = top_behind_and_ahead(tmp_path / "airplane", 0.2)
     assert behind >= 75 and ahead <= 10, (behind, ahead)

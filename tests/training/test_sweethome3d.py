@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from orientation_check import top_behind_and_ahead
 from typer.testing import CliRunner
 
 from training.cli import app
@@ -136,19 +137,10 @@ DEBIAN_LIBRARIES = Path("/usr/share/sweethome3d/furniture")
 
 
 @pytest.mark.skipif(not DEBIAN_LIBRARIES.is_dir(),
-                    reason="no furniture libraries: apt-get install -y sweethome3d-furniture")
+                    reason="no furniture libraries: .ci/run installs Debian's sweethome3d-furniture")
 def test_debians_libraries_are_filed_as_docs_benchmark_real_says(tmp_path: Path) -> None:
     counts = export_library(sorted(DEBIAN_LIBRARIES.glob("*.sh3f")), tmp_path)
     assert dict(counts) == {"chair": 63, "lamp": 20, "sofa": 23, "table": 45}  # docs/benchmark-real
-    # Front +x: a chair's back (the top 30% of its height) lies behind its centre. Turned the
-    # other way round, nearly all would lie in front.
-    behind = ahead = 0
-    for obj in (tmp_path / "chair").glob("*.obj"):
-        v = np.array([[float(x) for x in line.split()[1:4]] for line in obj.read_text().splitlines()
-                      if line.startswith("v ")])
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        top = v[v[:, 1] > lo[1] + 0.7 * (hi[1] - lo[1])]
-        x = (top[:, 0].mean() - (lo[0] + hi[0]) / 2) / (hi[0] - lo[0])
-        behind += bool(x < -0.05)
-        ahead += bool(x > 0.05)
+    # Front +x: a chair's back (the top 30% of its height) lies behind its centre.
+    behind, ahead = top_behind_and_ahead(tmp_path / "chair", 0.3)
     assert behind >= 50 and ahead <= 3, (behind, ahead)

@@ -105,16 +105,19 @@ def _rotation(text: str | None, where: str) -> np.ndarray:
     return np.asarray(values).reshape(3, 3)
 
 
-def read_catalog(path: Path, max_entry_bytes: int) -> Iterator[Model]:
-    """The models of one ``.sh3f`` library whose names map to a category, in catalog order."""
+def _entry(z: zipfile.ZipFile, path: Path, name: str, max_bytes: int) -> str:
+    """One entry of a library as text, refused past ``max_bytes`` (checked before reading)."""
+    info = z.getinfo(name)  # KeyError when missing: the callers say what named it
+    if info.file_size > max_bytes:
+        raise LibraryError(f"{path}: {name} is {info.file_size} bytes (limit {max_bytes})")
+    return z.read(info).decode("latin-1")
+
+
+def read_catalog(z: zipfile.ZipFile, path: Path, max_entry_bytes: int) -> Iterator[Model]:
+    """The models of one open ``.sh3f`` library whose names map to a category, in catalog order."""
     try:
-        with zipfile.ZipFile(path) as z:
-            info = z.getinfo(CATALOG_ENTRY)
-            if info.file_size > max_entry_bytes:
-                raise LibraryError(
-                    f"{path}: {CATALOG_ENTRY} is {info.file_size} bytes (limit {max_entry_bytes})")
-            text = z.read(info).decode("latin-1")
-    except (zipfile.BadZipFile, KeyError, OSError) as exc:
+        text = _entry(z, path, CATALOG_ENTRY, max_entry_bytes)
+    except KeyError as exc:
         raise LibraryError(f"{path}: not a Sweet Home 3D furniture library ({exc})") from exc
     for number, item in sorted(_properties(text).items()):
         name = item.get("name", "")
@@ -155,19 +158,19 @@ def export_library(paths: list[Path], out: Path, max_entry_bytes: int = 64 * 102
     sources = []
     counts: Counter[str] = Counter()
     for path in paths:
-        models = list(read_catalog(path, max_entry_bytes))
-        with zipfile.ZipFile(path) as z:
-            for model in models:
+        try:
+            z = zipfile.ZipFile(path)
+        except (zipfile.BadZipFile, OSError) as exc:
+            raise LibraryError(f"{path}: not a Sweet Home 3D furniture library ({exc})") from exc
+        with z:
+            for model in list(read_catalog(z, path, max_entry_bytes)):
                 try:
-                    info = z.getinfo(model.entry)
+                    text = _entry(z, path, model.entry, max_entry_bytes)
                 except KeyError as exc:
                     raise LibraryError(
                         f"{path}: #{model.number} names {model.entry}, which is not in it") from exc
-                if info.file_size > max_entry_bytes:
-                    raise LibraryError(
-                        f"{path}: {model.entry} is {info.file_size} bytes (limit {max_entry_bytes})")
                 try:
-                    obj = canonical_obj(z.read(info).decode("latin-1"), model.rotation)
+                    obj = canonical_obj(text, model.rotation)
                 except ValueError as exc:
                     raise LibraryError(f"{path}: {model.entry}: unreadable vertex ({exc})") from exc
                 folder = out / model.category

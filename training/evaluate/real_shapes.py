@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from service.artifacts.catalog import Catalog, split_shapes
 from service.artifacts.layout import write_json_atomic
 from service.artifacts.loading import load_served_artifacts
+from service.errors import NotFoundError
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import fit_frame
@@ -143,22 +144,26 @@ class _Measurer:
         # The caller frames draw from their own stream: the other measures do not move with them.
         self.frame_rng = np.random.default_rng([cfg.seed, 1])
         self.catalog = engine.catalog
-        self._pool_points: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def placed(self, row: int, translation: np.ndarray, scale: np.ndarray) -> np.ndarray:
         pts = self.catalog.part_points(row)[:self.cfg.part_points]
         return pts * np.asarray(scale, np.float32) + np.asarray(translation, np.float32)
 
-    def pool(self, category: str, shape_id: str) -> np.ndarray:
+    def own_shape(self, shape_id: str) -> int | None:
+        """The catalog's code of the query's shape; None for a shape from outside."""
+        try:
+            return self.catalog.shape_code(shape_id)
+        except NotFoundError:
+            return None
+
+    def pool(self, category: str, own: int | None) -> np.ndarray:
         """Catalog rows of the category, without the query's own shape."""
         cat = self.catalog
         rows = np.flatnonzero(cat.category_of == cat.categories.index(category))
-        own = cat.shape_ids.index(shape_id) if shape_id in cat.shape_ids else -1
-        return rows[cat.shape_of[rows] != own]
+        return rows if own is None else rows[cat.shape_of[rows] != own]
 
-    def bound(self, case: Case, pool: np.ndarray) -> float:
-        """The nearest pool part (catalog size) put at the removed component's box centre."""
-        centre = (case.removed.max(axis=0) + case.removed.min(axis=0)) / 2
+    def bound(self, case: Case, centre: np.ndarray, pool: np.ndarray) -> float:
+        """The nearest pool part (catalog size) put at the removed component's box ``centre``."""
         tree = cKDTree(case.removed)
         best = np.inf
         for row in pool:
@@ -174,7 +179,8 @@ class _Measurer:
         if case.category not in self.catalog.categories:
             raise ValueError(f"{case.shape_id}: category {case.category!r} is not in the catalog "
                              f"({', '.join(self.catalog.categories)})")
-        exclude = (case.shape_id,) if case.shape_id in self.catalog.shape_ids else ()
+        own = self.own_shape(case.shape_id)
+        exclude = () if own is None else (case.shape_id,)
         named = eng.suggest(case.query, SuggestOptions(k=cfg.k, categories=(case.category,),
                                                        exclude_shapes=exclude))
         unnamed = eng.suggest(case.query, SuggestOptions(k=cfg.k, exclude_shapes=exclude))
@@ -186,7 +192,7 @@ class _Measurer:
         d_unnamed = [chamfer(self.placed(s.part_index, s.translation, s.scale), case.removed)
                      for s in unnamed.suggestions]
         top = named.suggestions[0]
-        pool = self.pool(case.category, case.shape_id)
+        pool = self.pool(case.category, own)
         drawn = self.rng.choice(pool, min(cfg.k, len(pool)), replace=False)
         picks = [self.catalog.part_ids[int(r)] for r in drawn]
         placed = eng.place(case.query, picks, refine_contact=False).placements
@@ -206,7 +212,7 @@ class _Measurer:
             "unnamed_best5": min(d_unnamed),
             "random_top1": d_random[0],
             "random_best5": min(d_random),
-            "bound": self.bound(case, pool),
+            "bound": self.bound(case, centre, pool),
             "frame_up": float(frame_up),
             "frame_good": float(frame_ok),
         }
