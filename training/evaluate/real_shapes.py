@@ -131,7 +131,7 @@ def held_out_cases(catalog: Catalog, per_category: dict[str, int], cfg: RealEval
         pool = by_category.get(category, [])
         for j in rng.permutation(len(pool))[:count]:
             shapes.append((category, pool[j], np.asarray(rows_of[pool[j]], dtype=np.int64)))
-    areas = np.array([float(r.get("area", 1.0)) for r in catalog.records])
+    areas = np.array([float(r["area"]) for r in catalog.records])
     return _cases(catalog.points, catalog.translations, areas, shapes, cfg, rng)
 
 
