@@ -1,4 +1,4 @@
-"""`complementme train`, `complementme export` and `complementme familiarity`.
+"""`complementme train`, `export`, `familiarity` and `category-head`.
 
 The train command's options are generated from the ``TrainConfig`` and ``ModelConfig`` fields
 (one ``--field-name`` per field, help text from the field's metadata), so a new config field is
@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import json
 import logging
 from pathlib import Path
 from typing import Any
 
 import typer
 
-from training.config import PRESETS, ModelConfig, TrainConfig, field_types
+from service.artifacts.layout import MANIFEST
+from training.config import PRESETS, HeadFitSettings, ModelConfig, TrainConfig, field_types
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +171,55 @@ def familiarity_command(
              manifest["familiarity"]["threshold"], manifest["familiarity"]["queries"])
 
 
+def category_head_command(
+    artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Exported model to start from."),
+    run: Path = typer.Option(..., "--run", "--run-dir",
+                             help="The model's run folder: its split.json gives the training shapes."),
+    outside: list[Path] = typer.Option(
+        ..., "--outside",
+        help="Processed outside collection whose category folders join the head's training (repeatable)."),
+    out: Path = typer.Option(Path("exported"), "--out",
+                             help="Artifact folder to write (may be --artifacts)."),
+    data: Path | None = typer.Option(None, "--data",
+                                     help="The model's processed dataset (default: the run's)."),
+    queries: int = typer.Option(HeadFitSettings.queries, "--queries", min=64,
+                                help="Partial assemblies the head is fitted on."),
+    outside_share: float = typer.Option(HeadFitSettings.outside_share, "--outside-share", min=0.0, max=0.95,
+                                        help="Share of the queries drawn from the outside collections."),
+    seed: int = typer.Option(HeadFitSettings.seed, "--seed", help="Seed of the queries and the fit."),
+) -> None:
+    """Refit g's category head on the model's training shapes and outside collections; export.
+
+    Every other weight stays as it is (training/category_head.py): retrieval and placement are
+    unchanged, the category inferred for a request that names none is what changes.
+    """
+    import torch
+
+    from training.category_head import refit_category_head
+    from training.checkpoint import load_trained_config
+    from training.data.processed import ProcessedDataset
+    from training.export import export_run, options_of
+    from training.from_onnx import trained_from_artifacts
+    from training.split import load_split
+
+    settings = HeadFitSettings(queries=queries, outside_share=outside_share, seed=seed)
+    try:
+        torch.manual_seed(seed)
+        manifest = json.loads((artifacts / MANIFEST).read_text())
+        trained, name = trained_from_artifacts(artifacts, suffix="head")
+        own = ProcessedDataset.load(data if data is not None else Path(load_trained_config(run).data))
+        split = load_split(run, own)
+        others = {str(p): ProcessedDataset.load(p) for p in outside}
+        report = refit_category_head(trained.pair.g, own.subset(split.train), others,
+                                     list(manifest.get("categories", own.categories())), settings)
+        trained.state["category_head"] = report
+        written = export_run(run, out, data=data, options=options_of(manifest), networks=(trained, name))
+    except (ValueError, FileNotFoundError, KeyError) as exc:
+        raise _fail(exc) from exc
+    log.info("category head: %s", report)
+    log.info("wrote %s (model %s)", out, written["model_version"])
+
+
 def register_training_commands(app: typer.Typer) -> None:
     """Add `train`, `export` and `familiarity` to the root CLI."""
     signature = _build_train_signature()
@@ -178,3 +229,4 @@ def register_training_commands(app: typer.Typer) -> None:
     app.command("train")(train_command)
     app.command("export")(export_command)
     app.command("familiarity")(familiarity_command)
+    app.command("category-head")(category_head_command)

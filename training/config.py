@@ -542,3 +542,16 @@ def known_options(data: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
 def model_config_from_dict(data: dict[str, Any]) -> ModelConfig:
     """Rebuild a ``ModelConfig`` from its dict (as stored in manifests and checkpoints)."""
     return apply_overrides(TrainConfig(), {"model": data}, source="stored model config").model
+
+
+@dataclass(frozen=True)
+class HeadFitSettings:
+    """How g's category head is refitted on outside collections (training.category_head)."""
+
+    queries: int = 25600          # partial assemblies drawn in all (about 15 s of g's encoder)
+    outside_share: float = 0.25   # of them from the outside collections, split evenly among them
+    epochs: int = 30
+    batch_size: int = 256
+    lr: float = 1e-3
+    n_points: int = 256           # points per query, as f and g are served
+    seed: int = 0

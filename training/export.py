@@ -107,6 +107,25 @@ class ExportOptions:
     chunk: int = 256
 
 
+def options_of(manifest: dict[str, Any]) -> ExportOptions:
+    """The settings an export's manifest records, so that exporting its networks again (with a new
+    catalog or a refitted head) serves them the same way."""
+    n_points = int(manifest["n_points"])
+    dups = manifest.get("duplicates", {})
+    fam = manifest.get("familiarity") or {}
+    defaults = ExportOptions()
+    return ExportOptions(
+        n_points=n_points, placement_points=int(manifest.get("placement_points", n_points)),
+        catalog_points=int(manifest.get("catalog_points", defaults.catalog_points)),
+        seed=int(fam.get("seed", defaults.seed)),
+        duplicate_embedding_radius=float(dups.get("embedding_radius", defaults.duplicate_embedding_radius)),
+        duplicate_chamfer_factor=float(dups.get("chamfer_factor", defaults.duplicate_chamfer_factor)),
+        duplicate_size_tolerance=float(dups.get("size_tolerance", defaults.duplicate_size_tolerance)),
+        familiarity_per_shape=int(fam.get("per_shape", defaults.familiarity_per_shape)),
+        familiarity_quantile=float(fam.get("quantile", defaults.familiarity_quantile)),
+        familiarity_components=int(fam.get("components", defaults.familiarity_components)))
+
+
 def output_names(graph: str, module: nn.Module) -> list[str]:
     """The graph's output names, with the optional heads its module has (service.artifacts.layout)."""
     return graph_outputs(graph, category_head=getattr(module, "category_head", None) is not None,
@@ -270,7 +289,8 @@ def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
     ``data`` overrides the processed dataset folder stored in the run's config (the catalog is
     every component of that dataset; the run's ``split.json`` must match it). ``networks``
     (trained networks and their name, e.g. ``training.from_onnx.trained_from_artifacts``) are
-    exported instead of the run's checkpoint: the run then gives only the split and dataset.
+    exported instead of the run's checkpoint: the run then gives only the split and dataset (only
+    its ``split.json`` when ``data`` is given).
     """
     opts = options or ExportOptions()
     run_dir, out_dir = Path(run_dir), Path(out_dir)
@@ -280,8 +300,10 @@ def export_run(run_dir: Path, out_dir: Path, data: Path | None = None,
     else:
         trained, name = networks
     cfg = trained.config
-    run_cfg = load_trained_config(run_dir) if networks is not None else cfg
-    data_dir = Path(data) if data is not None else Path(run_cfg.data)
+    if data is not None:
+        data_dir = Path(data)
+    else:  # networks from elsewhere: the run's own config names its dataset
+        data_dir = Path((load_trained_config(run_dir) if networks is not None else cfg).data)
     ds = ProcessedDataset.load(data_dir)
     split = load_split(run_dir, ds)
     n_points = opts.n_points or cfg.n_points
@@ -397,6 +419,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
             "seed": cfg.seed,
             # A fine-tuned run (train --init-from) names the model it started from.
             **({"started_from": state["started_from"]} if state.get("started_from") else {}),
+            # g's category head refitted on outside collections (training.category_head).
+            **({"category_head": state["category_head"]} if state.get("category_head") else {}),
         },
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }

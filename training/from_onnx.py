@@ -61,8 +61,9 @@ def load_exported_networks(artifacts: Path) -> tuple[RetrievalPair, PlacementNet
     return pair, placement, cfg
 
 
-def trained_from_artifacts(artifacts: Path) -> tuple[Trained, str]:
-    """The networks of an artifact folder as a run's ``Trained``, and a name for their re-export.
+def trained_from_artifacts(artifacts: Path, suffix: str = "recatalogued") -> tuple[Trained, str]:
+    """The networks of an artifact folder as a run's ``Trained``, and a name for their re-export
+    (the model's name with ``suffix`` in place of its graphs' hash).
 
     The stored training record of the manifest stands in for the checkpoint (step, wall time,
     validation, N): re-exporting a shipped model over another dataset (``complementme export
@@ -76,9 +77,10 @@ def trained_from_artifacts(artifacts: Path) -> tuple[Trained, str]:
                       seed=int(record.get("seed", 0)))
     state = {"step": int(record.get("steps", 0)),
              "elapsed_seconds": 60.0 * float(record.get("wall_minutes", 0.0)),
-             "validation": dict(record.get("validation", {}))}
+             "validation": dict(record.get("validation", {})),
+             **({"started_from": record["started_from"]} if record.get("started_from") else {})}
     # "shipped-s7115-f41e768a7b" -> "shipped-s7115-recatalogued": the graphs' hash is added again.
-    name = str(manifest["model_version"]).rsplit("-", 1)[0] + "-recatalogued"
+    name = str(manifest["model_version"]).rsplit("-", 1)[0] + "-" + suffix
     return Trained(config=cfg, pair=pair, placement=placement, state=state), name
 
 

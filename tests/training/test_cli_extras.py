@@ -39,6 +39,7 @@ def test_train_extra_modules_are_pyprojects_train_extra() -> None:
 @pytest.mark.parametrize(("args", "command"), [
     (["train", "--preset", "shipped", "--data", "{tmp}/data", "--run", "{tmp}/run"], "train"),
     (["export", "--run", "{tmp}/run", "--out", "{tmp}/out"], "export"),
+    (["category-head", "--run", "{tmp}/run", "--outside", "{tmp}/data"], "category-head"),
 ])
 def test_training_command_without_the_train_extra_says_so(tmp_path: Path, args: list[str],
                                                           command: str) -> None:

@@ -207,7 +207,7 @@ def evaluate_frames_command(
 
 
 def evaluate_real_command(
-    data: Path = typer.Option(Path("data/real/processed"), "--data", help=(
+    data: Path = typer.Option(Path("data/real-test/processed"), "--data", help=(
         "Processed folder of an outside collection (`data sweethome3d`, `data ingest`, `data preprocess`).")),
     artifacts: Path = typer.Option(Path("exported"), "--artifacts", help="Artifact folder."),
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for results.json."),  # noqa: UP045

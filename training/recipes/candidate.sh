@@ -2,7 +2,7 @@
 # Everything a trained candidate must show before it may replace exported/ (docs/training.md,
 # "Shipping a candidate"): its export, the committed benchmark in the shipped model's own order,
 # its leave-one-style-out twin, automatic assembly, frame fitting, the furniture nobody here made
-# (when training/recipes/real.sh has made data/real), and the service's tests on it.
+# (when training/recipes/real.sh has made data/real-test), and the service's tests on it.
 # Nothing in exported/ or docs/ is touched: every result goes under the candidate's folders.
 #
 #   RUN=runs/v3-32k LOSO_RUN=runs/v3-32k-loso training/recipes/candidate.sh
@@ -46,7 +46,7 @@ if [ -n "$LOSO_RUN" ]; then
 fi
 step assembly $CLI evaluate-assembly --artifacts "$EXP" --no-report --out "$EXP/assembly" --no-progress
 step frames $CLI evaluate-frames --artifacts "$EXP" --out "$EXP/frame-fit"
-REAL=${REAL:-data/real/processed}
+REAL=${REAL:-data/real-test/processed}
 if [ -f "$REAL/dataset.json" ]; then
     step real $CLI evaluate-real --data "$REAL" --artifacts "$EXP" --out "$EXP/real"
 fi

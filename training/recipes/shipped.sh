@@ -5,6 +5,9 @@
 # v3-h512 preset, 6,000 steps), export (f and g take 256 points, h 512); then the
 # leave-one-style-out model of the benchmark (docs/benchmark.md), trained the same three-stage
 # way on a split that holds out one style per category, and exported for evaluation only.
+# Between the two, g's category head alone is refitted with outside furniture (outside.sh:
+# Scopia's and Kator & Legaz's models from Debian's sweethome3d-furniture, which must be
+# installed) beside the training shapes (`complementme category-head`, under a minute).
 #
 #   training/recipes/shipped.sh                 # defaults below
 #   OUT=exported training/recipes/shipped.sh
@@ -31,6 +34,8 @@ LOSO_OUT=${LOSO_OUT:-runs/v3-loso-h512-exported}  # earlier stages export to <st
 SEED=${SEED:-0}
 THREADS=${THREADS:-2}
 LOG=${LOG:-runs/recipe.log}
+HEAD_DATA=${HEAD_DATA:-data/real-train}  # the outside furniture the category head is refitted on
+source "$(dirname "$0")/outside.sh"
 
 if [ ! -f "$DATA/dataset.json" ]; then
     if [ ! -d "$RAW" ]; then
@@ -45,6 +50,7 @@ for run in "$RUN" "$RUN-finetune" "$RUN-h512" "$LOSO_RUN" "$LOSO_RUN-finetune" "
         exit 2
     fi
 done
+check_furniture "$HEAD_DATA" "${HEAD_LIBRARIES[@]}"  # before hours of training, not after
 mkdir -p "$(dirname "$LOG")"
 train() {  # preset, run-folder, extra options...
     local preset=$1 run=$2 start
@@ -66,4 +72,7 @@ three_stages() {  # run-folder, export-folder, extra options...: each stage from
     "$PYTHON" -m training export --run "$run-h512" --out "$out" --n-points 256 --placement-points 512
 }
 three_stages "$RUN" "$OUT"
+outside_furniture "$HEAD_DATA" "${HEAD_LIBRARIES[@]}"
+"$PYTHON" -m training category-head --artifacts "$OUT" --run "$RUN-h512" --outside "$HEAD_DATA/processed" \
+    --out "$OUT" --seed "$SEED"
 three_stages "$LOSO_RUN" "$LOSO_OUT" --split styles
