@@ -548,8 +548,8 @@ def model_config_from_dict(data: dict[str, Any]) -> ModelConfig:
 class HeadFitSettings:
     """How g's category head is refitted on outside collections (training.category_head)."""
 
-    queries: int = 25600          # partial assemblies drawn in all (about 15 s of g's encoder)
-    outside_share: float = 0.25   # of them from the outside collections, split evenly among them
+    queries: int = 102400         # partial assemblies drawn in all (about 90 s of g's encoder)
+    outside_share: float = 0.1    # of them from the outside collections, split evenly among them
     epochs: int = 30
     batch_size: int = 256
     lr: float = 1e-3

@@ -59,7 +59,7 @@ def test_the_refit_changes_the_category_head_and_nothing_else(head_run, outside_
     out = tmp_path / "refitted"
     result = CliRunner().invoke(_app(), ["category-head", "--artifacts", str(exported), "--run", str(run),
                                          "--outside", str(outside_dir), "--out", str(out),
-                                         "--queries", "512"])
+                                         "--queries", "512", "--outside-share", "0.25"])
     assert result.exit_code == 0, result.output
     before = json.loads((exported / MANIFEST).read_text())
     after = json.loads((out / MANIFEST).read_text())
