@@ -3,12 +3,12 @@
 Why: the head is trained with f and g on the generator's shapes only, and on real furniture
 (Debian's Sweet Home 3D libraries, docs/benchmark-real) it reads 72% of the categories right
 against 100% on held-out generated shapes: desks and panel-legged tables read as sofas. Shapes of
-other makers fix that (a fine-tune of f and g with 72 of them: 0.79 on a third maker's 50), but
-a whole fine-tune also moves the retrieval, and cost 0.01-0.03 of functional mAP@5 on the
-generated benchmark. The head alone is one linear layer on g's encoder feature, so refitting it
-leaves g's mixture, f's embeddings and h exactly as they were (retrieval and placement give the
-same numbers) and changes only the category the service infers for a request that names none:
-0.77 on the same 50 (docs/training.md, "The category head on outside shapes").
+other makers fix that (a fine-tune of f and g with 72 of them: 0.79 on other makers' 50, against
+0.71), but a whole fine-tune also moves the retrieval, and cost 0.01-0.03 of functional mAP@5 on
+the generated benchmark. The head alone is one linear layer on g's encoder feature, so refitting
+it leaves g's mixture, f's embeddings and h exactly as they were (retrieval and placement give
+the same numbers) and changes only the category the service infers for a request that names
+none: 0.84 on the same 50 (docs/training.md, "The category head on outside shapes").
 
 The supervision is the collections' category folders, as in training (no part labels). Queries
 are drawn as training draws them (``TripletSampler`` with the v3 preset's removal-query and

@@ -412,7 +412,8 @@ def _write_artifacts(trained: Trained, ds: ProcessedDataset, split_of_shape: lis
         "training": {
             "steps": int(state["step"]),
             "wall_minutes": float(state.get("elapsed_seconds", 0.0)) / 60,
-            "final_losses": summary.get("final_losses", {}),
+            # Networks read back from an export keep their own record (the run gives only the split).
+            "final_losses": state.get("final_losses", summary.get("final_losses", {})),
             "validation": dict(state.get("validation", {})),
             "n_points": cfg.n_points,
             "batch_size": cfg.batch_size,

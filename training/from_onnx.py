@@ -78,6 +78,7 @@ def trained_from_artifacts(artifacts: Path, suffix: str = "recatalogued") -> tup
     state = {"step": int(record.get("steps", 0)),
              "elapsed_seconds": 60.0 * float(record.get("wall_minutes", 0.0)),
              "validation": dict(record.get("validation", {})),
+             "final_losses": dict(record.get("final_losses", {})),
              **({"started_from": record["started_from"]} if record.get("started_from") else {})}
     # "shipped-s7115-f41e768a7b" -> "shipped-s7115-recatalogued": the graphs' hash is added again.
     name = str(manifest["model_version"]).rsplit("-", 1)[0] + "-" + suffix

@@ -94,6 +94,7 @@ def test_an_exported_model_recatalogued_over_a_run_split_serves_the_same_functio
     assert manifest["model_version"].startswith(before["model_version"].rsplit("-", 1)[0] + "-recatalogued-")
     assert manifest["model_config"] == before["model_config"]
     assert manifest["training"]["steps"] == before["training"]["steps"]
+    assert manifest["training"]["final_losses"] == before["training"]["final_losses"]
     assert manifest["part_count"] == before["part_count"]
     old = np.load(exported / CATALOG_ARRAYS)["embeddings"]
     new = np.load(out / CATALOG_ARRAYS)["embeddings"]
