@@ -99,7 +99,7 @@ def refit_category_head(g: RetrievalNet, own: ProcessedDataset, outside: dict[st
         raise ValueError("the model has no category head to refit")
     if not 0.0 <= settings.outside_share < 1.0:
         raise ValueError(f"outside_share must be in [0, 1), got {settings.outside_share}")
-    for where, ds in outside.items():
+    for where, ds in {"the model's training shapes": own, **outside}.items():
         check_categories(ds, categories, where)
     rng = np.random.default_rng(settings.seed)
     per_outside = round(settings.queries * settings.outside_share / max(len(outside), 1))

@@ -221,7 +221,7 @@ def category_head_command(
 
 
 def register_training_commands(app: typer.Typer) -> None:
-    """Add `train`, `export` and `familiarity` to the root CLI."""
+    """Add `train`, `export`, `familiarity` and `category-head` to the root CLI."""
     signature = _build_train_signature()
     train_command.__signature__ = signature  # type: ignore[attr-defined]
     train_command.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
