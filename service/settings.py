@@ -236,6 +236,11 @@ class Settings(BaseSettings):
         "Frame fitting keeps the hypothesis of the smallest familiarity distance plus this many "
         "times the log of its radius over the partial's own: without it, a partial at the bottom "
         "of a room much larger than the object could look as familiar as the right frame."))
+    fit_frame_category_weight: float = Field(default=16.0, ge=0, le=100, description=(
+        "Frame fitting adds this many times the log of the category head's probability of the "
+        "query's category (the named one, else the most probable) to each hypothesis's score: a "
+        "real object's frame is the one in which it looks like its kind (0: familiarity and the "
+        "radius prior alone)."))
     fit_frame_shifts: int = Field(default=9, ge=1, le=21, description=(
         "Positions along the up axis frame fitting tries for the partial inside the complete "
         "object's room (from the bottom to the top); with each up axis and radius one query of a "

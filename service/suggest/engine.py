@@ -198,6 +198,9 @@ class SuggestResult:
     warnings: list[QueryWarning] = field(default_factory=list)
     region: RegionReport | None = None    # set when the query gave a region
     familiarity: float | None = None      # g's answer's distance to the familiarity bank (None: no check)
+    # The category head's probability of the query's category (``category_probability``; None
+    # without a head): frame fitting prefers the hypotheses in which the query looks like one.
+    category_probability: float | None = None
 
 
 @dataclass
@@ -283,6 +286,20 @@ class QueryMixture(NamedTuple):
     @classmethod
     def of(cls, mix: Mixture, b: int) -> QueryMixture:
         return cls(mix.weights[b], mix.means[b], mix.sigmas[b])
+
+
+def category_probability(probs: np.ndarray | None, names: Sequence[str],
+                         named: Sequence[str]) -> float | None:
+    """The category head's probability of a query's category: the most probable of the categories
+    it names, or of all when it names none (or none the head knows); None without a head.
+
+    Shapes:
+        probs: (C,) over ``names`` (the manifest's categories).
+    """
+    if probs is None or len(probs) != len(names) or not len(probs):
+        return None
+    rows = [i for i, name in enumerate(names) if name in named]
+    return float(np.max(probs[rows] if rows else probs))
 
 
 @dataclass
@@ -622,13 +639,19 @@ class SuggestionEngine:
             distances = self.familiarity_distances(mix.weights, mix.means)
             familiar = ({} if distances is None
                         else {q.item: float(distances[b]) for b, q in enumerate(queries)})
+            names = self.artifacts.manifest.get("categories") or []
+            kind: dict[int, float | None] = {}
             for b, q in enumerate(queries):
                 self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
                 if q.item in familiar:
                     q.warnings.extend(self._shape_warnings(familiar[q.item]))
+                probs = None if mix.category_probs is None else mix.category_probs[b]
+                kind[q.item] = category_probability(probs, names, q.options.categories)
                 if q.options.mixture_only:
-                    out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
-                                                       timer.timings)
+                    answer = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
+                                                  timer.timings)
+                    answer.category_probability = kind[q.item]
+                    out[q.item] = answer
         if len(rest) < len(queries):
             queries, mix = [queries[b] for b in rest], mix.take(rest)
             if not queries:
@@ -663,6 +686,7 @@ class SuggestionEngine:
                 answer = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b], snap,
                                      timer.timings)
                 answer.familiarity = familiar.get(q.item)
+                answer.category_probability = kind.get(q.item)
                 out[q.item] = answer
         out.update(errors)
         return [out[i] for i in range(len(items))]

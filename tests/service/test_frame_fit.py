@@ -15,12 +15,13 @@ import pytest
 import trimesh
 from fastapi.testclient import TestClient
 
-from service.artifacts.catalog import Catalog
+from service.artifacts.catalog import Catalog, split_shapes
 from service.geometry.frames import Frame
 from service.settings import Settings
-from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult
+from service.suggest.engine import SuggestionEngine, SuggestOptions, SuggestResult, category_probability
 from service.suggest.frame_fit import (
     best_frame,
+    category_probabilities_of,
     choose_frame,
     fit_frame,
     frame_hypotheses,
@@ -198,3 +199,47 @@ def test_assemble_mesh_without_a_frame_is_fitted(client: TestClient) -> None:
 def test_a_cloud_without_extent_cannot_be_fitted(client: TestClient, points: list) -> None:
     r = client.post("/suggest", json={"points": points, "fit_frame": True})
     assert r.status_code == 422 and r.json()["error"]["code"] == "frame_unfit"
+
+
+def test_the_category_term_prefers_the_frame_in_which_the_query_looks_like_its_kind() -> None:
+    frames = [Frame(radius=1.0), Frame(radius=1.0, up_axis="z")]
+    distances = np.array([1.0, 1.2])
+    assert most_familiar(frames, distances, 0.8).frame is frames[0]
+    probs = np.array([0.01, 0.9])
+    fit = most_familiar(frames, distances, 0.8, probs, category_weight=16.0)
+    assert fit.frame is frames[1]
+    assert fit.scores == pytest.approx([-1.0 + 16.0 * np.log(0.01), -1.2 + 16.0 * np.log(0.9)])
+    # Weight 0, or no head: the rule without the term; a probability of 0 is floored, not -inf.
+    assert most_familiar(frames, distances, 0.8, probs, category_weight=0.0).frame is frames[0]
+    assert most_familiar(frames, distances, 0.8, None, category_weight=16.0).frame is frames[0]
+    floored = most_familiar(frames, distances, 0.8, np.array([0.0, 0.0]), category_weight=16.0)
+    assert np.isfinite(floored.scores).all() and floored.frame is frames[0]
+
+
+def test_category_probability_reads_the_named_category_or_the_most_probable() -> None:
+    names = ["chair", "lamp", "table"]
+    probs = np.array([0.2, 0.7, 0.1])
+    assert category_probability(probs, names, ("chair",)) == pytest.approx(0.2)
+    assert category_probability(probs, names, ("chair", "table")) == pytest.approx(0.2)
+    assert category_probability(probs, names, ()) == pytest.approx(0.7)
+    assert category_probability(probs, names, ("boat",)) == pytest.approx(0.7)  # none the head knows
+    assert category_probability(None, names, ()) is None
+    assert category_probability(probs, names[:2], ()) is None  # not the head's classes
+
+
+def test_answers_carry_the_category_probability_and_the_choice_reads_it(engine: SuggestionEngine,
+                                                                        catalog: Catalog) -> None:
+    """The shipped head reads a held-out chair as a chair in its own frame and not lying on its
+    back: with the category weight, the upright frame wins even where familiarity alone is close."""
+    held_out = split_shapes(catalog, "test")
+    rows = next(r for _, r in sorted(held_out.items()) if catalog.records[r[0]]["category"] == "chair")
+    pts = np.concatenate([catalog.part_points(i) + catalog.translations[i] for i in rows[1:]])
+    frames = [Frame(), Frame(up_axis="z")]
+    answers = engine.suggest_batch(scoring_queries(frames, pts, SuggestOptions(categories=("chair",)),
+                                                   mixture_only=True))
+    probs = category_probabilities_of(answers)
+    assert probs is not None and probs[0] > 0.5 > probs[1]
+    unnamed = engine.suggest_batch([(pts, SuggestOptions(k=1))])[0]
+    assert isinstance(unnamed, SuggestResult) and unnamed.inferred_category is not None
+    assert unnamed.category_probability == pytest.approx(unnamed.inferred_category.confidence, abs=1e-6)
+    assert choose_frame(frames, answers, 0.8, category_weight=16.0).frame is frames[0]

@@ -8,7 +8,11 @@ from the same scores:
 
 - ``likelihood``: the best suggestion's mixture log-likelihood (no familiarity bank);
 - ``familiarity``: the familiarity distance alone (radius prior 0);
-- ``shipped``: the familiarity distance plus the settings' radius prior (what the service does).
+- ``radius prior``: the familiarity distance plus the settings' radius prior (the rule shipped
+  before the category term);
+- ``shipped``: that, plus the settings' category weight times the log of the category head's
+  probability of the query's most probable category (what the service does; no category is
+  named here).
 
 A fit is *good* when its up axis is right, its radius within 25% and its centre within 0.3 of the
 true radius. The rates go to ``results.json`` and are printed as a Markdown table.
@@ -31,13 +35,14 @@ from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import (
     UP_AXES,
     best_frame,
+    category_probabilities_of,
     familiarity_of,
     hypotheses_of,
     most_familiar,
     scoring_queries,
 )
 
-RULES = ("likelihood", "familiarity", "shipped")
+RULES = ("likelihood", "familiarity", "radius prior", "shipped")
 SETS = ("one part missing", "one kind missing")
 
 
@@ -112,7 +117,10 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
                 raise ValueError(f"{cfg.artifacts} has no familiarity bank: run `complementme familiarity`")
             picks = {"likelihood": best_frame(frames, answers),
                      "familiarity": most_familiar(frames, distances, 0.0),
-                     "shipped": most_familiar(frames, distances, settings.fit_frame_radius_prior)}
+                     "radius prior": most_familiar(frames, distances, settings.fit_frame_radius_prior),
+                     "shipped": most_familiar(frames, distances, settings.fit_frame_radius_prior,
+                                              category_probabilities_of(answers),
+                                              settings.fit_frame_category_weight)}
             for rule, fit in picks.items():
                 counts[rule] += good_frame(fit.frame, true)
         results[name] = {rule: {"up_axis_right": round(float(c[0]) / max(len(clouds), 1), 3),
@@ -121,6 +129,7 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
         results[name]["shapes"] = len(clouds)
     report = {"artifacts": str(cfg.artifacts), "model_version": engine.model_version, "split": cfg.split,
               "seed": cfg.seed, "radius_prior": settings.fit_frame_radius_prior,
+              "category_weight": settings.fit_frame_category_weight,
               "hypotheses": (f"{settings.fit_frame_ratios} radii x {settings.fit_frame_shifts} shifts x "
                              f"{len(UP_AXES)} up axes"),
               "results": results}

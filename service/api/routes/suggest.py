@@ -102,7 +102,9 @@ async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, fr
     if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
     answers = await served.suggest_many(queries, ticket, deadline)
-    return replace(options, frame=choose_frame(frames, answers, served.settings.fit_frame_radius_prior).frame)
+    fit = choose_frame(frames, answers, served.settings.fit_frame_radius_prior,
+                       served.settings.fit_frame_category_weight)
+    return replace(options, frame=fit.frame)
 
 
 _suggest_upload = mesh_upload_dependency(
