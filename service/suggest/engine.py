@@ -642,11 +642,11 @@ class SuggestionEngine:
             names = self.artifacts.manifest.get("categories") or []
             kind: dict[int, float | None] = {}
             for b, q in enumerate(queries):
-                self.infer_category(q, None if mix.category_probs is None else mix.category_probs[b], snap)
+                probs = None if mix.category_probs is None else mix.category_probs[b]
+                self.infer_category(q, probs, snap)
+                kind[q.item] = category_probability(probs, names, q.options.categories)
                 if q.item in familiar:
                     q.warnings.extend(self._shape_warnings(familiar[q.item]))
-                probs = None if mix.category_probs is None else mix.category_probs[b]
-                kind[q.item] = category_probability(probs, names, q.options.categories)
                 if q.options.mixture_only:
                     answer = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
                                                   timer.timings)
