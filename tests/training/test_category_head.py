@@ -146,7 +146,7 @@ def test_the_recipes_refuse_missing_furniture_libraries_by_name(tmp_path: Path) 
     sides of outside.sh's split never overlap."""
     done = _outside_sh('check_furniture data/none "${HEAD_LIBRARIES[@]}"', tmp_path)
     assert done.returncode == 2
-    assert f"{tmp_path}/Scopia.sh3f is missing: apt-get install -y sweethome3d-furniture" in done.stderr
+    assert f"{tmp_path}/Scopia.sh3f is missing" in done.stderr and "sweethome3d-furniture" in done.stderr
     for name in ("Scopia", "KatorLegaz"):
         (tmp_path / f"{name}.sh3f").write_bytes(b"")
     assert _outside_sh('check_furniture data/none "${HEAD_LIBRARIES[@]}"', tmp_path).returncode == 0
