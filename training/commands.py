@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import json
 import logging
 from pathlib import Path
 from typing import Any
 
 import typer
 
-from service.artifacts.layout import MANIFEST
+from service.artifacts.layout import ArtifactError, read_manifest
 from training.config import PRESETS, HeadFitSettings, ModelConfig, TrainConfig, field_types
 
 log = logging.getLogger(__name__)
@@ -205,7 +204,7 @@ def category_head_command(
     settings = HeadFitSettings(queries=queries, outside_share=outside_share, seed=seed)
     try:
         torch.manual_seed(seed)
-        manifest = json.loads((artifacts / MANIFEST).read_text())
+        manifest = read_manifest(artifacts)
         trained, name = trained_from_artifacts(artifacts, suffix="head")
         own = ProcessedDataset.load(data if data is not None else Path(load_trained_config(run).data))
         split = load_split(run, own)
@@ -214,7 +213,7 @@ def category_head_command(
                                      list(manifest.get("categories", own.categories())), settings)
         trained.state["category_head"] = report
         written = export_run(run, out, data=data, options=options_of(manifest), networks=(trained, name))
-    except (ValueError, FileNotFoundError, KeyError) as exc:
+    except (ValueError, FileNotFoundError, KeyError, ArtifactError) as exc:
         raise _fail(exc) from exc
     log.info("category head: %s", report)
     log.info("wrote %s (model %s)", out, written["model_version"])

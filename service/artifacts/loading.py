@@ -120,6 +120,11 @@ class Artifacts:
         return int(self.manifest["n_modes"])
 
     @property
+    def head_categories(self) -> list[str]:
+        """The classes of g's ``category_probs`` output, in order (empty without a category head)."""
+        return [str(c) for c in self.manifest.get("categories") or []]
+
+    @property
     def embedding_dim(self) -> int:
         return int(self.manifest["embedding_dim"])
 

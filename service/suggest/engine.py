@@ -485,7 +485,7 @@ class SuggestionEngine:
             probs: (C,) over the manifest's categories, or None without a head.
         """
         c, cat = self.config, snap.catalog
-        names = self.artifacts.manifest.get("categories") or []
+        names = self.artifacts.head_categories
         if probs is None or q.options.categories or not c.infer_category or len(names) != len(probs):
             return
         best = int(np.argmax(probs))
@@ -639,12 +639,12 @@ class SuggestionEngine:
             distances = self.familiarity_distances(mix.weights, mix.means)
             familiar = ({} if distances is None
                         else {q.item: float(distances[b]) for b, q in enumerate(queries)})
-            names = self.artifacts.manifest.get("categories") or []
             kind: dict[int, float | None] = {}
             for b, q in enumerate(queries):
                 probs = None if mix.category_probs is None else mix.category_probs[b]
                 self.infer_category(q, probs, snap)
-                kind[q.item] = category_probability(probs, names, q.options.categories)
+                kind[q.item] = category_probability(probs, self.artifacts.head_categories,
+                                                    q.options.categories)
                 if q.item in familiar:
                     q.warnings.extend(self._shape_warnings(familiar[q.item]))
                 if q.options.mixture_only:

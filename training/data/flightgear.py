@@ -17,14 +17,14 @@ breaks either is refused with its name and line.
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-SOURCES_FILE = "sources.json"
+from training.data.shape_io import write_sources
+
 MAX_DEPTH = 32
 # Objects by these names are not parts of the plane.
 _SKIPPED = re.compile(r"light|shadow|glass|window|strobe|beacon|prop.*disc", re.IGNORECASE)
@@ -180,5 +180,5 @@ def export_aircraft(root: Path, out: Path, min_objects: int = 3) -> tuple[int, l
         (folder / f"fg-{slug}.obj").write_text(canonical_obj(parts))
         sources.append({"file": f"airplane/fg-{slug}.obj", "source": str(path.relative_to(root)),
                         "objects": len(parts)})
-    (out / SOURCES_FILE).write_text(json.dumps(sources, indent=1) + "\n")
+    write_sources(out, sources)
     return len(sources), skipped

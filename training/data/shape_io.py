@@ -18,6 +18,10 @@ import trimesh
 
 from training.data.shapes import SIDECAR_SUFFIX, RawPiece, RawShape
 
+# An outside collection's attribution list (``data sweethome3d``, ``data flightgear``): one entry
+# per file written, naming where it came from.
+SOURCES_FILE = "sources.json"
+
 # Max vertex error (shape units, radius 1) for a piece to be written as an instance of another.
 INSTANCE_TOLERANCE = 1e-6
 
@@ -116,3 +120,10 @@ def save_shape(shape: RawShape, folder: Path) -> Path:
     meta = json.dumps(sidecar(shape), sort_keys=True, indent=1) + "\n"
     _write_atomic(folder / f"{shape.shape_id}{SIDECAR_SUFFIX}", meta.encode())
     return glb
+
+
+def write_sources(out: Path, sources: list[dict]) -> Path:
+    """Write an outside collection's ``SOURCES_FILE`` into ``out``; returns its path."""
+    path = out / SOURCES_FILE
+    path.write_text(json.dumps(sources, indent=1) + "\n")
+    return path

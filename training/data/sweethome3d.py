@@ -21,7 +21,6 @@ The zip is read as untrusted input: only entries the catalog names are read, eac
 
 from __future__ import annotations
 
-import json
 import re
 import zipfile
 from collections import Counter
@@ -31,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from training.data.shape_io import write_sources
+
 CATALOG_ENTRY = "PluginFurnitureCatalog.properties"
-SOURCES_FILE = "sources.json"
 
 # Our categories by the words of a model's name, checked in this order. Names that hold one of the
 # EXCLUDED words are other objects that share a word (a table fan, a street lamp, a wheelchair).
@@ -180,5 +180,5 @@ def export_library(paths: list[Path], out: Path, max_entry_bytes: int = 64 * 102
                 sources.append({"file": f"{model.category}/{model.slug}.obj", "library": model.library,
                                 "name": model.name, "creator": model.creator})
     out.mkdir(parents=True, exist_ok=True)
-    (out / SOURCES_FILE).write_text(json.dumps(sources, indent=1) + "\n")
+    write_sources(out, sources)
     return counts
