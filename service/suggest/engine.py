@@ -648,10 +648,8 @@ class SuggestionEngine:
                 if q.item in familiar:
                     q.warnings.extend(self._shape_warnings(familiar[q.item]))
                 if q.options.mixture_only:
-                    answer = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
-                                                  timer.timings)
-                    answer.category_probability = kind[q.item]
-                    out[q.item] = answer
+                    out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
+                                                       kind[q.item], timer.timings)
         if len(rest) < len(queries):
             queries, mix = [queries[b] for b in rest], mix.take(rest)
             if not queries:
@@ -693,12 +691,14 @@ class SuggestionEngine:
 
     @staticmethod
     def _mixture_answer(q: Query, mix: QueryMixture, familiarity: float | None,
-                        timings: dict[str, float]) -> SuggestResult:
-        """The answer to a mixture-only query: g's modes (and the familiarity distance), no suggestions."""
+                        category_probability: float | None, timings: dict[str, float]) -> SuggestResult:
+        """The answer to a mixture-only query: g's modes (with the familiarity distance and the
+        category head's probability), no suggestions."""
         return SuggestResult(suggestions=[], mode_weights=mix.weights, frame=q.options.frame,
                              n_input_points=q.n_input, candidates=0, timings=timings,
                              mode_means=mix.means, mode_sigmas=mix.sigmas, inferred_category=q.inferred,
-                             warnings=q.warnings, familiarity=familiarity)
+                             warnings=q.warnings, familiarity=familiarity,
+                             category_probability=category_probability)
 
     def place_ranked(self, query_features: np.ndarray, ranked: dict[int, Ranked], snap: CatalogSnapshot
                      ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
