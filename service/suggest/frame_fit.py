@@ -194,6 +194,13 @@ def choose_frame(frames: Sequence[Frame], results: Sequence[SuggestResult | Serv
     return most_familiar(frames, distances, radius_prior, category_probabilities_of(results), category_weight)
 
 
+def chosen_frame(settings: Settings, frames: Sequence[Frame],
+                 results: Sequence[SuggestResult | ServiceError]) -> FrameFit:
+    """``choose_frame`` as the service chooses: with the settings' radius prior
+    (``fit_frame_radius_prior``) and category weight (``fit_frame_category_weight``)."""
+    return choose_frame(frames, results, settings.fit_frame_radius_prior, settings.fit_frame_category_weight)
+
+
 def category_probabilities_of(results: Sequence[SuggestResult | ServiceError]) -> np.ndarray | None:
     """Each answer's category probability (``CATEGORY_FLOOR`` where its query failed); None when
     no answer carries one (the model has no category head).
@@ -228,7 +235,7 @@ def fit_frame(engine: SuggestionEngine, settings: Settings, points: np.ndarray, 
     if not frames:
         return FrameFit(frame=options.frame, score=-np.inf, hypotheses=0)
     answers = engine.suggest_batch(queries, snapshot=snapshot)
-    return choose_frame(frames, answers, settings.fit_frame_radius_prior, settings.fit_frame_category_weight)
+    return chosen_frame(settings, frames, answers)
 
 
 def _ratios(max_ratio: float, n: int) -> list[float]:

@@ -35,7 +35,7 @@ from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.frame_fit import (
     UP_AXES,
     best_frame,
-    choose_frame,
+    chosen_frame,
     familiarity_of,
     hypotheses_of,
     most_familiar,
@@ -118,8 +118,7 @@ def run_frame_evaluation(cfg: FrameEvalSettings) -> dict[str, Any]:
             picks = {"likelihood": best_frame(frames, answers),
                      "familiarity": most_familiar(frames, distances, 0.0),
                      "radius prior": most_familiar(frames, distances, settings.fit_frame_radius_prior),
-                     "shipped": choose_frame(frames, answers, settings.fit_frame_radius_prior,
-                                             settings.fit_frame_category_weight)}
+                     "shipped": chosen_frame(settings, frames, answers)}
             for rule, fit in picks.items():
                 counts[rule] += good_frame(fit.frame, true)
         results[name] = {rule: {"up_axis_right": round(float(c[0]) / max(len(clouds), 1), 3),

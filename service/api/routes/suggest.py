@@ -45,7 +45,7 @@ from service.api.schemas import (
 from service.api.served import Served
 from service.errors import InputError, ServiceError
 from service.suggest.engine import SuggestionEngine, SuggestOptions
-from service.suggest.frame_fit import choose_frame, fit_queries, fit_requested, up_axes_for
+from service.suggest.frame_fit import chosen_frame, fit_queries, fit_requested, up_axes_for
 from service.suggest.region import Region
 
 # Stands for any region in a cost estimate (the cost does not depend on where the region is).
@@ -102,8 +102,7 @@ async def fitted(served: Served, points: np.ndarray, options: SuggestOptions, fr
     if not frames:
         raise InputError("frame_unfit", "the points have no extent: no frame can be fitted to them")
     answers = await served.suggest_many(queries, ticket, deadline)
-    fit = choose_frame(frames, answers, served.settings.fit_frame_radius_prior,
-                       served.settings.fit_frame_category_weight)
+    fit = chosen_frame(served.settings, frames, answers)
     return replace(options, frame=fit.frame)
 
 
