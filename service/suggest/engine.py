@@ -318,6 +318,7 @@ class Query:
     warnings: list[QueryWarning] = field(default_factory=list)
     region: Region | None = None       # the request's region in the canonical frame
     region_report: RegionReport | None = None
+    familiarity: float | None = None   # g's answer's distance to the training bank (None: no bank)
 
 
 class StageTimer:
@@ -646,7 +647,8 @@ class SuggestionEngine:
                 kind[q.item] = category_probability(probs, self.artifacts.head_categories,
                                                     q.options.categories)
                 if q.item in familiar:
-                    q.warnings.extend(self._shape_warnings(familiar[q.item]))
+                    q.familiarity = familiar[q.item]
+                    q.warnings.extend(self._shape_warnings(q.familiarity))
                 if q.options.mixture_only:
                     out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
                                                        kind[q.item], timer.timings)
@@ -928,7 +930,7 @@ class SuggestionEngine:
             embeddings; sigmas: (K, D) g's standard deviations (None: no spread) -> (C,) int64.
         """
         c = self.config
-        if q.options.preferences.diversity:
+        if q.options.preferences.diversity or self._hedges(q):
             return diverse_order(modes, w, c.diversity_min_mode_weight)
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
@@ -936,6 +938,19 @@ class SuggestionEngine:
             return spread_share_order(modes, w, emb, sigmas, q.k, c.share_min_mode_weight, c.share_order_head,
                                       c.share_spread_sigmas)
         return np.arange(len(modes))
+
+    def _hedges(self, q: Query) -> bool:
+        """Whether a query is answered as the diversity gallery because g does not know its shape
+        (``unfamiliar_diversity``): far enough from the training bank and no region (a spot
+        already names the kind of part wanted)."""
+        return q.region is None and q.familiarity is not None and self._guessing(q.familiarity)
+
+    def _guessing(self, distance: float) -> bool:
+        """Whether a familiarity distance is far enough past the threshold for the answer to come
+        as the diversity gallery (``unfamiliar_diversity``, ``unfamiliar_diversity_ratio``)."""
+        c = self.config
+        return (c.unfamiliar_diversity and self.familiarity is not None
+                and distance > c.unfamiliar_diversity_ratio * self.familiarity.threshold)
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
@@ -1022,11 +1037,13 @@ class SuggestionEngine:
         limit = self.familiarity.threshold
         if distance <= limit:
             return []
+        spread = (" (the suggestions come one of each kind g proposes, as a `diversity` gallery, unless "
+                  "a region is given)" if self._guessing(distance) else "")
         return [QueryWarning("unfamiliar_shape", (
             f"g's answer for this partial assembly lies {distance:.2f} from its nearest answer for a "
             f"training shape (threshold {limit:.2f}): the shape is unlike anything the model was trained "
-            "on, so the inferred category and the suggestions are guesses; if it is of a known kind, "
-            "check the frame (frame.radius, frame.center, frame.up) or name the category"))]
+            f"on, so the inferred category and the suggestions are guesses{spread}; if it is of a known "
+            "kind, check the frame (frame.radius, frame.center, frame.up) or name the category"))]
 
     def _mode_distance_warnings(self, ranked: Ranked, means: np.ndarray, sigmas: np.ndarray,
                               catalog: Catalog) -> list[QueryWarning]:

@@ -43,6 +43,8 @@ class EngineSettings(BaseModel):
     share_order_head: int
     share_spread_sigmas: float
     diversity_min_mode_weight: float
+    unfamiliar_diversity: bool
+    unfamiliar_diversity_ratio: float
     rank_scale_weight: float
     rank_move_weight: float
     # placement, the complement check and regions

@@ -7,6 +7,8 @@ are never read: the partial assemblies are random part subsets of held-out shape
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -16,6 +18,8 @@ from service.artifacts.catalog import Catalog, partial_assembly_bank
 from service.settings import Settings
 from service.suggest.engine import SuggestionEngine, SuggestOptions
 from service.suggest.familiarity import FamiliarityCheck, Projection, calibrate_threshold, mixture_descriptor
+from service.suggest.preferences import Preferences
+from service.suggest.region import Region
 
 
 def test_descriptor_is_means_then_log_weights():
@@ -123,3 +127,37 @@ def test_the_check_can_be_turned_off_or_loosened(engine: SuggestionEngine, setti
     loose = SuggestionEngine(engine.artifacts, settings.model_copy(update={"familiarity_threshold": 1e3}))
     assert loose.familiarity is not None and loose.familiarity.threshold == 1e3
     assert not any(w.code == "unfamiliar_shape" for w in loose.suggest(torus, options).warnings)
+
+
+def test_an_unfamiliar_shape_can_be_answered_one_part_of_each_kind(engine: SuggestionEngine,
+                                                                   settings: Settings, catalog: Catalog):
+    """``unfamiliar_diversity`` (off by default): a query far past the familiarity threshold is
+    answered as the diversity gallery it could have asked for, one part of each of g's modes
+    first, rather than several of the kind g rates first; a familiar query, and a warned one
+    that names a spot, keep their order."""
+    torus = np.asarray(trimesh.creation.torus(0.6, 0.15).sample(1500), np.float32)
+    options = SuggestOptions(k=5, refine_contact=False)
+    assert not settings.unfamiliar_diversity
+    hedging = SuggestionEngine(engine.artifacts, settings.model_copy(update={"unfamiliar_diversity": True}))
+
+    def ids(points: np.ndarray, opts: SuggestOptions, eng: SuggestionEngine = hedging) -> list[str]:
+        return [s.part_id for s in eng.suggest(points, opts).suggestions]
+
+    hedged = hedging.suggest(torus, options)
+    warning = next(w for w in hedged.warnings if w.code == "unfamiliar_shape")
+    assert "diversity" in warning.message
+    asked = replace(options, preferences=Preferences(diversity=True))
+    assert ids(torus, options) == ids(torus, asked, engine)
+    as_ordered = engine.suggest(torus, options)
+    assert [s.part_id for s in hedged.suggestions] != [s.part_id for s in as_ordered.suggestions]
+    assert len({s.mode for s in hedged.suggestions}) > len({s.mode for s in as_ordered.suggestions})
+    assert "diversity" not in next(w for w in as_ordered.warnings if w.code == "unfamiliar_shape").message
+    # Only far enough past the threshold (``unfamiliar_diversity_ratio``): a torus is far past it.
+    near = SuggestionEngine(engine.artifacts, settings.model_copy(
+        update={"unfamiliar_diversity": True, "unfamiliar_diversity_ratio": 1e6}))
+    assert ids(torus, options, near) == ids(torus, options, engine)
+    spot = replace(options, region=Region.ball(np.array([0.0, -0.3, 0.0]), 0.4))
+    assert ids(torus, spot) == ids(torus, spot, engine)
+    clouds, _ = partial_assembly_bank(catalog, 1, 1024, seed=11, split="test")
+    for cloud in clouds[:5]:
+        assert ids(cloud, options) == ids(cloud, options, engine)
