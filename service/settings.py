@@ -276,16 +276,16 @@ class Settings(BaseSettings):
         "parts and of 648 held-out partial assemblies, and 55% of 33 shapes of no known category "
         "lie past it)."))
     unfamiliar_diversity: bool = Field(default=False, description=(
-        "When true, a query whose g answer lies further than `unfamiliar_diversity_ratio` times "
-        "the familiarity threshold from the training bank (so it gets the `unfamiliar_shape` "
-        "warning, `familiarity_check`) and that gives no `region` is answered as the `diversity` "
-        "gallery (round-robin over g's modes by weight) instead of in `suggest_order`: where the "
-        "model is guessing, one part of each kind it proposes than several of the kind it rates "
-        "first. Off by default because the two benchmarks disagree (docs/training.md, "
-        "\"Unfamiliar shapes\"): on furniture and airplanes nobody here made the best of the top "
-        "5 as placed comes closer to the component taken away (0.230 against 0.242 and 0.334 "
-        "against 0.357; five random parts: 0.216 and 0.263), on the generator's held-out shapes "
-        "functional mAP@5 falls from 0.922 to 0.916, and to 0.642 against 0.707 with every "
+        "When true, a query whose g answer lies further than `unfamiliar_diversity_ratio` times the "
+        "familiarity threshold from the training bank (so it gets the `unfamiliar_shape` warning, "
+        "`familiarity_check`) and that gives no `region` is answered as the `diversity` gallery "
+        "(round-robin over g's modes by weight) instead of in `suggest_order`: where the model is "
+        "guessing, one part of each kind it proposes lies closer to what is missing than several of "
+        "the kind it rates first. Off by default because the two benchmarks disagree "
+        "(docs/training.md, \"Unfamiliar shapes\"): on furniture and airplanes nobody here made the "
+        "best of the top 5 as placed comes closer to the component taken away (0.230 against 0.242 "
+        "and 0.334 against 0.357; five random parts: 0.216 and 0.263), on the generator's held-out "
+        "shapes functional mAP@5 falls from 0.922 to 0.916, and to 0.642 against 0.707 with every "
         "perturbation of the robustness table at once. Turn it on for collections unlike the "
         "generator's."))
     unfamiliar_diversity_ratio: float = Field(default=1.1, ge=1, description=(

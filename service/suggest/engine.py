@@ -638,20 +638,18 @@ class SuggestionEngine:
         with timer.stage("g"):
             mix = self.networks.mixture(everything)
             distances = self.familiarity_distances(mix.weights, mix.means)
-            familiar = ({} if distances is None
-                        else {q.item: float(distances[b]) for b, q in enumerate(queries)})
             kind: dict[int, float | None] = {}
             for b, q in enumerate(queries):
                 probs = None if mix.category_probs is None else mix.category_probs[b]
                 self.infer_category(q, probs, snap)
                 kind[q.item] = category_probability(probs, self.artifacts.head_categories,
                                                     q.options.categories)
-                if q.item in familiar:
-                    q.familiarity = familiar[q.item]
+                if distances is not None:
+                    q.familiarity = float(distances[b])
                     q.warnings.extend(self._shape_warnings(q.familiarity))
                 if q.options.mixture_only:
-                    out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), familiar.get(q.item),
-                                                       kind[q.item], timer.timings)
+                    out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), kind[q.item],
+                                                       timer.timings)
         if len(rest) < len(queries):
             queries, mix = [queries[b] for b in rest], mix.take(rest)
             if not queries:
@@ -685,21 +683,21 @@ class SuggestionEngine:
             with _own_error(q, errors):
                 answer = self.answer(q, placed[b], off, QueryMixture.of(mix, b), ranked[b], snap,
                                      timer.timings)
-                answer.familiarity = familiar.get(q.item)
+                answer.familiarity = q.familiarity
                 answer.category_probability = kind.get(q.item)
                 out[q.item] = answer
         out.update(errors)
         return [out[i] for i in range(len(items))]
 
     @staticmethod
-    def _mixture_answer(q: Query, mix: QueryMixture, familiarity: float | None,
-                        category_probability: float | None, timings: dict[str, float]) -> SuggestResult:
+    def _mixture_answer(q: Query, mix: QueryMixture, category_probability: float | None,
+                        timings: dict[str, float]) -> SuggestResult:
         """The answer to a mixture-only query: g's modes (with the familiarity distance and the
         category head's probability), no suggestions."""
         return SuggestResult(suggestions=[], mode_weights=mix.weights, frame=q.options.frame,
                              n_input_points=q.n_input, candidates=0, timings=timings,
                              mode_means=mix.means, mode_sigmas=mix.sigmas, inferred_category=q.inferred,
-                             warnings=q.warnings, familiarity=familiarity,
+                             warnings=q.warnings, familiarity=q.familiarity,
                              category_probability=category_probability)
 
     def place_ranked(self, query_features: np.ndarray, ranked: dict[int, Ranked], snap: CatalogSnapshot
