@@ -646,7 +646,7 @@ class SuggestionEngine:
                                                     q.options.categories)
                 if distances is not None:
                     q.familiarity = float(distances[b])
-                    q.warnings.extend(self._shape_warnings(q.familiarity))
+                    q.warnings.extend(self._shape_warnings(q.familiarity, self._hedges(q)))
                 if q.options.mixture_only:
                     out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), kind[q.item],
                                                        timer.timings)
@@ -939,16 +939,12 @@ class SuggestionEngine:
 
     def _hedges(self, q: Query) -> bool:
         """Whether a query is answered as the diversity gallery because g does not know its shape
-        (``unfamiliar_diversity``): far enough from the training bank and no region (a spot
-        already names the kind of part wanted)."""
-        return q.region is None and q.familiarity is not None and self._guessing(q.familiarity)
-
-    def _guessing(self, distance: float) -> bool:
-        """Whether a familiarity distance is far enough past the threshold for the answer to come
-        as the diversity gallery (``unfamiliar_diversity``, ``unfamiliar_diversity_ratio``)."""
+        (``unfamiliar_diversity``): its familiarity distance past ``unfamiliar_diversity_ratio``
+        times the threshold, and no region (a spot already names the kind of part wanted)."""
         c = self.config
-        return (c.unfamiliar_diversity and self.familiarity is not None
-                and distance > c.unfamiliar_diversity_ratio * self.familiarity.threshold)
+        return (c.unfamiliar_diversity and q.region is None and q.familiarity is not None
+                and self.familiarity is not None
+                and q.familiarity > c.unfamiliar_diversity_ratio * self.familiarity.threshold)
 
     def _in_region(self, q: Query, placed: Placed, snap: CatalogSnapshot) -> np.ndarray:
         """Which placed candidates reach into the query's region; records the query's region report.
@@ -1029,14 +1025,15 @@ class SuggestionEngine:
             return None
         return self.familiarity.distances(mixture_descriptor(weights, means))
 
-    def _shape_warnings(self, distance: float) -> list[QueryWarning]:
-        """An ``unfamiliar_shape`` warning when g's answer is unlike its answers for training shapes."""
+    def _shape_warnings(self, distance: float, hedged: bool) -> list[QueryWarning]:
+        """An ``unfamiliar_shape`` warning when g's answer is unlike its answers for training shapes;
+        ``hedged``: the answer comes as the diversity gallery (``_hedges``), which it then says."""
         assert self.familiarity is not None
         limit = self.familiarity.threshold
         if distance <= limit:
             return []
-        spread = (" (the suggestions come one of each kind g proposes, as a `diversity` gallery, unless "
-                  "a region is given)" if self._guessing(distance) else "")
+        spread = (" (the suggestions come one of each kind g proposes, as a `diversity` gallery)"
+                  if hedged else "")
         return [QueryWarning("unfamiliar_shape", (
             f"g's answer for this partial assembly lies {distance:.2f} from its nearest answer for a "
             f"training shape (threshold {limit:.2f}): the shape is unlike anything the model was trained "

@@ -158,6 +158,8 @@ def test_an_unfamiliar_shape_can_be_answered_one_part_of_each_kind(engine: Sugge
     assert ids(torus, options, near) == ids(torus, options, engine)
     spot = replace(options, region=Region.ball(np.array([0.0, -0.3, 0.0]), 0.4))
     assert ids(torus, spot) == ids(torus, spot, engine)
+    spotted = next(w for w in hedging.suggest(torus, spot).warnings if w.code == "unfamiliar_shape")
+    assert "diversity" not in spotted.message
     clouds, _ = partial_assembly_bank(catalog, 1, 1024, seed=11, split="test")
     for cloud in clouds[:5]:
         assert ids(cloud, options) == ids(cloud, options, engine)
