@@ -646,7 +646,11 @@ class SuggestionEngine:
                                                     q.options.categories)
                 if distances is not None:
                     q.familiarity = float(distances[b])
-                    q.warnings.extend(self._shape_warnings(q.familiarity, self._hedges(q)))
+                    hedged = self._hedges(q)
+                    if hedged:  # answered as the caller's own `diversity` request would be
+                        q.options = replace(q.options, preferences=replace(q.options.preferences,
+                                                                           diversity=True))
+                    q.warnings.extend(self._shape_warnings(q.familiarity, hedged))
                 if q.options.mixture_only:
                     out[q.item] = self._mixture_answer(q, QueryMixture.of(mix, b), kind[q.item],
                                                        timer.timings)
@@ -928,7 +932,7 @@ class SuggestionEngine:
             embeddings; sigmas: (K, D) g's standard deviations (None: no spread) -> (C,) int64.
         """
         c = self.config
-        if q.options.preferences.diversity or self._hedges(q):
+        if q.options.preferences.diversity:
             return diverse_order(modes, w, c.diversity_min_mode_weight)
         # A region already names the kind of part the caller wants (what goes at that spot): its
         # parts come in likelihood order, not dealt to the other kinds g expects elsewhere.
